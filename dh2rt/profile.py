@@ -1,0 +1,162 @@
+"""Topology profiles: a robot's connectors, their genders, and the topological types.
+
+A module's local topology is its ConnectorStatus: for each of its connectors, 0 when nothing
+is linked there, else the index of the remote connector it is linked to (the paper's
+``ConnectorStatus[x] = y``). A *profile* is data: the connector names and genders, which
+status tuples are legal, and which topological type (name and the paper's T-number alias)
+each legal tuple has. Several tuples may share a type.
+
+The CONRO profile is this project's scheme; the paper's full table of types is not published.
+It agrees with every example the paper gives:
+
+* connectors ``front`` (female, active latch), ``back``, ``left``, ``right`` (male); only
+  male-female links exist, so ``front`` is one of {0, back, left, right} and each of
+  ``back``/``left``/``right`` is one of {0, front}: 32 local topologies;
+* a snake links each module's ``back`` to the next module's ``front``; a leg hangs by its
+  ``front`` from a spine module's ``left`` or ``right``;
+* head T1 = (0, front, 0, 0), and a lone module (0, 0, 0, 0) is a head too, so a snake of one
+  runs; tail T2 = (back, 0, 0, 0); body T16 = (back, front, 0, 0); left foot T5 =
+  (left, 0, 0, 0); right foot T6 = (right, 0, 0, 0); spine types for legged robots; every
+  other tuple gets a systematic name ``t_`` + one letter per connector (``0`` or the first
+  letter of the remote connector), e.g. ``t_lf00``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from dh2rt.errors import TopologyError
+
+#: Status value meaning "nothing linked at this connector".
+NONE = 0
+
+
+@dataclass(frozen=True, slots=True)
+class TopoType:
+    """A topological type: its index in the profile, name, optional T-number alias, tuples."""
+
+    index: int
+    name: str
+    alias: int | None
+    statuses: frozenset[tuple[int, ...]]
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Connectors, genders and topological types of one kind of module.
+
+    Connector indices start at 1 so that 0 can mean "not linked", as in the paper.
+    """
+
+    name: str
+    connectors: tuple[str, ...]
+    genders: tuple[str, ...]
+    types: tuple[TopoType, ...]
+    type_of_status: Mapping[tuple[int, ...], int] = field(repr=False)
+
+    @property
+    def connector_count(self) -> int:
+        return len(self.connectors)
+
+    def connector_index(self, name: str) -> int:
+        """Index (1-based) of a connector by name; raises KeyError for an unknown name."""
+        return self.connectors.index(name) + 1
+
+    def connector_name(self, index: int) -> str:
+        return "0" if index == NONE else self.connectors[index - 1]
+
+    def gender(self, index: int) -> str:
+        return self.genders[index - 1]
+
+    def can_link(self, a: int, b: int) -> bool:
+        """Whether connector ``a`` of one module may link to connector ``b`` of another."""
+        return self.gender(a) != self.gender(b)
+
+    def type_by_name(self, name: str) -> TopoType | None:
+        """A type by name, or by its alias written ``T<number>``."""
+        for t in self.types:
+            if t.name == name or (t.alias is not None and name == f"T{t.alias}"):
+                return t
+        return None
+
+    def type_of(self, status: Sequence[int]) -> TopoType:
+        """The type of a ConnectorStatus tuple (index 0 of ``status`` is connector 1)."""
+        key = tuple(status)
+        try:
+            return self.types[self.type_of_status[key]]
+        except KeyError:
+            raise TopologyError(f"status {self.describe(key)} is not legal in profile {self.name}")
+
+    def describe(self, status: Sequence[int]) -> str:
+        parts = (f"{c}={self.connector_name(s)}" for c, s in zip(self.connectors, status, strict=True))
+        return "{" + ", ".join(parts) + "}"
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Profile:
+        """Build a profile from plain data (e.g. a parsed TOML table).
+
+        ``connectors`` is a table name -> gender; ``types`` a list of tables with ``name``,
+        optional ``alias`` and ``statuses`` (lists of remote connector names or "0", one entry
+        per connector in declaration order). Legal tuples no type names get systematic names.
+        """
+        try:
+            conn_table = dict(data["connectors"])
+            name = str(data.get("name", "custom"))
+            type_rows = list(data.get("types", []))
+        except (KeyError, TypeError) as exc:
+            raise TopologyError(f"profile: missing or malformed field: {exc}") from None
+        connectors = tuple(conn_table)
+        genders = tuple(str(g) for g in conn_table.values())
+        index = {c: i + 1 for i, c in enumerate(connectors)}
+
+        def legal_values(i: int) -> list[int]:
+            return [NONE] + [j + 1 for j in range(len(connectors)) if genders[j] != genders[i]]
+
+        legal = list(itertools.product(*(legal_values(i) for i in range(len(connectors)))))
+        legal_set = set(legal)
+        types: list[TopoType] = []
+        claimed: dict[tuple[int, ...], int] = {}
+        for row in type_rows:
+            statuses: set[tuple[int, ...]] = set()
+            for raw in row["statuses"]:
+                try:
+                    tup = tuple(NONE if v in ("0", 0) else index[str(v)] for v in raw)
+                except KeyError as exc:
+                    raise TopologyError(f"profile {name}: type {row['name']}: unknown connector {exc}") from None
+                if tup not in legal_set:
+                    raise TopologyError(f"profile {name}: type {row['name']}: status {raw} is not legal")
+                if tup in claimed:
+                    raise TopologyError(f"profile {name}: status {raw} is claimed twice")
+                claimed[tup] = len(types)
+                statuses.add(tup)
+            alias = row.get("alias")
+            types.append(TopoType(len(types), str(row["name"]), None if alias is None else int(alias), frozenset(statuses)))
+        for tup in legal:
+            if tup not in claimed:
+                letters = "".join("0" if v == NONE else connectors[v - 1][0] for v in tup)
+                claimed[tup] = len(types)
+                types.append(TopoType(len(types), f"t_{letters}", None, frozenset({tup})))
+        return cls(name, connectors, genders, tuple(types), claimed)
+
+
+CONRO_DATA: dict[str, Any] = {
+    "name": "conro",
+    "connectors": {"front": "female", "back": "male", "left": "male", "right": "male"},
+    "types": [
+        {"name": "head", "alias": 1, "statuses": [["0", "front", "0", "0"], ["0", "0", "0", "0"]]},
+        {"name": "tail", "alias": 2, "statuses": [["back", "0", "0", "0"]]},
+        {"name": "left_foot", "alias": 5, "statuses": [["left", "0", "0", "0"]]},
+        {"name": "right_foot", "alias": 6, "statuses": [["right", "0", "0", "0"]]},
+        {"name": "body", "alias": 16, "statuses": [["back", "front", "0", "0"]]},
+        {"name": "spine", "statuses": [["back", "front", "front", "front"]]},
+        {"name": "spine_front", "statuses": [["0", "front", "front", "front"]]},
+        {"name": "spine_rear", "statuses": [["back", "0", "front", "front"]]},
+        {"name": "spine_lone", "statuses": [["0", "0", "front", "front"]]},
+    ],
+}
+
+#: The CONRO profile every built-in topology and example uses.
+CONRO = Profile.from_dict(CONRO_DATA)

@@ -1,0 +1,1 @@
+"""hil package of dh2rt."""

@@ -1,0 +1,1 @@
+"""sim package of dh2rt."""

@@ -1,0 +1,1 @@
+"""tools package of dh2rt."""
