@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from dh2rt.errors import CodecError, HormoneError
 
@@ -47,6 +48,25 @@ class Hormone:
 
     def content(self) -> str:
         return f"{self.name}({', '.join(str(a) for a in self.args)})"
+
+
+class Arrival(NamedTuple):
+    """A hormone as a link delivers it to a module's engine.
+
+    ``at`` is the connector it arrived at, ``remote`` the connector the neighbour sent it
+    through; ``hormone.path`` is as the sender sent it (the engine adds the hop ``(remote, at)``).
+    """
+
+    at: int
+    remote: int
+    hormone: Hormone
+
+
+class Emission(NamedTuple):
+    """A hormone the engine asks to send through one of its connectors (path as sent)."""
+
+    through: int
+    hormone: Hormone
 
 
 @dataclass(frozen=True, slots=True)

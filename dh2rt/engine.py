@@ -1,0 +1,260 @@
+"""One module's DH2 main loop (the paper's Fig. 3), sans-IO.
+
+An :class:`Engine` holds one module's state: ConnectorStatus, its topological type T,
+sensors S, variables V, hormones present H, receptor status R, LocalTimer (mod ClockCycle)
+and the two actuator targets DOF1/DOF2. It never touches a link or a servo: a caller (the
+in-process robot, the module runtime on a real transport) hands :meth:`Engine.step` what
+arrived and sends what it returns.
+
+One step::
+
+    receive   for each arrival (a hormone, the connector it arrived at, the connector it was
+              sent through): ConnectorStatus[at] = remote; the hormone, its path extended by
+              the hop (remote, at), is present in H for this step
+    receptors for each active receptor worth matching (see the compiler's index), in program
+              order: if its pattern matches, run its actions (new hormones go to the Buffer);
+              it stays active only if its actions include keep_alive()
+    forward   each hormone no receptor bound goes out through every linked connector except
+              the one it came in on; a routed hormone (a reply) goes on along its route,
+              bound or not; one whose path has reached max_hops is dropped
+    send      the Buffer is returned; the caller reports failed sends through
+              send_failed(), which sets ConnectorStatus to 0
+    timer     LocalTimer = (LocalTimer + 1) mod ClockCycle
+
+This is Fig. 3's loop with the bookkeeping's receive moved to the top of the step: the
+Mailbox read in one step holds exactly what neighbours sent in the previous one, so in a
+lockstep run every hormone crosses one link per cycle whatever order modules are stepped in.
+
+Presence sensing (:meth:`link_up`, :meth:`link_down`) lets whatever plays the physical layer
+report a docked or lost neighbour directly, as CONRO's infrared connectors sense each other;
+liveness over real links is built on it by the module runtime.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+from dh2rt.compiler import ACTIVE, PASSIVE, CompiledProgram
+from dh2rt.errors import DH2Error
+from dh2rt.hormone import Arrival, Emission, Hormone
+from dh2rt.profile import TopoType
+
+#: A native action: called with the engine and the evaluated arguments.
+Native = Callable[..., None]
+#: A hormone present in H: [name, args, path (with the last hop), route, arrived_at].
+Entry = list[Any]
+
+_NO_HORMONES: dict[str, list[Entry]] = {}
+MAX_FAULTS_KEPT = 16
+
+
+class Engine:
+    """The state and main loop of one module. See the module docs for one step."""
+
+    __slots__ = (
+        "clock",
+        "counters",
+        "dof",
+        "dof_changed",
+        "effects",
+        "faults",
+        "matched",
+        "natives",
+        "out",
+        "periodics",
+        "present",
+        "profile",
+        "program",
+        "rstatus",
+        "sensors",
+        "status",
+        "timer",
+        "type_index",
+        "type_table",
+        "vars",
+    )
+
+    def __init__(
+        self,
+        program: CompiledProgram,
+        *,
+        timer_phase: int = 0,
+        natives: Mapping[str, Native] | None = None,
+    ) -> None:
+        self.program = program
+        self.profile = program.profile
+        self.clock = program.clock_cycle
+        self.type_table = program.profile.type_of_status
+        self.status: list[int] = [0] * program.profile.connector_count
+        self.type_index: int = self.type_table[tuple(self.status)]
+        self.timer = timer_phase % self.clock
+        self.vars: list[int] = list(program.var_initial)
+        self.sensors: list[int] = [0] * len(program.sensor_names)
+        self.rstatus: list[int] = [r.initial for r in program.receptors]
+        self.dof: list[float] = [0.0, 0.0]
+        self.dof_changed = False
+        self.present: dict[str, list[Entry]] = _NO_HORMONES
+        self.periodics: dict[str, list[Any]] = {}
+        self.out: list[Emission] = []
+        self.matched: list[Entry] = []
+        self.effects: list[tuple[str, tuple[Any, ...]]] = []
+        self.faults: list[str] = []
+        self.counters = {"received": 0, "sent": 0, "forwarded": 0, "dropped_hops": 0, "send_failed": 0, "faults": 0}
+        natives = dict(natives or {})
+        missing = sorted(set(program.natives) - set(natives))
+        if missing:
+            raise DH2Error(f"program {program.name} needs native action(s) the runtime lacks: {', '.join(missing)}")
+        self.natives = natives
+
+    # ------------------------------------------------------------ what callers read
+
+    @property
+    def topo_type(self) -> TopoType:
+        return self.profile.types[self.type_index]
+
+    def var(self, name: str) -> int:
+        return self.vars[self.program.var_names.index(name)]
+
+    def set_var(self, name: str, value: int) -> None:
+        self.vars[self.program.var_names.index(name)] = value
+
+    def set_sensor(self, name: str, value: int) -> None:
+        self.sensors[self.program.sensor_names.index(name)] = value
+
+    def receptor_status(self, name: str) -> int:
+        return self.rstatus[self.program.receptor_index(name)]
+
+    def effect(self, kind: str, *args: Any) -> None:
+        """Ask the physical layer for something (used by native actions); read via ``effects``."""
+        self.effects.append((kind, args))
+
+    # ------------------------------------------------------------ presence sensing
+
+    def link_up(self, connector: int, remote: int) -> None:
+        """The physical layer senses a neighbour's ``remote`` connector at ``connector``."""
+        self._set_status(connector, remote)
+
+    def link_down(self, connector: int) -> None:
+        """The physical layer senses nothing at ``connector`` any more."""
+        self._set_status(connector, 0)
+
+    def send_failed(self, connector: int) -> None:
+        """A send through ``connector`` failed: ConnectorStatus[connector] = 0 (Fig. 3)."""
+        self.counters["send_failed"] += 1
+        self._set_status(connector, 0)
+
+    def _set_status(self, connector: int, remote: int) -> None:
+        if self.status[connector - 1] != remote:
+            self.status[connector - 1] = remote
+            self.type_index = self.type_table[tuple(self.status)]
+
+    # ------------------------------------------------------------ the loop
+
+    def step(self, arrivals: Sequence[Arrival] = ()) -> list[Emission]:
+        """Run one cycle on what arrived; return the Buffer to send (see the module docs)."""
+        program = self.program
+        out: list[Emission] = []
+        self.out = out
+        if self.effects:
+            self.effects = []
+        # receive: ConnectorStatus and H
+        if arrivals:
+            present: dict[str, list[Entry]] = {}
+            status = self.status
+            changed = False
+            for at, remote, h in arrivals:
+                if not at:  # injected: sensed or created here, not received over a link
+                    entry = [h.name, h.args, h.path, h.route, 0]
+                else:
+                    if status[at - 1] != remote:
+                        status[at - 1] = remote
+                        changed = True
+                    entry = [h.name, h.args, ((remote, at), *h.path), h.route, at]
+                bucket = present.get(h.name)
+                if bucket is None:
+                    present[h.name] = [entry]
+                else:
+                    bucket.append(entry)
+            if changed:
+                self.type_index = self.type_table[tuple(status)]
+            self.counters["received"] += len(arrivals)
+            self.present = present
+        else:
+            present = _NO_HORMONES
+            self.present = present
+        t = self.type_index
+        # receptors
+        cands = program.always[t]
+        timed = program.by_timer[t].get(self.timer) if program.by_timer[t] else None
+        if present or timed:
+            cands = program.candidates(t, self.timer, present)
+        bound: set[int] = set()
+        if cands:
+            receptors = program.receptors
+            rstatus = self.rstatus
+            for i in cands:
+                if rstatus[i] != ACTIVE:
+                    continue
+                r = receptors[i]
+                self.matched = matched = []
+                b: dict[str, Any] = {}
+                if not r.match(self, b):
+                    continue
+                for entry in matched:
+                    bound.add(id(entry))
+                try:
+                    r.act(self, b)
+                except Exception as exc:  # a native or a value out of range: keep the module alive
+                    self._fault(f"receptor {r.name}: {exc}")
+                if not r.keep_alive and rstatus[i] == ACTIVE:
+                    rstatus[i] = PASSIVE
+        # forward what no receptor bound; routed hormones go on along their route
+        if present:
+            self._forward(present, bound, out)
+        # periodic hormones
+        if self.periodics:
+            for name, p in list(self.periodics.items()):
+                p[1] -= 1
+                if p[1] <= 0:
+                    p[1] = p[0]
+                    try:
+                        p[2](self)
+                    except DH2Error as exc:
+                        self._fault(f"periodic {name}: {exc}")
+        self.counters["sent"] += len(out)
+        timer = self.timer + 1
+        self.timer = 0 if timer >= self.clock else timer
+        return out
+
+    def _forward(self, present: dict[str, list[Entry]], bound: set[int], out: list[Emission]) -> None:
+        max_hops = self.program.max_hops
+        for entries in present.values():
+            for entry in entries:
+                name, args, path, route, at = entry
+                if route is not None:
+                    if route:  # not yet at its destination: on along the route, bound or not
+                        if len(path) >= max_hops:
+                            self.counters["dropped_hops"] += 1
+                            continue
+                        out.append(Emission(route[0], Hormone(name, args, path, route[1:])))
+                        self.counters["forwarded"] += 1
+                    continue
+                if id(entry) in bound:
+                    continue
+                if len(path) >= max_hops:
+                    self.counters["dropped_hops"] += 1
+                    continue
+                h = None
+                for i, s in enumerate(self.status):
+                    c = i + 1
+                    if s and c != at:
+                        if h is None:
+                            h = Hormone(name, args, path)
+                        out.append(Emission(c, h))
+                        self.counters["forwarded"] += 1
+
+    def _fault(self, message: str) -> None:
+        self.counters["faults"] += 1
+        self.faults.append(message)
+        del self.faults[:-MAX_FAULTS_KEPT]

@@ -1,0 +1,108 @@
+"""Timed events for a run: live surgery, docking, injected hormones, killed modules.
+
+Text form (``--event``), with modules by name or index::
+
+    CYCLE:cut:M.CONN                 break the link at module M's connector
+    CYCLE:dock:M.CONN-M2.CONN2       dock two connectors
+    CYCLE:inject:M:HORMONE           place HORMONE (e.g. LTS or X(A)) in M's mailbox
+    CYCLE:kill:M                     the module stops (its neighbours lose the link)
+    CYCLE:restart:M                  it boots again with a fresh state
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dh2rt.errors import DH2Error, ProgramError, TopologyError
+from dh2rt.hormone import Hormone, Vocabulary
+from dh2rt.lang import ast
+from dh2rt.lang.parser import Parser
+from dh2rt.topology import Topology
+
+KINDS = ("cut", "dock", "inject", "kill", "restart")
+
+
+class EventError(TopologyError):
+    """An event string is malformed or names an unknown module, connector or hormone."""
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    cycle: int
+    kind: str
+    module: int
+    connector: int = 0
+    other: int = 0
+    other_connector: int = 0
+    hormone: Hormone | None = None
+    text: str = ""
+
+
+def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
+    """Parse one event string; errors name the event and the part that is wrong."""
+    parts = text.split(":", 2)
+    if len(parts) < 3 or not parts[0].strip().isdigit():
+        raise EventError(f"event {text!r}: expected CYCLE:KIND:ARGS with KIND one of {', '.join(KINDS)}")
+    cycle, kind, rest = int(parts[0]), parts[1], parts[2]
+    if kind not in KINDS:
+        raise EventError(f"event {text!r}: unknown kind {kind!r} (one of {', '.join(KINDS)})")
+
+    def module(ref: str) -> int:
+        try:
+            return topology.module_index(ref.strip())
+        except TopologyError as exc:
+            raise EventError(f"event {text!r}: {exc}") from None
+
+    def endpoint(ref: str) -> tuple[int, int]:
+        m, dot, c = ref.partition(".")
+        if not dot:
+            raise EventError(f"event {text!r}: expected MODULE.CONNECTOR, got {ref!r}")
+        try:
+            return module(m), topology.profile.connector_index(c.strip())
+        except ValueError:
+            raise EventError(
+                f"event {text!r}: unknown connector {c!r} ({', '.join(topology.profile.connectors)})"
+            ) from None
+
+    if kind == "cut":
+        m, c = endpoint(rest)
+        return Event(cycle, kind, m, c, text=text)
+    if kind == "dock":
+        a, sep, b = rest.partition("-")
+        if not sep:
+            raise EventError(f"event {text!r}: expected M.CONN-M2.CONN2")
+        (m, c), (m2, c2) = endpoint(a), endpoint(b)
+        return Event(cycle, kind, m, c, m2, c2, text=text)
+    if kind == "inject":
+        ref, sep, htext = rest.partition(":")
+        if not sep:
+            raise EventError(f"event {text!r}: expected CYCLE:inject:M:HORMONE")
+        return Event(cycle, kind, module(ref), hormone=parse_hormone(htext, vocabulary, f"event {text!r}"), text=text)
+    return Event(cycle, kind, module(rest), text=text)
+
+
+def parse_hormone(text: str, vocabulary: Vocabulary, where: str = "hormone") -> Hormone:
+    """``NAME`` or ``NAME(arg, ...)`` with atoms and integers, checked against the vocabulary."""
+    try:
+        parser = Parser(text, where)
+        term = parser.hormone_term()
+        if parser.tok.kind != "eof":
+            raise parser.error(f"unexpected {parser.describe(parser.tok)} after the hormone")
+    except ProgramError as exc:
+        raise EventError(f"{where}: {exc.message}") from None
+    args: list[int | str] = []
+    for a in term.args:
+        if isinstance(a, ast.Name):
+            args.append(a.name)
+        elif isinstance(a, ast.Num):
+            args.append(a.value)
+        elif isinstance(a, ast.Neg) and isinstance(a.operand, ast.Num):
+            args.append(-a.operand.value)
+        else:
+            raise EventError(f"{where}: hormone arguments must be atoms or integers")
+    h = Hormone(term.name, tuple(args))
+    try:
+        vocabulary.check(h)
+    except DH2Error as exc:
+        raise EventError(f"{where}: {exc}") from None
+    return h

@@ -1,0 +1,47 @@
+"""Native actions shipped with dh2rt: computation a DH2 program calls by name.
+
+A program declares each native it uses (``native dock_tail_to_foot(path)``); the runtime
+supplies the implementation. A native gets the module's :class:`~dh2rt.engine.Engine` and the
+evaluated arguments. Natives that need the physical world ask for it with ``engine.effect``;
+the in-process robot, the physics world or the real module's drivers carry the effect out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from dh2rt.engine import Engine, Native
+from dh2rt.hormone import Path
+
+#: How far a spine module bends (DOF2, degrees) to help the tail reach a foot.
+ASSIST_BEND_DEG = 30.0
+
+
+def assist_leg_assimilation(engine: Engine) -> None:
+    """Fig. 5's ``assist_leg_assimilation()``: bend to bring the tail towards the foot."""
+    engine.dof[1] = ASSIST_BEND_DEG
+    engine.dof_changed = True
+    engine.effect("assist")
+
+
+def dock_tail_to_foot(engine: Engine, path: Path) -> None:
+    """Align the tail's ``back`` with the foot at the end of ``path``-1 and dock to it.
+
+    The foot releases its link to the body and becomes the new end of the tail: the leg is
+    assimilated. Requested as the effect ``("reach_and_dock", (back, route))``.
+    """
+    back = engine.profile.connector_index("back")
+    route = tuple(received_at for _sent, received_at in path)
+    engine.effect("reach_and_dock", back, route)
+
+
+STANDARD_NATIVES: Mapping[str, Native] = {
+    "assist_leg_assimilation": assist_leg_assimilation,
+    "dock_tail_to_foot": dock_tail_to_foot,
+}
+
+
+def natives_for(names: Mapping[str, Any]) -> dict[str, Native]:
+    """The standard natives a program declares (unknown names are left for the caller)."""
+    return {n: STANDARD_NATIVES[n] for n in names if n in STANDARD_NATIVES}

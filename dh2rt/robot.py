@@ -1,0 +1,286 @@
+"""A whole robot in one process: N module engines over an in-process bus, in lockstep.
+
+The robot plays the physical world: it knows which connectors are docked (the topology),
+delivers every hormone a module sends through a docked connector to the neighbour's
+connector one cycle later, tells modules about docking and undocking (presence sensing),
+and carries out the effects native actions ask for. Modules know none of this: no module
+ever sees an index.
+
+Determinism: a run depends only on the program, the topology and the seed. LocalTimers start
+at phases drawn from the seed; everything a module receives in one cycle is ordered by the
+connector it arrived at (and send order within a link), never by module numbering.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from dh2rt.compiler import CompiledProgram
+from dh2rt.engine import Engine, Native
+from dh2rt.errors import TopologyError
+from dh2rt.events import Event
+from dh2rt.hormone import Arrival, Emission, Hormone
+from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.topology import Link, Topology
+
+#: Cycles the in-process world takes to carry out a "reach_and_dock" (bend, align, latch).
+DOCK_DELAY = 10
+
+EffectHandler = Callable[["Robot", int, tuple[Any, ...]], None]
+
+
+@dataclass(slots=True)
+class CycleRecord:
+    """What one module did in one cycle (the trace's line)."""
+
+    cycle: int
+    module: int
+    received: list[Arrival]
+    sent: list[Emission]
+
+
+class Robot:
+    """Modules of ``topology`` running ``program``; call :meth:`step` or :meth:`run`."""
+
+    def __init__(
+        self,
+        program: CompiledProgram,
+        topology: Topology,
+        *,
+        seed: int = 0,
+        natives: Mapping[str, Native] | None = None,
+        record: bool = False,
+    ) -> None:
+        self.program = program
+        self.topology = topology
+        self.profile = topology.profile
+        self.seed = seed
+        self.rng = random.Random(seed)
+        self.natives = dict(STANDARD_NATIVES)
+        self.natives.update(natives or {})
+        used = {n: self.natives[n] for n in program.natives if n in self.natives}
+        self._natives_used = used
+        self.cycle = 0
+        self.size = topology.size
+        self.engines: list[Engine | None] = [self._boot() for _ in range(self.size)]
+        self.peer: dict[tuple[int, int], tuple[int, int]] = {}
+        self.inbox: list[list[Arrival]] = [[] for _ in range(self.size)]
+        self.record = record
+        self.records: list[CycleRecord] = []
+        self.pending: list[tuple[int, Callable[[], None]]] = []
+        self.effect_handlers: dict[str, EffectHandler] = {
+            "reach_and_dock": _reach_and_dock,
+            "assist": lambda _r, _m, _a: None,
+        }
+        self.log: list[str] = []
+        for link in topology.links:
+            self.dock(link.a, link.a_conn, link.b, link.b_conn)
+
+    def _boot(self) -> Engine:
+        return Engine(self.program, timer_phase=self.rng.randrange(self.program.clock_cycle), natives=self._natives_used)
+
+    # ------------------------------------------------------------ the physical world
+
+    def links(self) -> list[Link]:
+        """The docked links now, each once."""
+        return [Link(a, ac, b, bc) for (a, ac), (b, bc) in sorted(self.peer.items()) if (a, ac) < (b, bc)]
+
+    def engine(self, module: int) -> Engine:
+        e = self.engines[module]
+        if e is None:
+            raise TopologyError(f"module {self.topology.names[module]} is not running")
+        return e
+
+    def alive(self, module: int) -> bool:
+        return self.engines[module] is not None
+
+    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
+        """Dock two free connectors of different gender; both modules sense it."""
+        if not self.profile.can_link(a_conn, b_conn):
+            raise TopologyError(
+                f"cannot dock {self._where(a, a_conn)} to {self._where(b, b_conn)}: both are "
+                f"{self.profile.gender(a_conn)}"
+            )
+        for m, c in ((a, a_conn), (b, b_conn)):
+            if (m, c) in self.peer:
+                raise TopologyError(f"cannot dock {self._where(m, c)}: it is already docked")
+        if a == b:
+            raise TopologyError("cannot dock a module to itself")
+        self.peer[(a, a_conn)] = (b, b_conn)
+        self.peer[(b, b_conn)] = (a, a_conn)
+        for m, c, rc in ((a, a_conn, b_conn), (b, b_conn, a_conn)):
+            e = self.engines[m]
+            other = self.engines[b if m == a else a]
+            if e is not None and other is not None:
+                e.link_up(c, rc)
+
+    def cut(self, module: int, connector: int) -> None:
+        """Break the link at a connector (live surgery); both modules sense it."""
+        other = self.peer.pop((module, connector), None)
+        if other is None:
+            raise TopologyError(f"cannot cut {self._where(module, connector)}: nothing is docked there")
+        del self.peer[other]
+        for m, c in ((module, connector), other):
+            e = self.engines[m]
+            if e is not None:
+                e.link_down(c)
+
+    def kill(self, module: int) -> None:
+        """The module stops; its neighbours sense a silent connector."""
+        if self.engines[module] is None:
+            return
+        self.engines[module] = None
+        self.inbox[module] = []
+        for c in range(1, self.profile.connector_count + 1):
+            other = self.peer.get((module, c))
+            if other is not None:
+                e = self.engines[other[0]]
+                if e is not None:
+                    e.link_down(other[1])
+
+    def restart(self, module: int) -> None:
+        """The module boots again with a fresh state; it and its neighbours sense the links."""
+        self.kill(module)
+        e = self._boot()
+        self.engines[module] = e
+        for c in range(1, self.profile.connector_count + 1):
+            other = self.peer.get((module, c))
+            if other is not None:
+                oe = self.engines[other[0]]
+                if oe is not None:
+                    e.link_up(c, other[1])
+                    oe.link_up(other[1], c)
+
+    def inject(self, module: int, hormone: Hormone) -> None:
+        """Place a hormone in a module's mailbox, as if it had been sensed or created there."""
+        self.program.vocabulary.check(hormone)
+        self.engine(module)
+        # An injected hormone arrives at no connector (0): it is bound here or flooded everywhere.
+        self.inbox[module].append(Arrival(0, 0, hormone))
+
+    def apply(self, event: Event) -> None:
+        if event.kind == "cut":
+            self.cut(event.module, event.connector)
+        elif event.kind == "dock":
+            self.dock(event.module, event.connector, event.other, event.other_connector)
+        elif event.kind == "inject" and event.hormone is not None:
+            self.inject(event.module, event.hormone)
+        elif event.kind == "kill":
+            self.kill(event.module)
+        elif event.kind == "restart":
+            self.restart(event.module)
+        self.log.append(f"cycle {self.cycle}: {event.text or event.kind}")
+
+    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
+        self.pending.append((self.cycle + cycles_from_now, action))
+
+    def _where(self, m: int, c: int) -> str:
+        return f"{self.topology.names[m]}.{self.profile.connector_name(c)}"
+
+    # ------------------------------------------------------------ running
+
+    def step(self) -> None:
+        """One lockstep cycle of every running module."""
+        if self.pending:
+            due = [a for when, a in self.pending if when <= self.cycle]
+            self.pending = [(w, a) for w, a in self.pending if w > self.cycle]
+            for action in due:
+                action()
+        inbox = self.inbox
+        nxt: list[list[Arrival]] = [[] for _ in range(self.size)]
+        engines = self.engines
+        peer = self.peer
+        record = self.record
+        effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        for m, e in enumerate(engines):
+            if e is None:
+                continue
+            arrivals = inbox[m]
+            if len(arrivals) > 1:
+                arrivals.sort(key=_by_connector)
+            out = e.step(arrivals)
+            for through, h in out:
+                target = peer.get((m, through))
+                if target is None or engines[target[0]] is None:
+                    e.send_failed(through)
+                else:
+                    nxt[target[0]].append(Arrival(target[1], through, h))
+            if e.effects:
+                effects.extend((m, kind, args) for kind, args in e.effects)
+            if record:
+                self.records.append(CycleRecord(self.cycle, m, arrivals, out))
+        self.inbox = nxt
+        for m, kind, args in effects:
+            handler = self.effect_handlers.get(kind)
+            if handler is not None:
+                handler(self, m, args)
+        self.cycle += 1
+
+    def run(self, cycles: int, events: Iterable[Event] = ()) -> Iterator[int]:
+        """Run ``cycles`` cycles applying events at their cycles; yields each finished cycle."""
+        by_cycle: dict[int, list[Event]] = {}
+        for ev in events:
+            by_cycle.setdefault(ev.cycle, []).append(ev)
+        end = self.cycle + cycles
+        while self.cycle < end:
+            for ev in by_cycle.pop(self.cycle, []):
+                self.apply(ev)
+            self.step()
+            yield self.cycle - 1
+
+    def summary(self) -> list[dict[str, Any]]:
+        """Per-module state: type, actuators, counters."""
+        rows = []
+        for m, e in enumerate(self.engines):
+            if e is None:
+                rows.append({"module": m, "name": self.topology.names[m], "alive": False})
+                continue
+            t = e.topo_type
+            rows.append(
+                {
+                    "module": m,
+                    "name": self.topology.names[m],
+                    "alive": True,
+                    "type": t.name,
+                    "T": t.alias,
+                    "DOF1": e.dof[0],
+                    "DOF2": e.dof[1],
+                    **e.counters,
+                }
+            )
+        return rows
+
+
+def _by_connector(a: Arrival) -> int:
+    return a.at
+
+
+def _reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
+    """Carry out ``reach_and_dock(connector, route)``: follow the route from ``module`` to
+    the module at its end, release that module's link at the connector the route arrives at,
+    and dock ``module``'s connector there, DOCK_DELAY cycles later (bending, aligning, latching
+    take time). Nothing happens if the route no longer leads anywhere by then.
+    """
+    connector, route = args
+
+    def carry_out() -> None:
+        here, at = module, 0
+        for c in route:
+            nxt = robot.peer.get((here, c))
+            if nxt is None:
+                robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot._where(module, connector)}: route broken")
+                return
+            here, at = nxt
+        if here == module or not robot.alive(here) or not robot.alive(module):
+            return
+        if (module, connector) in robot.peer:
+            robot.log.append(f"cycle {robot.cycle}: reach_and_dock: {robot._where(module, connector)} is not free")
+            return
+        robot.cut(here, at)
+        robot.dock(module, connector, here, at)
+        robot.log.append(f"cycle {robot.cycle}: {robot._where(module, connector)} docked to {robot._where(here, at)}")
+
+    robot.schedule(DOCK_DELAY, carry_out)

@@ -1,0 +1,30 @@
+"""Transports: how a module's frames cross its links (in-process, CAN, serial).
+
+The abstraction is :class:`~dh2rt.transport.base.Transport`; backends are chosen by name
+through :func:`~dh2rt.transport.registry.open_transport` and imported only when chosen.
+"""
+
+from dh2rt.transport.base import (
+    BusEnd,
+    LinkCounters,
+    LinkEnd,
+    PortEnd,
+    Received,
+    Transport,
+    split_arrivals,
+)
+from dh2rt.transport.registry import TRANSPORTS, open_transport, parse_spec, transport_class
+
+__all__ = [
+    "TRANSPORTS",
+    "BusEnd",
+    "LinkCounters",
+    "LinkEnd",
+    "PortEnd",
+    "Received",
+    "Transport",
+    "open_transport",
+    "parse_spec",
+    "split_arrivals",
+    "transport_class",
+]

@@ -1,0 +1,209 @@
+"""CAN transports through python-can: ``socketcan``, ``virtual`` and ``udp_multicast``.
+
+One python-can bus per module; link ends are :class:`~dh2rt.transport.base.BusEnd`. The
+arbitration id carries kind, segment marker, link id and the sending side
+(:mod:`dh2rt.wire.can_frames`); the module listens only for the far side of its own links,
+which also discards the module's own frames that ``udp_multicast`` echoes back.
+
+python-can is imported lazily, when a bus opens. Every ``can.Message`` is built with
+``is_extended_id=True`` explicitly (python-can's default is not a contract to lean on).
+"""
+
+from __future__ import annotations
+
+import socket
+from typing import Any, ClassVar
+
+from dh2rt.errors import TransportError, TransportUnavailable
+from dh2rt.transport.base import BusEnd, LinkEnd, Transport
+from dh2rt.wire.can_frames import (
+    CLASSIC_DATA,
+    FD_DATA,
+    LINK_END_MASK,
+    Reassembler,
+    listen_filter,
+    make_arbitration_id,
+    segment,
+)
+from dh2rt.wire.frame import FrameCodec
+
+#: The commands that create a virtual SocketCAN interface on a Linux host that has AF_CAN.
+VCAN_SETUP = "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set up vcan0"
+#: Transports that need no SocketCAN.
+FALLBACKS = "inproc (one process), virtual (python-can, one process), udp (python-can udp_multicast, across processes), serial (pyserial ports)"
+
+
+def socketcan_problem(channel: str) -> str | None:
+    """Why SocketCAN interface ``channel`` cannot be opened here, or None if it can."""
+    family = getattr(socket, "AF_CAN", None)
+    if family is None:
+        return "this Python has no socket.AF_CAN (SocketCAN exists only on Linux)"
+    try:
+        probe = socket.socket(family, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as exc:
+        return f"the kernel has no AF_CAN sockets ({exc.strerror or exc}; the can/can-raw modules are missing)"
+    probe.close()
+    try:
+        socket.if_nametoindex(channel)
+    except OSError:
+        return f"there is no network interface named {channel!r}"
+    return None
+
+
+class CanTransport(Transport):
+    """A module's links on one python-can bus. Subclasses fix the python-can interface."""
+
+    name = "can"
+    interface: ClassVar[str] = "virtual"
+    default_channel: ClassVar[str] = "dh2rt"
+
+    def __init__(
+        self,
+        codec: FrameCodec,
+        *,
+        channel: str | None = None,
+        fd: bool = False,
+        send_timeout: float = 0.2,
+        **bus_options: Any,
+    ) -> None:
+        super().__init__(codec)
+        self.channel = channel or self.default_channel
+        self.fd = fd
+        self.send_timeout = send_timeout
+        self.max_data = FD_DATA if fd else CLASSIC_DATA
+        self._listen: dict[int, int] = {}  # low 20 bits of the far end's id -> my connector
+        self._reassembler = Reassembler()
+        self._bus: Any = self._open_bus(bus_options)
+        self._can: Any = __import__("can")
+        self._apply_filters()
+
+    def _open_bus(self, options: dict[str, Any]) -> Any:
+        try:
+            import can
+        except ImportError as exc:
+            raise TransportUnavailable(
+                f"the {self.name} transport needs python-can: pip install 'dh2rt[can]' ({exc})"
+            ) from None
+        try:
+            return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **options)
+        except (can.CanError, OSError, ImportError, ValueError) as exc:
+            raise TransportUnavailable(
+                f"cannot open python-can {self.interface} bus on channel {self.channel!r}: {exc}"
+            ) from exc
+
+    @property
+    def bus(self) -> Any:
+        """The underlying python-can bus (for tools; do not read from it)."""
+        return self._bus
+
+    def _apply_filters(self) -> None:
+        ends = [(k >> 1, k & 1) for k in self._listen]
+        if ends:
+            self._bus.set_filters([listen_filter(link, 1 - far_side) for link, far_side in ends])
+        else:  # accept nothing useful; the software check below drops the rest anyway
+            self._bus.set_filters([{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}])
+
+    def _attach(self, connector: int, end: LinkEnd) -> None:
+        if not isinstance(end, BusEnd):
+            raise TransportError(f"{self.name} connector {connector}: expected a BusEnd, got {end!r}")
+        make_arbitration_id(0, 0, 0, end.link_id, end.side)  # validates the link id range
+        far = (end.link_id << 1) | (1 - end.side)
+        if far in self._listen:
+            raise TransportError(f"link {end.link_id} side {end.side} is already attached to connector {self._listen[far]}")
+        self._listen[far] = connector
+        self._apply_filters()
+
+    def _detach(self, connector: int, end: LinkEnd) -> None:
+        if isinstance(end, BusEnd):
+            self._listen.pop((end.link_id << 1) | (1 - end.side), None)
+            self._reassembler.forget(end.link_id, 1 - end.side)
+            if not self._closed:
+                self._apply_filters()
+
+    def _transmit(self, connector: int, end: LinkEnd, payload: bytes) -> bool:
+        assert isinstance(end, BusEnd)
+        can = self._can
+        for fr in segment(payload, end.link_id, end.side, self.max_data):
+            msg = can.Message(
+                arbitration_id=fr.arbitration_id,
+                data=fr.data,
+                is_extended_id=True,
+                is_fd=self.fd,
+                bitrate_switch=self.fd,
+            )
+            try:
+                self._bus.send(msg, timeout=self.send_timeout)
+            except (can.CanError, OSError):
+                return False
+        return True
+
+    def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
+        can = self._can
+        out: list[tuple[int, bytes]] = []
+        wait: float = timeout
+        while True:
+            try:
+                msg = self._bus.recv(timeout=wait)
+            except can.CanOperationError:  # e.g. an undecodable udp_multicast datagram
+                self._corrupted += 1
+                wait = 0.0
+                continue
+            if msg is None:
+                return out
+            wait = 0.0
+            if not msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+                continue  # not dh2rt traffic
+            connector = self._listen.get(msg.arbitration_id & LINK_END_MASK)
+            if connector is None:
+                continue  # another module's link, or our own frame echoed back
+            payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data))
+            if payload is not None:
+                out.append((connector, payload))
+
+    def _medium_counts(self) -> tuple[int, int]:
+        return self._reassembler.dropped, self._reassembler.corrupted
+
+    def _close(self) -> None:
+        self._bus.shutdown()
+
+
+class VirtualCanTransport(CanTransport):
+    """python-can's in-process ``virtual`` bus: modules in one process, no kernel support."""
+
+    name = "virtual"
+    interface = "virtual"
+    default_channel = "dh2rt"
+
+
+class UdpCanTransport(CanTransport):
+    """python-can's ``udp_multicast``: crosses processes and hosts (IPv4 group by default).
+
+    It follows the route table and cannot pick an interface: outside a private network
+    namespace it sends on the default route.
+    """
+
+    name = "udp"
+    interface = "udp_multicast"
+    default_channel = "239.74.163.2"
+
+    def __init__(self, codec: FrameCodec, **options: Any) -> None:
+        options.setdefault("fd", False)
+        super().__init__(codec, **options)
+
+
+class SocketCanTransport(CanTransport):
+    """A kernel SocketCAN interface (``vcan0``, ``can0``, ...); probes AF_CAN before opening."""
+
+    name = "socketcan"
+    interface = "socketcan"
+    default_channel = "vcan0"
+
+    def _open_bus(self, options: dict[str, Any]) -> Any:
+        problem = socketcan_problem(self.channel)
+        if problem is not None:
+            raise TransportUnavailable(
+                f"SocketCAN interface {self.channel!r} is unavailable: {problem}. "
+                f"On a Linux host with CAN support, create a virtual interface with: {VCAN_SETUP}. "
+                f"Transports that work without SocketCAN: {FALLBACKS}."
+            )
+        return super()._open_bus(options)

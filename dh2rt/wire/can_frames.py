@@ -1,0 +1,296 @@
+"""CAN framing for a shared bus, sans-IO: arbitration ids, segmentation, reassembly, pcap.
+
+Modules share one bus, so adjacency is not visible on the wire. Each docked connector pair is
+a *link* with a link id assigned by the world (never a module id, never seen by a program);
+its two ends are *side* 0 and side 1. Every frame uses a 29-bit extended identifier::
+
+    bits 28..27  kind      frame kind (0 hormone, 1 routed, 2 keep-alive, 3 hello);
+                           lower ids win arbitration, so hormones go before beacons
+    bits 26..25  segment   0 single, 1 first, 2 middle, 3 last
+    bits 24..20  seq       segment number within one payload (0..31)
+    bits 19..1   link id   0..524287
+    bit  0       side      the end that SENT the frame
+
+A module at side ``s`` of link ``L`` sends with ``(L, s)`` and listens for ``(L, 1 - s)``:
+an acceptance filter on the low 20 bits (:func:`listen_filter`). Its own frames (which
+``udp_multicast`` echoes back) carry its own side and are filtered out by the same rule.
+
+Payloads of up to 8 bytes (a caterpillar hormone is 4) go in one classic frame. Longer ones
+are segmented here: the segment marker and number ride in the arbitration id, so each data
+field carries 8 payload bytes and no protocol byte; no flow control is needed because a
+receiver only reassembles and CAN keeps one sender's frames in order (docs/link-layer.md
+explains why this beats ISO-TP for hormones). With CAN FD, segments carry up to 64 bytes and
+are cut to lengths FD can carry unpadded (``FD_LENGTHS``).
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, NamedTuple
+
+from dh2rt.errors import CodecError
+from dh2rt.wire.frame import frame_kind
+
+SINGLE, FIRST, MIDDLE, LAST = 0, 1, 2, 3
+MAX_LINK_ID = (1 << 19) - 1
+MAX_SEGMENTS = 32
+CLASSIC_DATA = 8
+FD_DATA = 64
+#: Low 20 bits of the id: link id and side, what a receiver filters on.
+LINK_END_MASK = (1 << 20) - 1
+#: Largest payload the reassembler accepts.
+MAX_CAN_PAYLOAD = MAX_SEGMENTS * CLASSIC_DATA
+
+
+class CanId(NamedTuple):
+    """The fields of a dh2rt arbitration id."""
+
+    kind: int
+    segment: int
+    seq: int
+    link_id: int
+    side: int
+
+
+class CanFrame(NamedTuple):
+    """One CAN frame as dh2rt sends it: a 29-bit extended id and its data."""
+
+    arbitration_id: int
+    data: bytes
+
+
+def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: int) -> int:
+    """Pack the fields into a 29-bit id; raises ValueError naming a field out of range."""
+    for name, value, limit in (
+        ("kind", kind, 3),
+        ("segment", segment, 3),
+        ("seq", seq, MAX_SEGMENTS - 1),
+        ("link_id", link_id, MAX_LINK_ID),
+        ("side", side, 1),
+    ):
+        if not 0 <= value <= limit:
+            raise ValueError(f"CAN id field {name}={value} is outside 0..{limit}")
+    return (kind << 27) | (segment << 25) | (seq << 20) | (link_id << 1) | side
+
+
+def parse_arbitration_id(can_id: int) -> CanId:
+    """Split a 29-bit id into its fields."""
+    if not 0 <= can_id < (1 << 29):
+        raise CodecError(f"CAN id {can_id:#x} is not a 29-bit identifier")
+    return CanId((can_id >> 27) & 3, (can_id >> 25) & 3, (can_id >> 20) & 31, (can_id >> 1) & MAX_LINK_ID, can_id & 1)
+
+
+def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
+    """A python-can filter accepting what the far end of ``link_id`` sends to ``my_side``."""
+    return {
+        "can_id": make_arbitration_id(0, 0, 0, link_id, 1 - my_side),
+        "can_mask": LINK_END_MASK,
+        "extended": True,
+    }
+
+
+def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA) -> list[CanFrame]:
+    """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``."""
+    if not payload:
+        raise ValueError("cannot send an empty payload")
+    kind = int(frame_kind(payload))
+    sizes = _chunk_sizes(len(payload), max_data)
+    if len(sizes) == 1:
+        return [CanFrame(make_arbitration_id(kind, SINGLE, 0, link_id, side), bytes(payload))]
+    chunks: list[bytes] = []
+    pos = 0
+    for size in sizes:
+        chunks.append(bytes(payload[pos : pos + size]))
+        pos += size
+    if len(chunks) > MAX_SEGMENTS:
+        raise ValueError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
+    frames = []
+    for i, chunk in enumerate(chunks):
+        mark = FIRST if i == 0 else LAST if i == len(chunks) - 1 else MIDDLE
+        frames.append(CanFrame(make_arbitration_id(kind, mark, i, link_id, side), bytes(chunk)))
+    return frames
+
+
+#: Data lengths a CAN FD frame can have; others would be padded, and the frame codec rejects
+#: trailing bytes, so FD segments are cut to these sizes instead of padded.
+FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+
+
+def _chunk_sizes(n: int, max_data: int) -> list[int]:
+    if max_data == CLASSIC_DATA:
+        return [min(CLASSIC_DATA, n - i) for i in range(0, n, CLASSIC_DATA)]
+    if max_data != FD_DATA:
+        raise ValueError(f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}")
+    sizes: list[int] = []
+    while n > 0:
+        size = max(s for s in FD_LENGTHS if s <= n)
+        sizes.append(size)
+        n -= size
+    return sizes
+
+
+@dataclass(slots=True)
+class _Partial:
+    kind: int
+    next_seq: int
+    data: bytearray = field(default_factory=bytearray)
+
+
+class Reassembler:
+    """Rebuilds payloads from segments, per sending link end.
+
+    ``feed`` returns a whole payload or None. A segment out of sequence abandons the payload
+    being rebuilt (``dropped``); a segment that cannot start or continue one is ``corrupted``.
+    """
+
+    __slots__ = ("_partial", "corrupted", "dropped")
+
+    def __init__(self) -> None:
+        self._partial: dict[tuple[int, int], _Partial] = {}
+        self.dropped = 0
+        self.corrupted = 0
+
+    def feed(self, can_id: int, data: bytes) -> bytes | None:
+        """Consume one received frame (already known to be for one of our link ends)."""
+        try:
+            f = parse_arbitration_id(can_id)
+        except CodecError:
+            self.corrupted += 1
+            return None
+        key = (f.link_id, f.side)
+        if f.segment == SINGLE:
+            self._abandon(key)
+            return bytes(data)
+        if f.segment == FIRST:
+            self._abandon(key)
+            if f.seq != 0 or not data:
+                self.corrupted += 1
+                return None
+            self._partial[key] = _Partial(f.kind, 1, bytearray(data))
+            return None
+        part = self._partial.get(key)
+        if part is None or f.seq != part.next_seq or f.kind != part.kind or not data:
+            # A lost first segment or a gap: whatever was being rebuilt is lost too.
+            if part is not None:
+                self._abandon(key)
+            else:
+                self.corrupted += 1
+            return None
+        part.data += data
+        part.next_seq += 1
+        if f.segment == LAST:
+            del self._partial[key]
+            return bytes(part.data)
+        if part.next_seq >= MAX_SEGMENTS:
+            self._abandon(key)
+        return None
+
+    def forget(self, link_id: int, side: int) -> None:
+        """Drop a partial payload silently (the link was detached)."""
+        self._partial.pop((link_id, side), None)
+
+    def _abandon(self, key: tuple[int, int]) -> None:
+        if self._partial.pop(key, None) is not None:
+            self.dropped += 1
+
+
+# -- pcap (LINKTYPE_CAN_SOCKETCAN) ------------------------------------------------------------
+
+LINKTYPE_CAN_SOCKETCAN = 227
+CAN_EFF_FLAG = 0x80000000
+CAN_RTR_FLAG = 0x40000000
+CAN_ERR_FLAG = 0x20000000
+FD_BRS, FD_ESI, FD_FDF = 0x01, 0x02, 0x04
+_PCAP_MAGIC_US = 0xA1B2C3D4
+_PCAP_MAGIC_NS = 0xA1B23C4D
+
+
+@dataclass(frozen=True, slots=True)
+class CapturedFrame:
+    """One CAN frame in a capture: time (seconds since the epoch), id, data and flags."""
+
+    timestamp: float
+    arbitration_id: int
+    data: bytes
+    is_extended_id: bool = True
+    is_remote_frame: bool = False
+    is_error_frame: bool = False
+    is_fd: bool = False
+    bitrate_switch: bool = False
+
+
+def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -> int:
+    """Write frames as a pcap file of link type 227 (Wireshark/tshark read it); returns count."""
+    if isinstance(target, str | Path):
+        with open(target, "wb") as fh:
+            return write_pcap(fh, frames)
+    target.write(struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN))
+    count = 0
+    for fr in frames:
+        can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
+        if fr.is_extended_id:
+            can_id |= CAN_EFF_FLAG
+        if fr.is_remote_frame:
+            can_id |= CAN_RTR_FLAG
+        if fr.is_error_frame:
+            can_id |= CAN_ERR_FLAG
+        fd_flags = (FD_FDF | (FD_BRS if fr.bitrate_switch else 0)) if fr.is_fd else 0
+        body = struct.pack(">IBBxx", can_id, len(fr.data), fd_flags) + bytes(fr.data)
+        sec = int(fr.timestamp)
+        usec = min(round((fr.timestamp - sec) * 1e6), 999_999)
+        target.write(struct.pack("<IIII", sec, usec, len(body), len(body)) + body)
+        count += 1
+    return count
+
+
+def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
+    """Read a pcap of link type 227; raises CodecError naming what is wrong with the file."""
+    if isinstance(source, str | Path):
+        with open(source, "rb") as fh:
+            return read_pcap(fh)
+    head = source.read(24)
+    if len(head) < 24:
+        raise CodecError("pcap: file shorter than its 24-byte header")
+    for endian in ("<", ">"):
+        magic = struct.unpack(endian + "I", head[:4])[0]
+        if magic in (_PCAP_MAGIC_US, _PCAP_MAGIC_NS):
+            break
+    else:
+        raise CodecError(f"pcap: bad magic number {head[:4].hex()} (not a pcap file)")
+    scale = 1e-6 if magic == _PCAP_MAGIC_US else 1e-9
+    linktype = struct.unpack(endian + "I", head[20:24])[0] & 0x0FFFFFFF
+    if linktype != LINKTYPE_CAN_SOCKETCAN:
+        raise CodecError(f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)")
+    frames: list[CapturedFrame] = []
+    index = 0
+    while True:
+        rec = source.read(16)
+        if not rec:
+            return frames
+        if len(rec) < 16:
+            raise CodecError(f"pcap: record {index} header truncated")
+        sec, frac, incl, _orig = struct.unpack(endian + "IIII", rec)
+        body = source.read(incl)
+        if len(body) < incl or incl < 8:
+            raise CodecError(f"pcap: record {index} truncated or shorter than the 8-byte CAN header")
+        can_id, length, fd_flags = struct.unpack(">IBB", body[:6])
+        if length > len(body) - 8 or length > FD_DATA:
+            raise CodecError(f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}")
+        extended = bool(can_id & CAN_EFF_FLAG)
+        is_fd = bool(fd_flags & FD_FDF) or length > CLASSIC_DATA
+        frames.append(
+            CapturedFrame(
+                timestamp=sec + frac * scale,
+                arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
+                data=bytes(body[8 : 8 + length]),
+                is_extended_id=extended,
+                is_remote_frame=bool(can_id & CAN_RTR_FLAG),
+                is_error_frame=bool(can_id & CAN_ERR_FLAG),
+                is_fd=is_fd,
+                bitrate_switch=bool(fd_flags & FD_BRS),
+            )
+        )
+        index += 1
