@@ -273,12 +273,12 @@ class _Compiler:
         """Compile an integer expression to a closure (constants folded)."""
         const = self.fold(e, binds)
         if const is not None:
-            return lambda _e, _b, c=const: c
+            return _constant(const)
         if isinstance(e, ast.Name):
             b = binds[e.name]
             if b.kind != "int":
                 raise self.fail(f"{e.name!r} is bound to a {b.kind}, not a number", e.span)
-            return lambda _e, bb, n=e.name: bb[n]
+            return _bound(e.name)
         if isinstance(e, ast.VarRef):
             if e.name not in self.vars:
                 raise self.fail(f"undefined variable V.{e.name} (declare it with `var {e.name} = 0`)", e.span)
@@ -307,12 +307,12 @@ class _Compiler:
                 raise self.fail(f"{where} is an int; {e.name!r} is not a constant or a bound value", e.span)
             return self.int_expr(e, binds)
         if isinstance(e, ast.Name) and e.name in param.domain:
-            return lambda _e, _b, a=e.name: a
+            return _constant(e.name)
         if isinstance(e, ast.Name) and e.name in binds:
             b = binds[e.name]
             if b.kind != "atom" or b.domain is None or not set(b.domain) <= set(param.domain):
                 raise self.fail(f"{e.name!r} may hold values that {where} does not accept", e.span)
-            return lambda _e, bb, n=e.name: bb[n]
+            return _bound(e.name)
         shown = e.name if isinstance(e, ast.Name) else "an expression"
         raise self.fail(f"{shown!r} is not a value of {where} (one of {' | '.join(param.domain)})", _span_of(e))
 
@@ -533,7 +533,12 @@ class _Compiler:
             return start
         if isinstance(a, ast.StopPeriodic):
             self.hormone_spec(a.name, a.span)
-            return lambda e, _b, n=a.name: e.periodics.pop(n, None)  # type: ignore[func-returns-value]
+            name = a.name
+
+            def stop(e: Engine, _b: Bindings) -> None:
+                e.periodics.pop(name, None)
+
+            return stop
         if isinstance(a, ast.ReceptorOp):
             if a.name == "self":
                 idx = self.receptor_names[r.name]
@@ -562,7 +567,7 @@ class _Compiler:
     def native_arg(self, x: ast.Expr | ast.PathArg, binds: Mapping[str, _Binding]) -> ValueFn:
         name = x.name if isinstance(x, ast.Name | ast.PathArg) else None
         if name is not None and name in binds and binds[name].kind in ("path", "atom"):
-            return lambda _e, b, n=name: b[n]
+            return _bound(name)
         if isinstance(x, ast.PathArg):
             raise self.fail(f"{x.name!r} is not a bound path", x.span)
         return self.int_expr(x, binds)
@@ -618,7 +623,9 @@ class _Compiler:
 
             return via_all
         if t.path_var not in binds or binds[t.path_var].kind != "path":
-            raise self.fail(f"{t.path_var!r} is not a path bound by this receptor's pattern (H == ... as {t.path_var})", t.span)
+            raise self.fail(
+                f"{t.path_var!r} is not a path bound by this receptor's pattern (H == ... as {t.path_var})", t.span
+            )
         pv = t.path_var
 
         def via_reply(e: Engine, b: Bindings, h: Hormone) -> None:
@@ -637,7 +644,9 @@ class _Compiler:
             binds: dict[str, _Binding] = {}
             match = self.pattern(r.pattern, binds, True)
             act, keep = self.actions(r, binds)
-            receptors.append(CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, self.guard(r.pattern)))
+            receptors.append(
+                CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, self.guard(r.pattern))
+            )
         image = to_image(self.p)
         cp = CompiledProgram(
             name=self.p.name,
@@ -655,6 +664,14 @@ class _Compiler:
         )
         _build_index(cp)
         return cp
+
+
+def _constant(value: Any) -> ValueFn:
+    return lambda _e, _b: value
+
+
+def _bound(name: str) -> ValueFn:
+    return lambda _e, b: b[name]
 
 
 def reply_route(path: Path) -> tuple[int, ...]:

@@ -197,7 +197,8 @@ class Engine:
                 if rstatus[i] != ACTIVE:
                     continue
                 r = receptors[i]
-                self.matched = matched = []
+                matched: list[Entry] = []
+                self.matched = matched
                 b: dict[str, Any] = {}
                 if not r.match(self, b):
                     continue

@@ -57,8 +57,9 @@ def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
         m, dot, c = ref.partition(".")
         if not dot:
             raise EventError(f"event {text!r}: expected MODULE.CONNECTOR, got {ref!r}")
+        index = module(m)
         try:
-            return module(m), topology.profile.connector_index(c.strip())
+            return index, topology.profile.connector_index(c.strip())
         except ValueError:
             raise EventError(
                 f"event {text!r}: unknown connector {c!r} ({', '.join(topology.profile.connectors)})"

@@ -108,9 +108,7 @@ class Vocabulary:
         if spec is None:
             raise HormoneError(f"unknown hormone {hormone.name!r}")
         if len(hormone.args) != len(spec.params):
-            raise HormoneError(
-                f"hormone {hormone.name} takes {len(spec.params)} argument(s), got {len(hormone.args)}"
-            )
+            raise HormoneError(f"hormone {hormone.name} takes {len(spec.params)} argument(s), got {len(hormone.args)}")
         for value, param in zip(hormone.args, spec.params, strict=True):
             _check_value(hormone.name, param, value)
         if len(hormone.path) > MAX_HOPS_LIMIT:

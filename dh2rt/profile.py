@@ -88,7 +88,7 @@ class Profile:
         try:
             return self.types[self.type_of_status[key]]
         except KeyError:
-            raise TopologyError(f"status {self.describe(key)} is not legal in profile {self.name}")
+            raise TopologyError(f"status {self.describe(key)} is not legal in profile {self.name}") from None
 
     def describe(self, status: Sequence[int]) -> str:
         parts = (f"{c}={self.connector_name(s)}" for c, s in zip(self.connectors, status, strict=True))
@@ -133,7 +133,9 @@ class Profile:
                 claimed[tup] = len(types)
                 statuses.add(tup)
             alias = row.get("alias")
-            types.append(TopoType(len(types), str(row["name"]), None if alias is None else int(alias), frozenset(statuses)))
+            types.append(
+                TopoType(len(types), str(row["name"]), None if alias is None else int(alias), frozenset(statuses))
+            )
         for tup in legal:
             if tup not in claimed:
                 letters = "".join("0" if v == NONE else connectors[v - 1][0] for v in tup)

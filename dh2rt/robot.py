@@ -14,7 +14,7 @@ connector it arrived at (and send order within a link), never by module numberin
 from __future__ import annotations
 
 import random
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +53,7 @@ class Robot:
         seed: int = 0,
         natives: Mapping[str, Native] | None = None,
         record: bool = False,
+        timer_phases: Sequence[int] | None = None,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -65,7 +66,13 @@ class Robot:
         self._natives_used = used
         self.cycle = 0
         self.size = topology.size
-        self.engines: list[Engine | None] = [self._boot() for _ in range(self.size)]
+        if timer_phases is not None and len(timer_phases) != self.size:
+            raise TopologyError(f"timer_phases has {len(timer_phases)} entries for {self.size} modules")
+        self.engines: list[Engine | None] = [
+            self._boot(None if timer_phases is None else timer_phases[m]) for m in range(self.size)
+        ]
+        #: The order modules are stepped in; results never depend on it (tested).
+        self.step_order: list[int] = list(range(self.size))
         self.peer: dict[tuple[int, int], tuple[int, int]] = {}
         self.inbox: list[list[Arrival]] = [[] for _ in range(self.size)]
         self.record = record
@@ -79,8 +86,10 @@ class Robot:
         for link in topology.links:
             self.dock(link.a, link.a_conn, link.b, link.b_conn)
 
-    def _boot(self) -> Engine:
-        return Engine(self.program, timer_phase=self.rng.randrange(self.program.clock_cycle), natives=self._natives_used)
+    def _boot(self, phase: int | None = None) -> Engine:
+        if phase is None:
+            phase = self.rng.randrange(self.program.clock_cycle)
+        return Engine(self.program, timer_phase=phase, natives=self._natives_used)
 
     # ------------------------------------------------------------ the physical world
 
@@ -195,7 +204,8 @@ class Robot:
         peer = self.peer
         record = self.record
         effects: list[tuple[int, str, tuple[Any, ...]]] = []
-        for m, e in enumerate(engines):
+        for m in self.step_order:
+            e = engines[m]
             if e is None:
                 continue
             arrivals = inbox[m]
@@ -271,7 +281,9 @@ def _reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
         for c in route:
             nxt = robot.peer.get((here, c))
             if nxt is None:
-                robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot._where(module, connector)}: route broken")
+                robot.log.append(
+                    f"cycle {robot.cycle}: reach_and_dock from {robot._where(module, connector)}: route broken"
+                )
                 return
             here, at = nxt
         if here == module or not robot.alive(here) or not robot.alive(module):

@@ -78,8 +78,7 @@ class Topology:
                 raise TopologyError(f"{self.spec}: link {self.describe(link)} docks a module to itself")
             if not self.profile.can_link(link.a_conn, link.b_conn):
                 raise TopologyError(
-                    f"{self.spec}: link {self.describe(link)} joins two "
-                    f"{self.profile.gender(link.a_conn)} connectors"
+                    f"{self.spec}: link {self.describe(link)} joins two {self.profile.gender(link.a_conn)} connectors"
                 )
 
     def describe(self, link: Link) -> str:
@@ -222,5 +221,5 @@ def _parse_links(path: Path, names: Sequence[str], raw: Iterable[object], profil
         where = f"links[{i}]"
         m = _LINK_RE.match(item) if isinstance(item, str) else None
         if m is None:
-            raise TopologyError(f"{path}: {where}: expected \"A.connector <-> B.connector\", got {item!r}")
+            raise TopologyError(f'{path}: {where}: expected "A.connector <-> B.connector", got {item!r}')
         yield Link(module(m[1], where), connector(m[2], where), module(m[3], where), connector(m[4], where))

@@ -22,11 +22,6 @@ from typing import Literal
 
 from dh2rt.errors import SourceSpan
 
-
-def _span() -> SourceSpan | None:
-    return field(default=None, compare=False, repr=False)  # type: ignore[return-value]
-
-
 # ---------------------------------------------------------------- expressions
 
 
@@ -35,7 +30,7 @@ class Num:
     """An integer literal."""
 
     value: int
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -43,7 +38,7 @@ class Name:
     """A bare name: a constant, ``ClockCycle``, or a value bound by the pattern (``?x``)."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -51,7 +46,7 @@ class VarRef:
     """``V.name``: a local variable."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -59,14 +54,14 @@ class SensorRef:
     """``S.name``: a sensor reading."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Timer:
     """``LocalTimer``."""
 
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 ArithOp = Literal["+", "-", "*", "/", "%"]
@@ -79,13 +74,13 @@ class BinOp:
     op: ArithOp
     left: Expr
     right: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Neg:
     operand: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 Expr = Num | Name | VarRef | SensorRef | Timer | BinOp | Neg
@@ -99,27 +94,27 @@ CmpOp = Literal["==", "!=", "<", "<=", ">", ">="]
 class TruePattern:
     """Matches every state (a receptor driven by R or V alone)."""
 
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class And:
     left: Pattern
     right: Pattern
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Or:
     left: Pattern
     right: Pattern
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Not:
     operand: Pattern
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -128,7 +123,7 @@ class TypeIs:
 
     types: tuple[str, ...]
     negate: bool = False
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -137,7 +132,7 @@ class TimerIs:
 
     op: CmpOp
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -145,7 +140,7 @@ class SensorIs:
     name: str
     op: CmpOp
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -153,7 +148,7 @@ class VarIs:
     name: str
     op: CmpOp
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -163,14 +158,14 @@ class ReceptorIs:
     name: str
     op: Literal["==", "!="]
     value: int
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Wildcard:
     """``_`` in a hormone pattern: any value."""
 
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -178,7 +173,7 @@ class Bind:
     """``?name`` in a hormone pattern: any value, bound to ``name`` for the actions."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 #: In hormone arguments a bare :class:`Name` is an atom when the parameter declares it,
@@ -194,7 +189,7 @@ class HormoneIs:
     args: tuple[ArgPattern, ...]
     path_var: str | None = None
     negate: bool = False
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 Pattern = TruePattern | And | Or | Not | TypeIs | TimerIs | SensorIs | VarIs | ReceptorIs | HormoneIs
@@ -205,14 +200,14 @@ Pattern = TruePattern | And | Or | Not | TypeIs | TimerIs | SensorIs | VarIs | R
 @dataclass(frozen=True)
 class ViaConnector:
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class ViaAll:
     """Through every connected link."""
 
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -220,7 +215,7 @@ class ViaReply:
     """Along ``path-1``: back the way the hormone bound as ``path_var`` came."""
 
     path_var: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 Target = ViaConnector | ViaAll | ViaReply
@@ -232,7 +227,7 @@ class HormoneTerm:
 
     name: str
     args: tuple[Expr, ...]
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -241,7 +236,7 @@ class SetDOF:
 
     joint: Literal[1, 2]
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -250,7 +245,7 @@ class SetVar:
 
     name: str
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -259,7 +254,7 @@ class Emit:
 
     hormone: HormoneTerm
     target: Target
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -269,7 +264,7 @@ class Periodic:
     hormone: HormoneTerm
     target: Target
     period: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -277,14 +272,14 @@ class StopPeriodic:
     """``stop NAME``: the paper's stop_hormone."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class KeepAlive:
     """``keep_alive()``: the receptor stays active after firing (else it is one-shot)."""
 
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 ReceptorVerb = Literal["activate", "inhibit", "create", "terminate"]
@@ -296,7 +291,7 @@ class ReceptorOp:
 
     verb: ReceptorVerb
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -304,7 +299,7 @@ class PathArg:
     """A bound path passed to a native action."""
 
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -313,7 +308,7 @@ class NativeCall:
 
     name: str
     args: tuple[Expr | PathArg, ...]
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 Action = SetDOF | SetVar | Emit | Periodic | StopPeriodic | KeepAlive | ReceptorOp | NativeCall
@@ -329,27 +324,27 @@ class Receptor:
     pattern: Pattern
     actions: tuple[Action, ...]
     status: ReceptorStatus = "active"
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class Const:
     name: str
     value: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class VarDecl:
     name: str
     initial: Expr
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class SensorDecl:
     name: str
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -358,21 +353,21 @@ class Param:
 
     name: str
     domain: tuple[str, ...] | None
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class HormoneDecl:
     name: str
     params: tuple[Param, ...]
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class NativeDecl:
     name: str
     params: tuple[str, ...]
-    span: SourceSpan | None = _span()
+    span: SourceSpan | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)

@@ -203,7 +203,7 @@ class Parser:
     def include(self, d: _Decls, start: Token) -> None:
         tok = self.tok
         if tok.kind != "string":
-            raise self.error(f'expected a quoted file name after include, found {self.describe(tok)}')
+            raise self.error(f"expected a quoted file name after include, found {self.describe(tok)}")
         self.i += 1
         target = Path(self.file).parent / tok.text[1:-1]
         if str(target) in self.including:
@@ -237,9 +237,10 @@ class Parser:
     def receptor(self) -> ast.Receptor:
         name = self.ident("a receptor name")
         status: ast.ReceptorStatus = "active"
+        word: ast.ReceptorStatus
         for word in ("active", "passive", "absent"):
             if self.accept(word):
-                status = word  # type: ignore[assignment]
+                status = word
                 break
         pattern: ast.Pattern = ast.TruePattern(self.span(name))
         if self.accept("when"):
@@ -290,7 +291,7 @@ class Parser:
             return ast.TruePattern(sp)
         if self.accept("T"):
             op = self.cmp_op(("==", "!="))
-            return ast.TypeIs(tuple(self.type_set()), op == "!=", sp)
+            return ast.TypeIs(tuple(sorted(set(self.type_set()))), op == "!=", sp)
         if self.accept("LocalTimer"):
             op = self.cmp_op()
             return ast.TimerIs(op, self.expr(), sp)  # type: ignore[arg-type]
@@ -383,8 +384,8 @@ class Parser:
             return ast.KeepAlive(sp)
         if word in _RECEPTOR_VERBS:
             self.i += 1
-            target = self.ident("a receptor name or self").text
-            return ast.ReceptorOp(word, target, sp)  # type: ignore[arg-type]
+            receptor = self.ident("a receptor name or self").text
+            return ast.ReceptorOp(word, receptor, sp)  # type: ignore[arg-type]
         self.i += 1
         if not self.at("("):
             raise self.error(
@@ -438,6 +439,10 @@ class Parser:
     def unary(self) -> ast.Expr:
         tok = self.tok
         if self.accept("-"):
+            if self.tok.kind == "int":  # a negative literal is one number, as in the Python API
+                lit = self.tok
+                self.i += 1
+                return ast.Num(-int(lit.text), self.span(tok))
             return ast.Neg(self.unary(), self.span(tok))
         if self.accept("+"):
             return self.unary()

@@ -49,7 +49,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple, Self
 
 from dh2rt.errors import CodecError, TransportError
 from dh2rt.hormone import Arrival, Hormone
@@ -146,10 +146,14 @@ class Transport(ABC):
     def attach(self, connector: int, end: LinkEnd) -> None:
         """Attach ``connector`` to a link end, replacing whatever it was attached to."""
         self._check_open()
-        if isinstance(connector, bool) or not isinstance(connector, int) or not (
-            1 <= connector <= self.codec.connector_count
+        if (
+            isinstance(connector, bool)
+            or not isinstance(connector, int)
+            or not (1 <= connector <= self.codec.connector_count)
         ):
-            raise TransportError(f"connector {connector!r} is outside 1..{self.codec.connector_count}")
+            raise TransportError(
+                f"connector {connector!r} is outside 1..{self.codec.connector_count}"
+            )
         if connector in self._links:
             self.detach(connector)
         self._attach(connector, end)
@@ -219,7 +223,7 @@ class Transport(ABC):
         self._closed = True
         self._close()
 
-    def __enter__(self) -> Transport:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

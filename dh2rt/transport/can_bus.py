@@ -30,7 +30,10 @@ from dh2rt.wire.frame import FrameCodec
 #: The commands that create a virtual SocketCAN interface on a Linux host that has AF_CAN.
 VCAN_SETUP = "sudo modprobe vcan; sudo ip link add dev vcan0 type vcan; sudo ip link set up vcan0"
 #: Transports that need no SocketCAN.
-FALLBACKS = "inproc (one process), virtual (python-can, one process), udp (python-can udp_multicast, across processes), serial (pyserial ports)"
+FALLBACKS = (
+    "inproc (one process), virtual (python-can, one process), "
+    "udp (python-can udp_multicast, across processes), serial (pyserial ports)"
+)
 
 
 def socketcan_problem(channel: str) -> str | None:
@@ -41,7 +44,8 @@ def socketcan_problem(channel: str) -> str | None:
     try:
         probe = socket.socket(family, socket.SOCK_RAW, socket.CAN_RAW)
     except OSError as exc:
-        return f"the kernel has no AF_CAN sockets ({exc.strerror or exc}; the can/can-raw modules are missing)"
+        reason = exc.strerror or exc
+        return f"the kernel has no AF_CAN sockets ({reason}; the can/can-raw modules are missing)"
     probe.close()
     try:
         socket.if_nametoindex(channel)
@@ -71,7 +75,7 @@ class CanTransport(Transport):
         self.fd = fd
         self.send_timeout = send_timeout
         self.max_data = FD_DATA if fd else CLASSIC_DATA
-        self._listen: dict[int, int] = {}  # low 20 bits of the far end's id -> my connector
+        self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
         self._bus: Any = self._open_bus(bus_options)
         self._can: Any = __import__("can")
@@ -105,11 +109,16 @@ class CanTransport(Transport):
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
         if not isinstance(end, BusEnd):
-            raise TransportError(f"{self.name} connector {connector}: expected a BusEnd, got {end!r}")
+            raise TransportError(
+                f"{self.name} connector {connector}: expected a BusEnd, got {end!r}"
+            )
         make_arbitration_id(0, 0, 0, end.link_id, end.side)  # validates the link id range
         far = (end.link_id << 1) | (1 - end.side)
         if far in self._listen:
-            raise TransportError(f"link {end.link_id} side {end.side} is already attached to connector {self._listen[far]}")
+            raise TransportError(
+                f"link {end.link_id} side {end.side} is already attached "
+                f"to connector {self._listen[far]}"
+            )
         self._listen[far] = connector
         self._apply_filters()
 
@@ -144,10 +153,11 @@ class CanTransport(Transport):
         while True:
             try:
                 msg = self._bus.recv(timeout=wait)
-            except can.CanOperationError:  # e.g. an undecodable udp_multicast datagram
+            except can.CanOperationError:
+                # An undecodable udp_multicast datagram, or a bus error: count it and return
+                # what we have; the next poll tries again (never spin on a failing bus).
                 self._corrupted += 1
-                wait = 0.0
-                continue
+                return out
             if msg is None:
                 return out
             wait = 0.0

@@ -9,6 +9,7 @@ decoder and never delivered. pyserial is imported lazily, when a port opens.
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 from typing import Any
@@ -22,12 +23,20 @@ from dh2rt.wire.serial_framing import SerialDecoder, encode_serial
 class _Port:
     """One open port: the pyserial object, its reader thread and its decoder."""
 
-    def __init__(self, connector: int, end: PortEnd, inbox: queue.SimpleQueue[tuple[int, bytes]], write_timeout: float) -> None:
+    def __init__(
+        self,
+        connector: int,
+        end: PortEnd,
+        inbox: queue.SimpleQueue[tuple[int, bytes]],
+        write_timeout: float,
+    ) -> None:
         try:
             import serial
             import serial.threaded
         except ImportError as exc:
-            raise TransportUnavailable(f"the serial transport needs pyserial: pip install 'dh2rt[serial]' ({exc})") from None
+            raise TransportUnavailable(
+                f"the serial transport needs pyserial: pip install 'dh2rt[serial]' ({exc})"
+            ) from None
         self.connector = connector
         self.decoder = SerialDecoder()
         self.lost: BaseException | None = None
@@ -37,7 +46,9 @@ class _Port:
                 end.url, baudrate=end.baudrate, timeout=None, write_timeout=write_timeout
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise TransportError(f"connector {connector}: cannot open serial port {end.url!r}: {exc}") from exc
+            raise TransportError(
+                f"connector {connector}: cannot open serial port {end.url!r}: {exc}"
+            ) from exc
         port = self
 
         class _Protocol(serial.threaded.Protocol):  # type: ignore[misc]
@@ -72,10 +83,8 @@ class _Port:
         try:
             self.reader.close()
         except Exception:  # closing a port whose device vanished must not raise
-            try:
+            with contextlib.suppress(Exception):
                 self.serial.close()
-            except Exception:
-                pass
 
 
 class SerialTransport(Transport):
@@ -91,13 +100,15 @@ class SerialTransport(Transport):
         self._gone_dropped = 0
         self._gone_corrupted = 0
 
-    def attach(self, connector: int, end: LinkEnd | str) -> None:  # type: ignore[override]
+    def attach(self, connector: int, end: LinkEnd | str) -> None:
         """Attach ``connector`` to a port; ``end`` may be a :class:`PortEnd` or a URL/path."""
         super().attach(connector, PortEnd(end) if isinstance(end, str) else end)
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
         if not isinstance(end, PortEnd):
-            raise TransportError(f"serial connector {connector}: expected a PortEnd or a port URL, got {end!r}")
+            raise TransportError(
+                f"serial connector {connector}: expected a PortEnd or a port URL, got {end!r}"
+            )
         port = _Port(connector, end, self._inbox, self.write_timeout)
         # A delimiter first: it ends whatever partial frame the peer's decoder holds.
         port.write(b"\x00")
@@ -117,7 +128,9 @@ class SerialTransport(Transport):
     def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
         out: list[tuple[int, bytes]] = []
         try:
-            out.append(self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait())
+            out.append(
+                self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait()
+            )
         except queue.Empty:
             return out
         while True:

@@ -7,12 +7,12 @@ its two ends are *side* 0 and side 1. Every frame uses a 29-bit extended identif
     bits 28..27  kind      frame kind (0 hormone, 1 routed, 2 keep-alive, 3 hello);
                            lower ids win arbitration, so hormones go before beacons
     bits 26..25  segment   0 single, 1 first, 2 middle, 3 last
-    bits 24..20  seq       segment number within one payload (0..31)
-    bits 19..1   link id   0..524287
+    bits 24..19  seq       segment number within one payload (0..63)
+    bits 18..1   link id   0..262143
     bit  0       side      the end that SENT the frame
 
 A module at side ``s`` of link ``L`` sends with ``(L, s)`` and listens for ``(L, 1 - s)``:
-an acceptance filter on the low 20 bits (:func:`listen_filter`). Its own frames (which
+an acceptance filter on the low 19 bits (:func:`listen_filter`). Its own frames (which
 ``udp_multicast`` echoes back) carry its own side and are filtered out by the same rule.
 
 Payloads of up to 8 bytes (a caterpillar hormone is 4) go in one classic frame. Longer ones
@@ -35,12 +35,12 @@ from dh2rt.errors import CodecError
 from dh2rt.wire.frame import frame_kind
 
 SINGLE, FIRST, MIDDLE, LAST = 0, 1, 2, 3
-MAX_LINK_ID = (1 << 19) - 1
-MAX_SEGMENTS = 32
+MAX_LINK_ID = (1 << 18) - 1
+MAX_SEGMENTS = 64
 CLASSIC_DATA = 8
 FD_DATA = 64
-#: Low 20 bits of the id: link id and side, what a receiver filters on.
-LINK_END_MASK = (1 << 20) - 1
+#: Low 19 bits of the id: link id and side, what a receiver filters on.
+LINK_END_MASK = (1 << 19) - 1
 #: Largest payload the reassembler accepts.
 MAX_CAN_PAYLOAD = MAX_SEGMENTS * CLASSIC_DATA
 
@@ -73,14 +73,20 @@ def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: i
     ):
         if not 0 <= value <= limit:
             raise ValueError(f"CAN id field {name}={value} is outside 0..{limit}")
-    return (kind << 27) | (segment << 25) | (seq << 20) | (link_id << 1) | side
+    return (kind << 27) | (segment << 25) | (seq << 19) | (link_id << 1) | side
 
 
 def parse_arbitration_id(can_id: int) -> CanId:
     """Split a 29-bit id into its fields."""
     if not 0 <= can_id < (1 << 29):
         raise CodecError(f"CAN id {can_id:#x} is not a 29-bit identifier")
-    return CanId((can_id >> 27) & 3, (can_id >> 25) & 3, (can_id >> 20) & 31, (can_id >> 1) & MAX_LINK_ID, can_id & 1)
+    return CanId(
+        (can_id >> 27) & 3,
+        (can_id >> 25) & 3,
+        (can_id >> 19) & 63,
+        (can_id >> 1) & MAX_LINK_ID,
+        can_id & 1,
+    )
 
 
 def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
@@ -92,7 +98,9 @@ def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
     }
 
 
-def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA) -> list[CanFrame]:
+def segment(
+    payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA
+) -> list[CanFrame]:
     """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``."""
     if not payload:
         raise ValueError("cannot send an empty payload")
@@ -106,7 +114,9 @@ def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DAT
         chunks.append(bytes(payload[pos : pos + size]))
         pos += size
     if len(chunks) > MAX_SEGMENTS:
-        raise ValueError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
+        raise ValueError(
+            f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames"
+        )
     frames = []
     for i, chunk in enumerate(chunks):
         mark = FIRST if i == 0 else LAST if i == len(chunks) - 1 else MIDDLE
@@ -123,7 +133,9 @@ def _chunk_sizes(n: int, max_data: int) -> list[int]:
     if max_data == CLASSIC_DATA:
         return [min(CLASSIC_DATA, n - i) for i in range(0, n, CLASSIC_DATA)]
     if max_data != FD_DATA:
-        raise ValueError(f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}")
+        raise ValueError(
+            f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}"
+        )
     sizes: list[int] = []
     while n > 0:
         size = max(s for s in FD_LENGTHS if s <= n)
@@ -227,7 +239,9 @@ def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -
     if isinstance(target, str | Path):
         with open(target, "wb") as fh:
             return write_pcap(fh, frames)
-    target.write(struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN))
+    target.write(
+        struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN)
+    )
     count = 0
     for fr in frames:
         can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
@@ -263,7 +277,9 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
     scale = 1e-6 if magic == _PCAP_MAGIC_US else 1e-9
     linktype = struct.unpack(endian + "I", head[20:24])[0] & 0x0FFFFFFF
     if linktype != LINKTYPE_CAN_SOCKETCAN:
-        raise CodecError(f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)")
+        raise CodecError(
+            f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)"
+        )
     frames: list[CapturedFrame] = []
     index = 0
     while True:
@@ -275,10 +291,14 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
         sec, frac, incl, _orig = struct.unpack(endian + "IIII", rec)
         body = source.read(incl)
         if len(body) < incl or incl < 8:
-            raise CodecError(f"pcap: record {index} truncated or shorter than the 8-byte CAN header")
+            raise CodecError(
+                f"pcap: record {index} truncated or shorter than the 8-byte CAN header"
+            )
         can_id, length, fd_flags = struct.unpack(">IBB", body[:6])
         if length > len(body) - 8 or length > FD_DATA:
-            raise CodecError(f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}")
+            raise CodecError(
+                f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}"
+            )
         extended = bool(can_id & CAN_EFF_FLAG)
         is_fd = bool(fd_flags & FD_FDF) or length > CLASSIC_DATA
         frames.append(

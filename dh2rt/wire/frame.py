@@ -118,8 +118,9 @@ class FrameCodec:
         self._check_connector("sender connector", sender)
         if isinstance(frame, Hormone):
             kind = FrameKind.HORMONE if frame.route is None else FrameKind.ROUTED
+            content = self.vocabulary.encode_content(frame)  # checks declaration and hop limit
             out = bytearray((_header(kind, sender), len(frame.path)))
-            out += self.vocabulary.encode_content(frame)  # checks the declaration and hop limit
+            out += content
             flat: list[int] = []
             for sent, received in frame.path:
                 flat.append(sent)
@@ -130,7 +131,8 @@ class FrameCodec:
             if frame.route is not None:
                 if len(frame.route) > MAX_HOPS_LIMIT:
                     raise FrameEncodeError(
-                        f"hormone {frame.name}: route of {len(frame.route)} hops exceeds {MAX_HOPS_LIMIT}"
+                        f"hormone {frame.name}: route of {len(frame.route)} hops "
+                        f"exceeds {MAX_HOPS_LIMIT}"
                     )
                 for value in frame.route:
                     self._check_connector("route connector", value)
@@ -150,7 +152,11 @@ class FrameCodec:
         raise FrameEncodeError(f"not a frame: {frame!r}")
 
     def _check_connector(self, what: str, value: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= self.connector_count:
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int)
+            or not 1 <= value <= self.connector_count
+        ):
             raise FrameEncodeError(f"{what} {value!r} is outside 1..{self.connector_count}")
 
     # -- decoding ---------------------------------------------------------------------------
@@ -174,14 +180,18 @@ class FrameCodec:
         kind = FrameKind((head >> 4) & 0x3)
         sender = head & 0x0F
         if not 1 <= sender <= self.connector_count:
-            raise CodecError(f"frame: sender connector {sender} is outside 1..{self.connector_count}")
+            raise CodecError(
+                f"frame: sender connector {sender} is outside 1..{self.connector_count}"
+            )
         if kind is FrameKind.KEEPALIVE:
             if len(data) != 2:
                 raise CodecError(f"keep-alive frame: {len(data)} bytes, expected 2")
             return Decoded(sender, KeepAlive(data[1]))
         if kind is FrameKind.HELLO:
             if len(data) != 1 + HELLO_DIGEST_BYTES:
-                raise CodecError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
+                raise CodecError(
+                    f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}"
+                )
             return Decoded(sender, Hello(data[1:]))
         if len(data) < 2:
             raise CodecError("hormone frame: truncated before the hop count")
@@ -213,7 +223,9 @@ class FrameCodec:
         values = tuple((acc >> (bits * (count - 1 - i))) & mask for i in range(count))
         for v in values:
             if not 1 <= v <= self.connector_count:
-                raise CodecError(f"frame: {what} connector {v} is outside 1..{self.connector_count}")
+                raise CodecError(
+                    f"frame: {what} connector {v} is outside 1..{self.connector_count}"
+                )
         return values, pos + nbytes
 
 

@@ -1,0 +1,7 @@
+"""``python -m dh2rt``: the same as the ``dh2rt`` command."""
+
+import sys
+
+from dh2rt.cli import main
+
+sys.exit(main())

@@ -1,0 +1,445 @@
+"""Public testing helpers: the transport contract suite and the harnesses that run it.
+
+Every transport must pass the same behaviours (:data:`CONTRACT_CHECKS`). A
+:class:`TransportHarness` knows how to make endpoints (one per module), dock two of them by
+connectors, and put raw garbage on the medium; the checks only use that and the public
+:class:`~dh2rt.transport.base.Transport` API. Use it from pytest::
+
+    class TestMyTransport(TransportContract):
+        def make_harness(self) -> TransportHarness:
+            return MyHarness()
+
+or without pytest: ``run_contract(MyHarness)`` returns ``{check name: "ok" | error text}``
+(the udp_multicast test runs it in a subprocess inside a private network namespace).
+
+Harnesses for ``inproc`` and the python-can transports live here; the serial harness needs
+the link emulator from ``hil`` and so lives with the tests (``dh2rt`` never imports ``hil``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+import traceback
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any
+
+from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
+from dh2rt.transport.base import BusEnd, Received, Transport
+from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
+from dh2rt.wire.frame import Frame, FrameCodec, Hello, KeepAlive, program_digest
+
+FRONT, BACK, LEFT, RIGHT = 1, 2, 3, 4
+
+#: The vocabulary the contract uses: the caterpillar's ``X(A)``, a counter, a mixed one.
+CONTRACT_VOCABULARY = Vocabulary(
+    [
+        HormoneSpec(0, "X", (ParamSpec("a", ("A", "B")),)),
+        HormoneSpec(1, "N", (ParamSpec("n", None),)),
+        HormoneSpec(
+            2, "P", (ParamSpec("n", None), ParamSpec("m", None), ParamSpec("d", ("up", "down")))
+        ),
+    ]
+)
+
+#: Garbage units: none decodes as a frame on any medium, none contains a zero byte.
+GARBAGE_UNITS = (b"\xff", b"\x7f\x01\x02", b"\x42\x05\x09\x09\x09", bytes(range(1, 40)))
+
+
+def contract_codec() -> FrameCodec:
+    return FrameCodec(CONTRACT_VOCABULARY, 4)
+
+
+def long_hormone(hops: int = 40) -> Hormone:
+    """A routed hormone long enough to need CAN segmentation."""
+    path = tuple(((i % 4) + 1, ((i + 1) % 4) + 1) for i in range(hops))
+    return Hormone("P", (-123456, 2**31 - 1, "down"), path, tuple((i % 4) + 1 for i in range(hops)))
+
+
+class TransportHarness(ABC):
+    """Makes endpoints of one transport and plays the physical world for them."""
+
+    #: How long an absence check waits before concluding nothing arrived.
+    settle: float = 0.25
+    #: How long to wait for frames that must arrive.
+    timeout: float = 5.0
+
+    def __init__(self) -> None:
+        self.codec = contract_codec()
+        self.endpoints: list[Transport] = []
+        self._link_ids = itertools.count(_next_link_base())
+
+    def endpoint(self) -> Transport:
+        """A new module's transport (closed by :meth:`close`)."""
+        t = self._new_endpoint()
+        self.endpoints.append(t)
+        return t
+
+    def link(self, a: Transport, a_conn: int, b: Transport, b_conn: int) -> int:
+        """Dock ``a``'s connector ``a_conn`` (side 0) to ``b``'s ``b_conn`` (side 1)."""
+        link_id = next(self._link_ids)
+        self._link(link_id, a, a_conn, b, b_conn)
+        return link_id
+
+    @abstractmethod
+    def _new_endpoint(self) -> Transport: ...
+
+    @abstractmethod
+    def _link(self, link_id: int, a: Transport, a_conn: int, b: Transport, b_conn: int) -> None: ...
+
+    @abstractmethod
+    def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
+        """Put each unit on the medium as one would-be frame towards ``to_side``."""
+
+    def close(self) -> None:
+        for t in self.endpoints:
+            t.close()
+
+
+_link_base = itertools.count(1)
+
+
+def _next_link_base() -> int:
+    # Distinct link ids across harnesses, so a slow frame from one check never meets the next.
+    return next(_link_base) * 1000
+
+
+class InprocHarness(TransportHarness):
+    """The in-process bus; each harness has its own :class:`InprocBus`."""
+
+    settle = 0.05
+
+    def __init__(self) -> None:
+        super().__init__()
+        from dh2rt.transport.inproc import InprocBus
+
+        self.bus = InprocBus()
+
+    def _new_endpoint(self) -> Transport:
+        from dh2rt.transport.inproc import InprocTransport
+
+        return InprocTransport(self.codec, bus=self.bus)
+
+    def _link(self, link_id: int, a: Transport, a_conn: int, b: Transport, b_conn: int) -> None:
+        a.attach(a_conn, BusEnd(link_id, 0))
+        b.attach(b_conn, BusEnd(link_id, 1))
+
+    def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
+        for u in units:
+            self.bus.inject(link_id, to_side, u)
+
+
+class CanHarness(TransportHarness):
+    """A python-can transport (``virtual``, ``udp``, ``socketcan``) plus a raw bus for garbage."""
+
+    def __init__(self, name: str = "virtual", channel: str | None = None, **options: Any) -> None:
+        super().__init__()
+        from dh2rt.transport.registry import transport_class
+
+        self.cls = transport_class(name)
+        self.name = name
+        self.channel = channel or (f"dh2rt-contract-{id(self)}" if name == "virtual" else None)
+        self.options = options
+        self._raw: Any = None
+
+    def _new_endpoint(self) -> Transport:
+        factory: Any = self.cls  # CAN transports take channel and bus options
+        t: Transport = factory(self.codec, channel=self.channel, **self.options)
+        return t
+
+    def _link(self, link_id: int, a: Transport, a_conn: int, b: Transport, b_conn: int) -> None:
+        a.attach(a_conn, BusEnd(link_id, 0))
+        b.attach(b_conn, BusEnd(link_id, 1))
+
+    def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
+        import can
+
+        if self._raw is None:
+            from dh2rt.transport.can_bus import CanTransport
+
+            cls = self.cls if issubclass(self.cls, CanTransport) else CanTransport
+            self._raw = can.Bus(
+                interface=cls.interface, channel=self.channel or cls.default_channel
+            )
+        sender = 1 - to_side
+        for u in units:
+            for i in range(0, len(u), 8):  # units longer than 8 bytes go out as raw singles
+                can_id = make_arbitration_id(0, SINGLE, 0, link_id, sender)
+                self._raw.send(
+                    can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True)
+                )
+        # A segment train that never completes, and a stray middle segment.
+        self._raw.send(
+            can.Message(
+                arbitration_id=make_arbitration_id(0, 1, 0, link_id, sender),
+                data=b"\x40\x00\x00\x00\x00\x00\x00\x00",
+                is_extended_id=True,
+            )
+        )
+        self._raw.send(
+            can.Message(
+                arbitration_id=make_arbitration_id(0, 2, 5, link_id, sender),
+                data=b"\x01",
+                is_extended_id=True,
+            )
+        )
+
+    def close(self) -> None:
+        super().close()
+        if self._raw is not None:
+            self._raw.shutdown()
+            self._raw = None
+
+
+# -- helpers --------------------------------------------------------------------------------
+
+
+def collect(t: Transport, count: int, timeout: float) -> list[Received]:
+    """Poll ``t`` until ``count`` frames arrived or ``timeout`` passed."""
+    got: list[Received] = []
+    deadline = time.monotonic() + timeout
+    while len(got) < count:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        got += t.poll(min(left, 0.05))
+    return got
+
+
+def quiet(t: Transport, settle: float) -> list[Received]:
+    """Everything ``t`` receives within ``settle`` seconds (expected: nothing)."""
+    got: list[Received] = []
+    deadline = time.monotonic() + settle
+    while time.monotonic() < deadline:
+        got += t.poll(0.02)
+    return got
+
+
+CAT = Hormone("X", ("A",))
+
+
+# -- the checks -----------------------------------------------------------------------------
+
+
+def check_delivers_to_linked_peer(h: TransportHarness) -> None:
+    """A frame sent through a connector arrives at the linked peer's connector, remote set."""
+    a, b, c, d = (h.endpoint() for _ in range(4))
+    h.link(a, BACK, b, FRONT)
+    h.link(b, BACK, c, FRONT)
+    h.link(a, RIGHT, d, FRONT)
+    assert a.send(BACK, CAT)
+    got = collect(b, 1, h.timeout)
+    assert got == [Received(FRONT, BACK, CAT)], got
+    assert b.send(BACK, Hormone("X", ("B",)))
+    assert collect(c, 1, h.timeout) == [Received(FRONT, BACK, Hormone("X", ("B",)))]
+    assert c.send(FRONT, Hormone("N", (7,)))
+    assert collect(b, 1, h.timeout) == [Received(BACK, FRONT, Hormone("N", (7,)))]
+    assert a.send(RIGHT, Hormone("N", (4,)))
+    assert collect(d, 1, h.timeout) == [Received(FRONT, RIGHT, Hormone("N", (4,)))]
+    for t in (a, b, c, d):
+        extra = quiet(t, h.settle)
+        assert extra == [], f"unexpected extra frames: {extra}"
+
+
+def check_nothing_reaches_unlinked(h: TransportHarness) -> None:
+    """A module with no link to the sender hears nothing, even on a shared bus."""
+    a, b, loner = h.endpoint(), h.endpoint(), h.endpoint()
+    other = h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    h.link(loner, BACK, other, FRONT)  # linked, but not to a or b
+    for i in range(5):
+        assert a.send(BACK, Hormone("N", (i,)))
+        assert b.send(FRONT, Hormone("N", (-i,)))
+    assert len(collect(b, 5, h.timeout)) == 5
+    assert len(collect(a, 5, h.timeout)) == 5
+    assert quiet(loner, h.settle) == []
+    assert quiet(other, 0.0) == []
+    assert loner.counters.received == 0 and other.counters.received == 0
+
+
+def check_order_preserved(h: TransportHarness) -> None:
+    """Frames on one link arrive in the order sent, long (segmented) ones included."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    sent: list[Hormone] = []
+    for i in range(60):
+        hm = long_hormone(10 + i % 30) if i % 7 == 3 else Hormone("N", (i * 1000,))
+        sent.append(hm)
+        assert a.send(BACK, hm)
+    got = collect(b, len(sent), h.timeout)
+    assert [r.frame for r in got] == sent
+    assert all(r.at == FRONT and r.remote == BACK for r in got)
+
+
+def check_all_frame_kinds(h: TransportHarness) -> None:
+    """Hormones (flooded and routed), keep-alives and hellos all cross a link intact."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, LEFT, b, FRONT)
+    frames: list[Frame] = [
+        CAT,
+        Hormone("P", (-1, 2**31 - 1, "up"), ((1, 2), (3, 1)), None),
+        Hormone("P", (0, 0, "down"), (), ()),
+        long_hormone(255),
+        KeepAlive(0),
+        KeepAlive(255),
+        Hello(program_digest(b"program")),
+    ]
+    for f in frames:
+        assert a.send(LEFT, f)
+    got = collect(b, len(frames), h.timeout)
+    assert [r.frame for r in got] == frames
+    assert {(r.at, r.remote) for r in got} == {(FRONT, LEFT)}
+
+
+def check_full_duplex(h: TransportHarness) -> None:
+    """Both ends may send at once; each receives the other's frames."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    for i in range(20):
+        assert a.send(BACK, Hormone("N", (i,)))
+        assert b.send(FRONT, Hormone("N", (100 + i,)))
+    got_b = collect(b, 20, h.timeout)
+    got_a = collect(a, 20, h.timeout)
+    assert [r.frame.args for r in got_b] == [(i,) for i in range(20)]  # type: ignore[union-attr]
+    assert [r.frame.args for r in got_a] == [(100 + i,) for i in range(20)]  # type: ignore[union-attr]
+
+
+def check_send_fails_when_detached(h: TransportHarness) -> None:
+    """No link at a connector: send returns False and counts; detaching stops delivery."""
+    a, b = h.endpoint(), h.endpoint()
+    assert a.send(BACK, CAT) is False
+    assert a.counters.send_failed == 1 and a.counters.sent == 0
+    h.link(a, BACK, b, FRONT)
+    assert a.send(BACK, CAT)
+    assert len(collect(b, 1, h.timeout)) == 1
+    assert a.detach(BACK) is True
+    assert a.detach(BACK) is False
+    assert a.send(BACK, CAT) is False
+    assert a.counters.send_failed == 2
+    assert BACK not in a.links
+    # The far end detaches: sending still succeeds locally (a link cannot know) but the frame
+    # goes nowhere; liveness is what notices a silent neighbour.
+    h.link(a, LEFT, b, BACK)
+    assert b.detach(BACK)
+    assert a.send(LEFT, CAT) is True
+    assert quiet(b, h.settle) == []
+    assert b.counters.received == 1
+
+
+def check_counters(h: TransportHarness) -> None:
+    """sent/received count frames, not bytes or segments."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    for i in range(10):
+        assert a.send(BACK, long_hormone(50) if i == 5 else Hormone("N", (i,)))
+    assert len(collect(b, 10, h.timeout)) == 10
+    assert a.counters.sent == 10 and a.counters.received == 0
+    assert b.counters.received == 10 and b.counters.sent == 0
+    assert b.counters.corrupted == 0 and b.counters.dropped == 0
+
+
+def check_close_idempotent(h: TransportHarness) -> None:
+    """close() twice is fine; a closed transport sends nothing and delivers nothing."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    with a:
+        assert a.send(BACK, CAT)
+    assert a.closed
+    a.close()
+    assert a.send(BACK, CAT) is False
+    assert a.poll() == []
+    assert a.links == {}
+    try:
+        a.attach(BACK, BusEnd(1, 0))
+    except OSError:  # TransportError: attaching to a closed transport
+        pass
+    else:
+        raise AssertionError("attach after close did not raise")
+    assert len(collect(b, 1, h.timeout)) == 1
+    b.close()
+    b.close()
+
+
+def check_garbage_counted_never_delivered(h: TransportHarness) -> None:
+    """Bytes that are not a frame are counted as corrupted or dropped and never delivered."""
+    a, b = h.endpoint(), h.endpoint()
+    link = h.link(a, BACK, b, FRONT)
+    h.inject_garbage(link, 1, GARBAGE_UNITS)
+    assert a.send(BACK, CAT)  # a good frame after the garbage still gets through
+    got = collect(b, 1, h.timeout)
+    got += quiet(b, h.settle)
+    assert [r.frame for r in got] == [CAT], got
+    bad = b.counters.corrupted + b.counters.dropped
+    assert bad >= len(GARBAGE_UNITS), b.counters
+    assert b.counters.received == 1
+
+
+#: Every behaviour a transport must have, by name.
+CONTRACT_CHECKS: dict[str, Callable[[TransportHarness], None]] = {
+    "delivers_to_linked_peer": check_delivers_to_linked_peer,
+    "nothing_reaches_unlinked": check_nothing_reaches_unlinked,
+    "order_preserved": check_order_preserved,
+    "all_frame_kinds": check_all_frame_kinds,
+    "full_duplex": check_full_duplex,
+    "send_fails_when_detached": check_send_fails_when_detached,
+    "counters": check_counters,
+    "close_idempotent": check_close_idempotent,
+    "garbage_counted_never_delivered": check_garbage_counted_never_delivered,
+}
+
+
+def run_check(make_harness: Callable[[], TransportHarness], name: str) -> None:
+    """Run one check on a fresh harness and close it, whatever happens."""
+    harness = make_harness()
+    try:
+        CONTRACT_CHECKS[name](harness)
+    finally:
+        harness.close()
+
+
+def run_contract(make_harness: Callable[[], TransportHarness]) -> dict[str, str]:
+    """Run every check; ``{name: "ok"}`` or the failure's traceback text."""
+    results: dict[str, str] = {}
+    for name in CONTRACT_CHECKS:
+        try:
+            run_check(make_harness, name)
+        except Exception:
+            results[name] = traceback.format_exc()
+        else:
+            results[name] = "ok"
+    return results
+
+
+class TransportContract:
+    """Mix into a pytest class (named ``Test...``) and define :meth:`make_harness`."""
+
+    def make_harness(self) -> TransportHarness:
+        raise NotImplementedError
+
+    def test_delivers_to_linked_peer(self) -> None:
+        run_check(self.make_harness, "delivers_to_linked_peer")
+
+    def test_nothing_reaches_unlinked(self) -> None:
+        run_check(self.make_harness, "nothing_reaches_unlinked")
+
+    def test_order_preserved(self) -> None:
+        run_check(self.make_harness, "order_preserved")
+
+    def test_all_frame_kinds(self) -> None:
+        run_check(self.make_harness, "all_frame_kinds")
+
+    def test_full_duplex(self) -> None:
+        run_check(self.make_harness, "full_duplex")
+
+    def test_send_fails_when_detached(self) -> None:
+        run_check(self.make_harness, "send_fails_when_detached")
+
+    def test_counters(self) -> None:
+        run_check(self.make_harness, "counters")
+
+    def test_close_idempotent(self) -> None:
+        run_check(self.make_harness, "close_idempotent")
+
+    def test_garbage_counted_never_delivered(self) -> None:
+        run_check(self.make_harness, "garbage_counted_never_delivered")

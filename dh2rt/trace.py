@@ -1,0 +1,83 @@
+"""JSON Lines traces: one object per module per cycle.
+
+Fields: ``cycle`` (int), ``module`` (the observer's index; for ``snake:N`` 0 is the end whose
+front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer``,
+``actuators`` (``{"DOF1": deg, "DOF2": deg}``), ``status`` (connector -> remote connector or
+"0"), ``received`` (hormone, connector it arrived at, connector it was sent through, path) and
+``sent`` (hormone, connector, and for replies the route still to go). Physics runs add
+``pos`` ([x, y, z] metres).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+from dh2rt.hormone import Arrival, Emission
+from dh2rt.profile import Profile
+from dh2rt.robot import CycleRecord, Robot
+
+
+def arrival_json(a: Arrival, profile: Profile) -> dict[str, Any]:
+    name = profile.connector_name
+    return {
+        "hormone": a.hormone.content(),
+        "at": name(a.at) if a.at else None,
+        "from": name(a.remote) if a.at else None,
+        "path": [[name(x), name(y)] for x, y in a.hormone.path],
+    }
+
+
+def emission_json(e: Emission, profile: Profile) -> dict[str, Any]:
+    d: dict[str, Any] = {"hormone": e.hormone.content(), "through": profile.connector_name(e.through)}
+    if e.hormone.route is not None:
+        d["route"] = [profile.connector_name(c) for c in e.hormone.route]
+    return d
+
+
+def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:
+    e = robot.engine(rec.module)
+    p = robot.profile
+    t = e.topo_type
+    return {
+        "cycle": rec.cycle,
+        "module": rec.module,
+        "name": robot.topology.names[rec.module],
+        "type": t.name,
+        "T": t.alias,
+        "timer": (e.timer - 1) % e.clock,
+        "actuators": {"DOF1": e.dof[0], "DOF2": e.dof[1]},
+        "status": {c: p.connector_name(s) for c, s in zip(p.connectors, e.status, strict=True)},
+        "received": [arrival_json(a, p) for a in rec.received],
+        "sent": [emission_json(x, p) for x in rec.sent],
+    }
+
+
+class TraceWriter:
+    """Writes the robot's records after each cycle (the robot must have ``record=True``)."""
+
+    def __init__(self, stream: IO[str], robot: Robot, extra: Callable[[int], dict[str, Any]] | None = None) -> None:
+        self.stream = stream
+        self.robot = robot
+        self.extra = extra
+        robot.record = True
+
+    @classmethod
+    def open(cls, path: Path, robot: Robot, extra: Callable[[int], dict[str, Any]] | None = None) -> TraceWriter:
+        return cls(path.open("w", encoding="utf-8"), robot, extra)
+
+    def write_cycle(self) -> None:
+        for rec in sorted(self.robot.records, key=lambda r: r.module):
+            if not self.robot.alive(rec.module):
+                continue
+            obj = record_json(self.robot, rec)
+            if self.extra is not None:
+                obj.update(self.extra(rec.module))
+            self.stream.write(json.dumps(obj, separators=(",", ":")))
+            self.stream.write("\n")
+        self.robot.records.clear()
+
+    def close(self) -> None:
+        self.stream.close()

@@ -1,0 +1,119 @@
+"""The dh2rt command: exit codes, messages, summaries and traces."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dh2rt.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_check_ok(examples: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(examples / "caterpillar.dh2")]) == 0
+    out = capsys.readouterr().out
+    assert "8 receptors" in out and "1 hormones" in out and "ClockCycle 40" in out
+
+
+def test_check_error_prints_position_line_and_caret(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.dh2"
+    bad.write_text("const ClockCycle = 4\nhormone X\nreceptor r when T == head {\n  emit X via flank\n}\n")
+    assert main(["check", str(bad)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"{bad}:4:14: unknown connector 'flank' (profile conro: front, back, left, right)"
+    assert err[1] == "      emit X via flank"
+    assert err[2] == "                 ^"
+
+
+def test_run_prints_summary_and_writes_trace(
+    examples: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    trace = tmp_path / "t.jsonl"
+    code = main(
+        [
+            "run",
+            str(examples / "caterpillar.dh2"),
+            "--topology",
+            "snake:4",
+            "--cycles",
+            "60",
+            "--seed",
+            "2",
+            "--event",
+            "30:cut:m1.back",
+            "--trace",
+            str(trace),
+        ]
+    )
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "snake:4: 4 modules, 60 cycles" in out and "cycle 30: 30:cut:m1.back" in out
+    lines = [json.loads(x) for x in trace.read_text().splitlines()]
+    assert len(lines) == 4 * 60
+    first = lines[0]
+    assert {"cycle", "module", "type", "T", "actuators", "received", "sent"} <= set(first)
+    assert first["cycle"] == 0 and first["module"] == 0 and first["type"] == "head" and first["T"] == 1
+    assert set(first["actuators"]) == {"DOF1", "DOF2"}
+    sent = [x for x in lines if x["sent"]]
+    assert sent and sent[0]["sent"][0]["through"] == "back"
+    received = [x for x in lines if x["received"]]
+    assert received[0]["received"][0]["at"] == "front" and received[0]["received"][0]["from"] == "back"
+    # after the cut at cycle 30, module 2 is a head
+    assert [x["type"] for x in lines if x["module"] == 2 and x["cycle"] == 31] == ["head"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--topology", "snake:q"], "expected snake:N"),
+        (["--event", "10:cut:m9.back"], "no module 'm9'"),
+        (["--event", "10:cut:m1.tail"], "unknown connector 'tail'"),
+        (["--event", "10:inject:m1:Q"], "unknown hormone 'Q'"),
+        (["--event", "10:inject:m1:X(E)"], "'E' is not one of A | B | C | D"),
+        (["--event", "ten:cut:m1.back"], "expected CYCLE:KIND:ARGS"),
+        (["--event", "1:explode:m1"], "unknown kind 'explode'"),
+    ],
+)
+def test_run_bad_input_exits_2_with_a_clear_message(
+    examples: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    assert main(["run", str(examples / "caterpillar.dh2"), "--cycles", "5", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_run_missing_program(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "nope.dh2"]) == 2
+    assert "nope.dh2: cannot read program" in capsys.readouterr().err
+
+
+def test_image_and_types(examples: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "c.img"
+    assert main(["image", str(examples / "caterpillar.dh2"), "-o", str(out)]) == 0
+    assert out.read_bytes().startswith(b"DH2IMG1\n")
+    assert main(["types"]) == 0
+    text = capsys.readouterr().out
+    assert "body" in text and "T16" in text
+
+
+def test_demo_runs_and_reports_ok(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo"]) == 0
+    out = capsys.readouterr().out
+    assert "demo ok" in out and "11-module snake" in out
+
+
+@pytest.mark.parametrize(
+    "args", [["--help"], ["check", "--help"], ["run", "--help"], ["image", "--help"], ["demo", "--help"]]
+)
+def test_console_script_help(args: list[str]) -> None:
+    exe = Path(sys.executable).with_name("dh2rt")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
+    proc = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=60, cwd=ROOT, env={**os.environ})
+    assert proc.returncode == 0, proc.stderr
+    assert "usage: dh2rt" in proc.stdout
