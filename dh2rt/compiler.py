@@ -14,7 +14,7 @@ match the current state cost nothing.
 from __future__ import annotations
 
 import operator
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -89,6 +89,8 @@ class Guard:
     types: frozenset[int] | None = None
     timers: frozenset[int] | None = None
     hormones: frozenset[str] | None = None
+    #: When every way to match needs a hormone of exactly known content: (name, args) pairs.
+    contents: frozenset[tuple[str, tuple[Any, ...]]] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,10 +126,18 @@ class CompiledProgram:
     receptors: tuple[CompiledReceptor, ...]
     image: bytes
     ast: ast.Program
-    # index[type] -> candidates; built by _build_index
+    # The index, built by _build_index: per type, the receptors to try when no hormone is
+    # present (by LocalTimer value: "always" ones merged with that timer value's), and per
+    # hormone name the receptors that need it.
     always: list[tuple[int, ...]] = field(default_factory=list)
     by_timer: list[dict[int, tuple[int, ...]]] = field(default_factory=list)
     by_hormone: list[dict[str, tuple[int, ...]]] = field(default_factory=list)
+    by_content: list[dict[tuple[str, tuple[Any, ...]], tuple[int, ...]]] = field(default_factory=list)
+    base: list[list[tuple[int, ...]]] = field(default_factory=list)
+    #: quiet[type][timer]: how many cycles from this timer value on have no receptor filed
+    #: without a hormone (None: never one for this type). A module with no mail and no
+    #: periodic hormone can skip that many cycles: they would only advance LocalTimer.
+    quiet: list[list[int | None]] = field(default_factory=list)
 
     @property
     def hash(self) -> str:
@@ -139,21 +149,33 @@ class CompiledProgram:
                 return r.index
         raise KeyError(name)
 
-    def candidates(self, type_index: int, timer: int, hormones: Iterable[str]) -> tuple[int, ...]:
-        """The receptors worth matching in this state, in declaration order."""
-        parts = [self.always[type_index]]
-        t = self.by_timer[type_index].get(timer)
-        if t:
-            parts.append(t)
-        hb = self.by_hormone[type_index]
-        for name in hormones:
-            h = hb.get(name)
-            if h:
-                parts.append(h)
-        nonempty = [p for p in parts if p]
-        if len(nonempty) <= 1:
-            return nonempty[0] if nonempty else ()
-        return tuple(sorted({i for p in nonempty for i in p}))
+    def candidates(self, type_index: int, timer: int, present: Mapping[str, Sequence[Any]]) -> tuple[int, ...]:
+        """The receptors worth matching in this state, in declaration order.
+
+        ``present`` maps each hormone name present to its entries (``entry[1]`` is the args).
+        """
+        base = self.base[type_index][timer]
+        by_name, by_content = self.by_hormone[type_index], self.by_content[type_index]
+        if not present or not (by_name or by_content):
+            return base
+        # The usual case is one bucket: return it as it is (already in program order).
+        found: tuple[int, ...] = ()
+        sources = 1 if base else 0
+        for name, entries in present.items():
+            if by_name:
+                h = by_name.get(name)
+                if h:
+                    found += h
+                    sources += 1
+            if by_content:
+                for entry in entries:
+                    c = by_content.get((name, entry[1]))
+                    if c:
+                        found += c
+                        sources += 1
+        if sources <= 1:
+            return found or base
+        return tuple(sorted({*base, *found}))
 
 
 # ---------------------------------------------------------------- the compiler
@@ -166,9 +188,10 @@ class _Binding:
 
 
 class _Compiler:
-    def __init__(self, program: ast.Program, profile: Profile) -> None:
+    def __init__(self, program: ast.Program, profile: Profile, indexed: bool = True) -> None:
         self.p = program
         self.profile = profile
+        self.indexed = indexed
         self.consts: dict[str, int] = {}
         self.vars: dict[str, int] = {}
         self.sensors: dict[str, int] = {}
@@ -459,13 +482,15 @@ class _Compiler:
             k = self.fold(p.value, {})  # bound names cannot appear here with a constant result
             return Guard(timers=frozenset({k})) if k is not None else Guard()
         if isinstance(p, ast.HormoneIs) and not p.negate:
-            return Guard(hormones=frozenset({p.name}))
+            return Guard(hormones=frozenset({p.name}), contents=self.exact_content(p))
         if isinstance(p, ast.And):
             a, b = self.guard(p.left), self.guard(p.right)
+            need = a if a.hormones is not None else b  # either side's hormone is necessary
             return Guard(
                 types=_meet(a.types, b.types),
                 timers=_meet(a.timers, b.timers),
-                hormones=a.hormones if a.hormones is not None else b.hormones,
+                hormones=need.hormones,
+                contents=need.contents,
             )
         if isinstance(p, ast.Or):
             a, b = self.guard(p.left), self.guard(p.right)
@@ -473,8 +498,25 @@ class _Compiler:
                 types=_join(a.types, b.types),
                 timers=_join(a.timers, b.timers),
                 hormones=_join(a.hormones, b.hormones),
+                contents=_join(a.contents, b.contents),
             )
         return Guard()
+
+    def exact_content(self, p: ast.HormoneIs) -> frozenset[tuple[str, tuple[Any, ...]]] | None:
+        """``{(name, args)}`` when every argument of the pattern is a constant, else None."""
+        spec = self.hormones[p.name]
+        args: list[Any] = []
+        for a, param in zip(p.args, spec.params, strict=True):
+            if isinstance(a, ast.Wildcard | ast.Bind):
+                return None
+            if param.domain is not None and isinstance(a, ast.Name):
+                args.append(a.name)
+            else:
+                v = self.fold(a, {})
+                if v is None:
+                    return None
+                args.append(v)
+        return frozenset({(p.name, tuple(args))})
 
     # ------------------------------------------------------------ actions
 
@@ -527,7 +569,7 @@ class _Compiler:
             def start(e: Engine, b: Bindings) -> None:
                 h = make(e, b)
                 bound = dict(b)
-                e.periodics[name] = [period, period, lambda en: send(en, bound, h)]
+                e.start_periodic(name, period, lambda en: send(en, bound, h))
                 send(e, b, h)
 
             return start
@@ -536,7 +578,7 @@ class _Compiler:
             name = a.name
 
             def stop(e: Engine, _b: Bindings) -> None:
-                e.periodics.pop(name, None)
+                e.stop_periodic(name)
 
             return stop
         if isinstance(a, ast.ReceptorOp):
@@ -642,11 +684,14 @@ class _Compiler:
         receptors: list[CompiledReceptor] = []
         for i, r in enumerate(self.p.receptors):
             binds: dict[str, _Binding] = {}
-            match = self.pattern(r.pattern, binds, True)
+            self.pattern(r.pattern, binds, True)  # checks the whole pattern, with positions
+            binds = {}
+            # The index files a receptor only under the types its pattern allows, so the
+            # compiled match leaves out top-level type tests: the bucket already made them.
+            match = self.pattern(_without_type_tests(r.pattern) if self.indexed else r.pattern, binds, True)
             act, keep = self.actions(r, binds)
-            receptors.append(
-                CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, self.guard(r.pattern))
-            )
+            guard = self.guard(r.pattern) if self.indexed else Guard()
+            receptors.append(CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, guard))
         image = to_image(self.p)
         cp = CompiledProgram(
             name=self.p.name,
@@ -664,6 +709,20 @@ class _Compiler:
         )
         _build_index(cp)
         return cp
+
+
+def _without_type_tests(p: ast.Pattern) -> ast.Pattern:
+    """``p`` less the TypeIs conjuncts of its top-level 'and' (implied by the type index)."""
+    if isinstance(p, ast.TypeIs):
+        return ast.TruePattern(p.span)
+    if isinstance(p, ast.And):
+        left, right = _without_type_tests(p.left), _without_type_tests(p.right)
+        if isinstance(left, ast.TruePattern):
+            return right
+        if isinstance(right, ast.TruePattern):
+            return left
+        return ast.And(left, right, p.span)
+    return p
 
 
 def _constant(value: Any) -> ValueFn:
@@ -736,11 +795,15 @@ def _build_index(cp: CompiledProgram) -> None:
     always: list[list[int]] = [[] for _ in range(ntypes)]
     by_timer: list[dict[int, list[int]]] = [{} for _ in range(ntypes)]
     by_hormone: list[dict[str, list[int]]] = [{} for _ in range(ntypes)]
+    by_content: list[dict[tuple[str, tuple[Any, ...]], list[int]]] = [{} for _ in range(ntypes)]
     for r in cp.receptors:
         g = r.guard
         types = sorted(g.types) if g.types is not None else range(ntypes)
         for t in types:
-            if g.hormones is not None:
+            if g.contents is not None:
+                for key in g.contents:
+                    by_content[t].setdefault(key, []).append(r.index)
+            elif g.hormones is not None:
                 for h in g.hormones:
                     by_hormone[t].setdefault(h, []).append(r.index)
             elif g.timers is not None:
@@ -751,11 +814,34 @@ def _build_index(cp: CompiledProgram) -> None:
     cp.always = [tuple(x) for x in always]
     cp.by_timer = [{k: tuple(v) for k, v in d.items()} for d in by_timer]
     cp.by_hormone = [{k: tuple(v) for k, v in d.items()} for d in by_hormone]
+    cp.by_content = [{k: tuple(v) for k, v in d.items()} for d in by_content]
+    cp.base = [
+        [tuple(sorted({*always[t], *by_timer[t].get(k, ())})) for k in range(cp.clock_cycle)] for t in range(ntypes)
+    ]
+    cp.quiet = [_quiet_runs(row) for row in cp.base]
 
 
-def compile_program(program: ast.Program, profile: Profile = CONRO) -> CompiledProgram:
-    """Check and compile a program; raises ProgramCompileError with the position."""
-    return _Compiler(program, profile).compile()
+def _quiet_runs(row: list[tuple[int, ...]]) -> list[int | None]:
+    """For each timer value, the number of consecutive values (cyclically) with no candidate."""
+    n = len(row)
+    if not any(row):
+        return [None] * n
+    out: list[int | None] = [0] * n
+    for k in range(n):
+        j = 0
+        while not row[(k + j) % n]:
+            j += 1
+        out[k] = j
+    return out
+
+
+def compile_program(program: ast.Program, profile: Profile = CONRO, *, indexed: bool = True) -> CompiledProgram:
+    """Check and compile a program; raises ProgramCompileError with the position.
+
+    ``indexed=False`` files every receptor as a candidate in every state (the paper's
+    "match every active receptor" loop): the same semantics, for measuring the index.
+    """
+    return _Compiler(program, profile, indexed).compile()
 
 
 def compile_source(text: str, file: str = "<string>", profile: Profile = CONRO) -> CompiledProgram:

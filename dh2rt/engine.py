@@ -45,21 +45,30 @@ Native = Callable[..., None]
 #: A hormone present in H: [name, args, path (with the last hop), route, arrived_at].
 Entry = list[Any]
 
+# Shared empty sentinels: an idle module reads these instead of its own empty containers.
 _NO_HORMONES: dict[str, list[Entry]] = {}
+_NO_PERIODICS: dict[str, list[Any]] = {}
 MAX_FAULTS_KEPT = 16
 
 
 class Engine:
     """The state and main loop of one module. See the module docs for one step."""
 
+    # Hot fields first: __slots__ order is memory order, so the fields every step reads
+    # share cache lines (it matters with thousands of modules in one process).
     __slots__ = (
         "clock",
-        "counters",
         "dof",
         "dof_changed",
         "effects",
         "faults",
         "matched",
+        "n_dropped_hops",
+        "n_faults",
+        "n_forwarded",
+        "n_received",
+        "n_send_failed",
+        "n_sent",
         "natives",
         "out",
         "periodics",
@@ -95,12 +104,17 @@ class Engine:
         self.dof: list[float] = [0.0, 0.0]
         self.dof_changed = False
         self.present: dict[str, list[Entry]] = _NO_HORMONES
-        self.periodics: dict[str, list[Any]] = {}
+        self.periodics: dict[str, list[Any]] = _NO_PERIODICS
         self.out: list[Emission] = []
         self.matched: list[Entry] = []
-        self.effects: list[tuple[str, tuple[Any, ...]]] = []
+        self.effects: Sequence[tuple[str, tuple[Any, ...]]] = ()
         self.faults: list[str] = []
-        self.counters = {"received": 0, "sent": 0, "forwarded": 0, "dropped_hops": 0, "send_failed": 0, "faults": 0}
+        self.n_received = 0
+        self.n_sent = 0
+        self.n_forwarded = 0
+        self.n_dropped_hops = 0
+        self.n_send_failed = 0
+        self.n_faults = 0
         natives = dict(natives or {})
         missing = sorted(set(program.natives) - set(natives))
         if missing:
@@ -112,6 +126,18 @@ class Engine:
     @property
     def topo_type(self) -> TopoType:
         return self.profile.types[self.type_index]
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Hormones received, sent, forwarded, dropped at max_hops, failed sends, faults."""
+        return {
+            "received": self.n_received,
+            "sent": self.n_sent,
+            "forwarded": self.n_forwarded,
+            "dropped_hops": self.n_dropped_hops,
+            "send_failed": self.n_send_failed,
+            "faults": self.n_faults,
+        }
 
     def var(self, name: str) -> int:
         return self.vars[self.program.var_names.index(name)]
@@ -127,7 +153,9 @@ class Engine:
 
     def effect(self, kind: str, *args: Any) -> None:
         """Ask the physical layer for something (used by native actions); read via ``effects``."""
-        self.effects.append((kind, args))
+        if not self.effects:
+            self.effects = []
+        self.effects.append((kind, args))  # type: ignore[attr-defined]
 
     # ------------------------------------------------------------ presence sensing
 
@@ -141,7 +169,7 @@ class Engine:
 
     def send_failed(self, connector: int) -> None:
         """A send through ``connector`` failed: ConnectorStatus[connector] = 0 (Fig. 3)."""
-        self.counters["send_failed"] += 1
+        self.n_send_failed += 1
         self._set_status(connector, 0)
 
     def _set_status(self, connector: int, remote: int) -> None:
@@ -149,15 +177,68 @@ class Engine:
             self.status[connector - 1] = remote
             self.type_index = self.type_table[tuple(self.status)]
 
+    def start_periodic(self, name: str, period: int, send: Callable[[Engine], None]) -> None:
+        """Emit through ``send`` every ``period`` cycles from now (the paper's periodical_hormone)."""
+        if self.periodics is _NO_PERIODICS:
+            self.periodics = {}
+        self.periodics[name] = [period, period, send]
+
+    def stop_periodic(self, name: str) -> None:
+        """The paper's stop_hormone."""
+        self.periodics.pop(name, None)
+        if not self.periodics:
+            self.periodics = _NO_PERIODICS
+
+    def quiet_cycles(self) -> int | None:
+        """How many coming cycles are sure to do nothing but advance LocalTimer if no mail
+        arrives and no link changes: 0 when the next one might act; None for "forever"."""
+        if self.periodics:
+            return 0
+        return self.program.quiet[self.type_index][self.timer]
+
+    def skip(self, cycles: int) -> None:
+        """Advance LocalTimer over ``cycles`` quiet cycles (see :meth:`quiet_cycles`):
+        exactly what stepping through them with no arrivals would do."""
+        self.timer = (self.timer + cycles) % self.clock
+        self.present = _NO_HORMONES
+
+    def matching_receptors(self) -> list[int]:
+        """Receptors whose patterns match the present state, without running any action.
+
+        The same index and closures as :meth:`step` (for debugging tools and benchmarks).
+        """
+        program = self.program
+        t = self.type_index
+        present = self.present
+        cands = program.candidates(t, self.timer, present) if present else program.base[t][self.timer]
+        out: list[int] = []
+        if not cands:
+            return out
+        for i in cands:
+            if self.rstatus[i] == ACTIVE:
+                self.matched = []
+                if program.receptors[i].match(self, {}):
+                    out.append(i)
+        return out
+
     # ------------------------------------------------------------ the loop
 
-    def step(self, arrivals: Sequence[Arrival] = ()) -> list[Emission]:
+    def step(self, arrivals: Sequence[Arrival] = ()) -> Sequence[Emission]:
         """Run one cycle on what arrived; return the Buffer to send (see the module docs)."""
         program = self.program
+        if self.effects:
+            self.effects = ()
+        if not arrivals and not self.periodics:
+            # Nothing arrived and nothing periodic: unless a receptor is filed under this
+            # type and LocalTimer, the cycle only advances the timer (most cycles, most modules).
+            cands = program.base[self.type_index][self.timer]
+            if not cands:
+                self.present = _NO_HORMONES
+                timer = self.timer + 1
+                self.timer = 0 if timer >= self.clock else timer
+                return ()
         out: list[Emission] = []
         self.out = out
-        if self.effects:
-            self.effects = []
         # receive: ConnectorStatus and H
         if arrivals:
             present: dict[str, list[Entry]] = {}
@@ -178,17 +259,14 @@ class Engine:
                     bucket.append(entry)
             if changed:
                 self.type_index = self.type_table[tuple(status)]
-            self.counters["received"] += len(arrivals)
+            self.n_received += len(arrivals)
             self.present = present
         else:
             present = _NO_HORMONES
             self.present = present
         t = self.type_index
-        # receptors
-        cands = program.always[t]
-        timed = program.by_timer[t].get(self.timer) if program.by_timer[t] else None
-        if present or timed:
-            cands = program.candidates(t, self.timer, present)
+        # receptors: only those the index says can match this type, timer and H
+        cands = program.candidates(t, self.timer, present) if present else program.base[t][self.timer]
         bound: set[int] = set()
         if cands:
             receptors = program.receptors
@@ -215,7 +293,7 @@ class Engine:
             self._forward(present, bound, out)
         # periodic hormones
         if self.periodics:
-            for name, p in list(self.periodics.items()):
+            for name, p in list(self.periodics.items()):  # a periodic may stop another
                 p[1] -= 1
                 if p[1] <= 0:
                     p[1] = p[0]
@@ -223,7 +301,7 @@ class Engine:
                         p[2](self)
                     except DH2Error as exc:
                         self._fault(f"periodic {name}: {exc}")
-        self.counters["sent"] += len(out)
+        self.n_sent += len(out)
         timer = self.timer + 1
         self.timer = 0 if timer >= self.clock else timer
         return out
@@ -236,15 +314,15 @@ class Engine:
                 if route is not None:
                     if route:  # not yet at its destination: on along the route, bound or not
                         if len(path) >= max_hops:
-                            self.counters["dropped_hops"] += 1
+                            self.n_dropped_hops += 1
                             continue
                         out.append(Emission(route[0], Hormone(name, args, path, route[1:])))
-                        self.counters["forwarded"] += 1
+                        self.n_forwarded += 1
                     continue
                 if id(entry) in bound:
                     continue
                 if len(path) >= max_hops:
-                    self.counters["dropped_hops"] += 1
+                    self.n_dropped_hops += 1
                     continue
                 h = None
                 for i, s in enumerate(self.status):
@@ -253,9 +331,9 @@ class Engine:
                         if h is None:
                             h = Hormone(name, args, path)
                         out.append(Emission(c, h))
-                        self.counters["forwarded"] += 1
+                        self.n_forwarded += 1
 
     def _fault(self, message: str) -> None:
-        self.counters["faults"] += 1
+        self.n_faults += 1
         self.faults.append(message)
         del self.faults[:-MAX_FAULTS_KEPT]

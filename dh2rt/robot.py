@@ -54,6 +54,7 @@ class Robot:
         natives: Mapping[str, Native] | None = None,
         record: bool = False,
         timer_phases: Sequence[int] | None = None,
+        skip_quiet: bool = True,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -73,8 +74,19 @@ class Robot:
         ]
         #: The order modules are stepped in; results never depend on it (tested).
         self.step_order: list[int] = list(range(self.size))
+        #: Event-driven lockstep: a module whose next cycles are quiet (Engine.quiet_cycles)
+        #: sleeps until mail, a link change or its next due LocalTimer value, then catches
+        #: up its timer with Engine.skip. Identical results; off while recording traces.
+        self.skip_quiet = skip_quiet
+        self._slept_at: list[int] = [-1] * self.size  # cycle it fell asleep, -1 awake
+        self._wake_at: dict[int, list[int]] = {}
         self.peer: dict[tuple[int, int], tuple[int, int]] = {}
-        self.inbox: list[list[Arrival]] = [[] for _ in range(self.size)]
+        # the same links per module, indexed by connector: the hot path's lookup
+        self._adjacent: list[list[tuple[int, int] | None]] = [
+            [None] * (self.profile.connector_count + 1) for _ in range(self.size)
+        ]
+        #: What each module will find in its mailbox next cycle (only modules that have mail).
+        self.inbox: dict[int, list[Arrival]] = {}
         self.record = record
         self.records: list[CycleRecord] = []
         self.pending: list[tuple[int, Callable[[], None]]] = []
@@ -98,10 +110,23 @@ class Robot:
         return [Link(a, ac, b, bc) for (a, ac), (b, bc) in sorted(self.peer.items()) if (a, ac) < (b, bc)]
 
     def engine(self, module: int) -> Engine:
+        """A running module's engine, its LocalTimer brought up to date."""
         e = self.engines[module]
         if e is None:
             raise TopologyError(f"module {self.topology.names[module]} is not running")
+        slept = self._slept_at[module]
+        if slept >= 0 and slept != self.cycle:
+            e.skip(self.cycle - slept)
+            self._slept_at[module] = self.cycle
         return e
+
+    def _wake(self, module: int) -> None:
+        slept = self._slept_at[module]
+        if slept >= 0:
+            e = self.engines[module]
+            if e is not None and self.cycle > slept:
+                e.skip(self.cycle - slept)
+            self._slept_at[module] = -1
 
     def alive(self, module: int) -> bool:
         return self.engines[module] is not None
@@ -118,8 +143,12 @@ class Robot:
                 raise TopologyError(f"cannot dock {self._where(m, c)}: it is already docked")
         if a == b:
             raise TopologyError("cannot dock a module to itself")
+        self._wake(a)
+        self._wake(b)
         self.peer[(a, a_conn)] = (b, b_conn)
         self.peer[(b, b_conn)] = (a, a_conn)
+        self._adjacent[a][a_conn] = (b, b_conn)
+        self._adjacent[b][b_conn] = (a, a_conn)
         for m, c, rc in ((a, a_conn, b_conn), (b, b_conn, a_conn)):
             e = self.engines[m]
             other = self.engines[b if m == a else a]
@@ -132,6 +161,10 @@ class Robot:
         if other is None:
             raise TopologyError(f"cannot cut {self._where(module, connector)}: nothing is docked there")
         del self.peer[other]
+        self._adjacent[module][connector] = None
+        self._adjacent[other[0]][other[1]] = None
+        self._wake(module)
+        self._wake(other[0])
         for m, c in ((module, connector), other):
             e = self.engines[m]
             if e is not None:
@@ -141,13 +174,15 @@ class Robot:
         """The module stops; its neighbours sense a silent connector."""
         if self.engines[module] is None:
             return
+        self._wake(module)
         self.engines[module] = None
-        self.inbox[module] = []
+        self.inbox.pop(module, None)
         for c in range(1, self.profile.connector_count + 1):
             other = self.peer.get((module, c))
             if other is not None:
                 e = self.engines[other[0]]
                 if e is not None:
+                    self._wake(other[0])
                     e.link_down(other[1])
 
     def restart(self, module: int) -> None:
@@ -160,6 +195,7 @@ class Robot:
             if other is not None:
                 oe = self.engines[other[0]]
                 if oe is not None:
+                    self._wake(other[0])
                     e.link_up(c, other[1])
                     oe.link_up(other[1], c)
 
@@ -168,7 +204,7 @@ class Robot:
         self.program.vocabulary.check(hormone)
         self.engine(module)
         # An injected hormone arrives at no connector (0): it is bound here or flooded everywhere.
-        self.inbox[module].append(Arrival(0, 0, hormone))
+        self.inbox.setdefault(module, []).append(Arrival(0, 0, hormone))
 
     def apply(self, event: Event) -> None:
         if event.kind == "cut":
@@ -199,29 +235,56 @@ class Robot:
             for action in due:
                 action()
         inbox = self.inbox
-        nxt: list[list[Arrival]] = [[] for _ in range(self.size)]
+        nxt: dict[int, list[Arrival]] = {}
         engines = self.engines
-        peer = self.peer
+        adjacent = self._adjacent
         record = self.record
         effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        nothing: list[Arrival] = []
+        slept_at = self._slept_at
+        cycle = self.cycle
+        sleep = self.skip_quiet and not record
+        # wake who has mail or is due now
+        for m in inbox:
+            if slept_at[m] >= 0:
+                self._wake(m)
+        for m in self._wake_at.pop(cycle, ()):
+            if slept_at[m] >= 0:
+                self._wake(m)
+        if not sleep and any(s >= 0 for s in slept_at):
+            for m in range(self.size):
+                self._wake(m)
         for m in self.step_order:
+            if slept_at[m] >= 0:
+                continue
             e = engines[m]
             if e is None:
                 continue
-            arrivals = inbox[m]
+            arrivals = inbox.get(m, nothing)
             if len(arrivals) > 1:
                 arrivals.sort(key=_by_connector)
             out = e.step(arrivals)
             for through, h in out:
-                target = peer.get((m, through))
+                target = adjacent[m][through]
                 if target is None or engines[target[0]] is None:
                     e.send_failed(through)
                 else:
-                    nxt[target[0]].append(Arrival(target[1], through, h))
+                    box = nxt.get(target[0])
+                    if box is None:
+                        nxt[target[0]] = [Arrival(target[1], through, h)]
+                    else:
+                        box.append(Arrival(target[1], through, h))
             if e.effects:
                 effects.extend((m, kind, args) for kind, args in e.effects)
             if record:
-                self.records.append(CycleRecord(self.cycle, m, arrivals, out))
+                self.records.append(CycleRecord(self.cycle, m, list(arrivals), list(out)))
+            elif sleep:
+                quiet = e.quiet_cycles()
+                if quiet is None:
+                    slept_at[m] = cycle + 1
+                elif quiet > 0:
+                    slept_at[m] = cycle + 1
+                    self._wake_at.setdefault(cycle + 1 + quiet, []).append(m)
         self.inbox = nxt
         for m, kind, args in effects:
             handler = self.effect_handlers.get(kind)

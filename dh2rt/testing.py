@@ -37,9 +37,7 @@ CONTRACT_VOCABULARY = Vocabulary(
     [
         HormoneSpec(0, "X", (ParamSpec("a", ("A", "B")),)),
         HormoneSpec(1, "N", (ParamSpec("n", None),)),
-        HormoneSpec(
-            2, "P", (ParamSpec("n", None), ParamSpec("m", None), ParamSpec("d", ("up", "down")))
-        ),
+        HormoneSpec(2, "P", (ParamSpec("n", None), ParamSpec("m", None), ParamSpec("d", ("up", "down")))),
     ]
 )
 
@@ -159,16 +157,12 @@ class CanHarness(TransportHarness):
             from dh2rt.transport.can_bus import CanTransport
 
             cls = self.cls if issubclass(self.cls, CanTransport) else CanTransport
-            self._raw = can.Bus(
-                interface=cls.interface, channel=self.channel or cls.default_channel
-            )
+            self._raw = can.Bus(interface=cls.interface, channel=self.channel or cls.default_channel)
         sender = 1 - to_side
         for u in units:
             for i in range(0, len(u), 8):  # units longer than 8 bytes go out as raw singles
                 can_id = make_arbitration_id(0, SINGLE, 0, link_id, sender)
-                self._raw.send(
-                    can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True)
-                )
+                self._raw.send(can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True))
         # A segment train that never completes, and a stray middle segment.
         self._raw.send(
             can.Message(

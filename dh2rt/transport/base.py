@@ -151,9 +151,7 @@ class Transport(ABC):
             or not isinstance(connector, int)
             or not (1 <= connector <= self.codec.connector_count)
         ):
-            raise TransportError(
-                f"connector {connector!r} is outside 1..{self.codec.connector_count}"
-            )
+            raise TransportError(f"connector {connector!r} is outside 1..{self.codec.connector_count}")
         if connector in self._links:
             self.detach(connector)
         self._attach(connector, end)

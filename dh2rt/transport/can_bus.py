@@ -78,7 +78,9 @@ class CanTransport(Transport):
         self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
         self._bus: Any = self._open_bus(bus_options)
-        self._can: Any = __import__("can")
+        import can  # already imported by _open_bus; kept for exception and Message types
+
+        self._can: Any = can
         self._apply_filters()
 
     def _open_bus(self, options: dict[str, Any]) -> Any:
@@ -109,15 +111,12 @@ class CanTransport(Transport):
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
         if not isinstance(end, BusEnd):
-            raise TransportError(
-                f"{self.name} connector {connector}: expected a BusEnd, got {end!r}"
-            )
+            raise TransportError(f"{self.name} connector {connector}: expected a BusEnd, got {end!r}")
         make_arbitration_id(0, 0, 0, end.link_id, end.side)  # validates the link id range
         far = (end.link_id << 1) | (1 - end.side)
         if far in self._listen:
             raise TransportError(
-                f"link {end.link_id} side {end.side} is already attached "
-                f"to connector {self._listen[far]}"
+                f"link {end.link_id} side {end.side} is already attached to connector {self._listen[far]}"
             )
         self._listen[far] = connector
         self._apply_filters()

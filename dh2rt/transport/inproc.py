@@ -29,9 +29,7 @@ class InprocBus:
         with self._lock:
             holder = self._listeners.get(key)
             if holder is not None and holder[0] is not transport:
-                raise TransportError(
-                    f"link {end.link_id} side {end.side} is already attached by another module"
-                )
+                raise TransportError(f"link {end.link_id} side {end.side} is already attached by another module")
             self._listeners[key] = (transport, connector)
 
     def _leave(self, end: BusEnd, transport: InprocTransport) -> None:
@@ -83,9 +81,7 @@ class InprocTransport(Transport):
 
     name = "inproc"
 
-    def __init__(
-        self, codec: FrameCodec, *, channel: str = "default", bus: InprocBus | None = None
-    ) -> None:
+    def __init__(self, codec: FrameCodec, *, channel: str = "default", bus: InprocBus | None = None) -> None:
         super().__init__(codec)
         self.bus = bus if bus is not None else inproc_bus(channel)
         self._inbox: deque[tuple[int, bytes]] = deque()

@@ -59,16 +59,13 @@ def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
         if sep and not channel:
             raise TransportError(f"transport spec {spec!r}: empty channel after ':'")
         if sep and name == "serial":
-            raise TransportError(
-                "transport spec 'serial' takes no channel: ports are attached per connector"
-            )
+            raise TransportError("transport spec 'serial' takes no channel: ports are attached per connector")
         return name, ({"channel": channel} if sep else {})
     if not sep and _CAN_IFNAME.match(spec):
         return "socketcan", {"channel": spec}
     known = ", ".join(sorted(TRANSPORTS))
     raise TransportError(
-        f"unknown transport {spec!r}; use one of {known}, 'name:channel', "
-        "or a CAN interface like vcan0"
+        f"unknown transport {spec!r}; use one of {known}, 'name:channel', or a CAN interface like vcan0"
     )
 
 

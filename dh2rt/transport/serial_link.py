@@ -46,9 +46,7 @@ class _Port:
                 end.url, baudrate=end.baudrate, timeout=None, write_timeout=write_timeout
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise TransportError(
-                f"connector {connector}: cannot open serial port {end.url!r}: {exc}"
-            ) from exc
+            raise TransportError(f"connector {connector}: cannot open serial port {end.url!r}: {exc}") from exc
         port = self
 
         class _Protocol(serial.threaded.Protocol):  # type: ignore[misc]
@@ -106,9 +104,7 @@ class SerialTransport(Transport):
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
         if not isinstance(end, PortEnd):
-            raise TransportError(
-                f"serial connector {connector}: expected a PortEnd or a port URL, got {end!r}"
-            )
+            raise TransportError(f"serial connector {connector}: expected a PortEnd or a port URL, got {end!r}")
         port = _Port(connector, end, self._inbox, self.write_timeout)
         # A delimiter first: it ends whatever partial frame the peer's decoder holds.
         port.write(b"\x00")
@@ -128,9 +124,7 @@ class SerialTransport(Transport):
     def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
         out: list[tuple[int, bytes]] = []
         try:
-            out.append(
-                self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait()
-            )
+            out.append(self._inbox.get(timeout=timeout) if timeout > 0 else self._inbox.get_nowait())
         except queue.Empty:
             return out
         while True:

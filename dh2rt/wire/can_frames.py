@@ -98,9 +98,7 @@ def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
     }
 
 
-def segment(
-    payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA
-) -> list[CanFrame]:
+def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA) -> list[CanFrame]:
     """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``."""
     if not payload:
         raise ValueError("cannot send an empty payload")
@@ -114,9 +112,7 @@ def segment(
         chunks.append(bytes(payload[pos : pos + size]))
         pos += size
     if len(chunks) > MAX_SEGMENTS:
-        raise ValueError(
-            f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames"
-        )
+        raise ValueError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
     frames = []
     for i, chunk in enumerate(chunks):
         mark = FIRST if i == 0 else LAST if i == len(chunks) - 1 else MIDDLE
@@ -133,9 +129,7 @@ def _chunk_sizes(n: int, max_data: int) -> list[int]:
     if max_data == CLASSIC_DATA:
         return [min(CLASSIC_DATA, n - i) for i in range(0, n, CLASSIC_DATA)]
     if max_data != FD_DATA:
-        raise ValueError(
-            f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}"
-        )
+        raise ValueError(f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}")
     sizes: list[int] = []
     while n > 0:
         size = max(s for s in FD_LENGTHS if s <= n)
@@ -239,9 +233,7 @@ def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -
     if isinstance(target, str | Path):
         with open(target, "wb") as fh:
             return write_pcap(fh, frames)
-    target.write(
-        struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN)
-    )
+    target.write(struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN))
     count = 0
     for fr in frames:
         can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
@@ -277,9 +269,7 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
     scale = 1e-6 if magic == _PCAP_MAGIC_US else 1e-9
     linktype = struct.unpack(endian + "I", head[20:24])[0] & 0x0FFFFFFF
     if linktype != LINKTYPE_CAN_SOCKETCAN:
-        raise CodecError(
-            f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)"
-        )
+        raise CodecError(f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)")
     frames: list[CapturedFrame] = []
     index = 0
     while True:
@@ -291,14 +281,10 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
         sec, frac, incl, _orig = struct.unpack(endian + "IIII", rec)
         body = source.read(incl)
         if len(body) < incl or incl < 8:
-            raise CodecError(
-                f"pcap: record {index} truncated or shorter than the 8-byte CAN header"
-            )
+            raise CodecError(f"pcap: record {index} truncated or shorter than the 8-byte CAN header")
         can_id, length, fd_flags = struct.unpack(">IBB", body[:6])
         if length > len(body) - 8 or length > FD_DATA:
-            raise CodecError(
-                f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}"
-            )
+            raise CodecError(f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}")
         extended = bool(can_id & CAN_EFF_FLAG)
         is_fd = bool(fd_flags & FD_FDF) or length > CLASSIC_DATA
         frames.append(

@@ -131,8 +131,7 @@ class FrameCodec:
             if frame.route is not None:
                 if len(frame.route) > MAX_HOPS_LIMIT:
                     raise FrameEncodeError(
-                        f"hormone {frame.name}: route of {len(frame.route)} hops "
-                        f"exceeds {MAX_HOPS_LIMIT}"
+                        f"hormone {frame.name}: route of {len(frame.route)} hops exceeds {MAX_HOPS_LIMIT}"
                     )
                 for value in frame.route:
                     self._check_connector("route connector", value)
@@ -145,18 +144,12 @@ class FrameCodec:
             return bytes((_header(FrameKind.KEEPALIVE, sender), frame.seq))
         if isinstance(frame, Hello):
             if len(frame.digest) != HELLO_DIGEST_BYTES:
-                raise FrameEncodeError(
-                    f"hello digest is {len(frame.digest)} bytes; it must be {HELLO_DIGEST_BYTES}"
-                )
+                raise FrameEncodeError(f"hello digest is {len(frame.digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
             return bytes((_header(FrameKind.HELLO, sender),)) + bytes(frame.digest)
         raise FrameEncodeError(f"not a frame: {frame!r}")
 
     def _check_connector(self, what: str, value: int) -> None:
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int)
-            or not 1 <= value <= self.connector_count
-        ):
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= self.connector_count:
             raise FrameEncodeError(f"{what} {value!r} is outside 1..{self.connector_count}")
 
     # -- decoding ---------------------------------------------------------------------------
@@ -180,18 +173,14 @@ class FrameCodec:
         kind = FrameKind((head >> 4) & 0x3)
         sender = head & 0x0F
         if not 1 <= sender <= self.connector_count:
-            raise CodecError(
-                f"frame: sender connector {sender} is outside 1..{self.connector_count}"
-            )
+            raise CodecError(f"frame: sender connector {sender} is outside 1..{self.connector_count}")
         if kind is FrameKind.KEEPALIVE:
             if len(data) != 2:
                 raise CodecError(f"keep-alive frame: {len(data)} bytes, expected 2")
             return Decoded(sender, KeepAlive(data[1]))
         if kind is FrameKind.HELLO:
             if len(data) != 1 + HELLO_DIGEST_BYTES:
-                raise CodecError(
-                    f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}"
-                )
+                raise CodecError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
             return Decoded(sender, Hello(data[1:]))
         if len(data) < 2:
             raise CodecError("hormone frame: truncated before the hop count")
@@ -223,9 +212,7 @@ class FrameCodec:
         values = tuple((acc >> (bits * (count - 1 - i))) & mask for i in range(count))
         for v in values:
             if not 1 <= v <= self.connector_count:
-                raise CodecError(
-                    f"frame: {what} connector {v} is outside 1..{self.connector_count}"
-                )
+                raise CodecError(f"frame: {what} connector {v} is outside 1..{self.connector_count}")
         return values, pos + nbytes
 
 

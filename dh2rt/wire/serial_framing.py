@@ -78,9 +78,7 @@ def decode_serial(frame: bytes) -> bytes:
     """Decode one frame without its delimiter; raises FrameCorrupted on bad COBS or CRC."""
     body = cobs_decode(frame)
     if len(body) <= CRC_BYTES:
-        raise FrameCorrupted(
-            f"serial frame of {len(body)} bytes is too short for a payload and CRC"
-        )
+        raise FrameCorrupted(f"serial frame of {len(body)} bytes is too short for a payload and CRC")
     payload, crc = body[:-CRC_BYTES], int.from_bytes(body[-CRC_BYTES:], "big")
     if crc16(payload) != crc:
         raise FrameCorrupted("serial frame failed its CRC")

@@ -73,7 +73,7 @@ def test_wave_runs_thousands_of_cycles_without_drift_or_loss(caterpillar: Compil
 
 
 def _in_flight(robot: Robot, m: int) -> bool:
-    return bool(robot.inbox[m])
+    return bool(robot.inbox.get(m))
 
 
 def test_lone_module_is_a_head_and_runs_its_receptors(caterpillar: CompiledProgram) -> None:

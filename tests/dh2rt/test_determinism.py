@@ -66,3 +66,48 @@ def test_module_numbering_does_not_matter(caterpillar: CompiledProgram) -> None:
     a = behaviour(Robot(caterpillar, topo, timer_phases=phases), 200)
     b = behaviour(Robot(caterpillar, renamed, timer_phases=[phases[perm.index(i)] for i in range(9)]), 200)
     assert [b[perm[i]] for i in range(9)] == a
+
+
+def snapshot(robot: Robot) -> list[tuple]:  # type: ignore[type-arg]
+    out = []
+    for m in range(robot.size):
+        if not robot.alive(m):
+            out.append(("dead",))
+            continue
+        e = robot.engine(m)
+        out.append(
+            (
+                e.topo_type.name,
+                e.timer,
+                tuple(e.dof),
+                tuple(e.status),
+                tuple(e.vars),
+                tuple(e.rstatus),
+                dict(e.counters),
+            )
+        )
+    return out
+
+
+def test_skipping_quiet_cycles_changes_nothing(legs_to_snake: CompiledProgram, locomotion: CompiledProgram) -> None:
+    scenarios = [
+        (legs_to_snake, "dragon", ["3:inject:tail1:LTS", "90:kill:left_leg1", "200:restart:left_leg1"]),
+        (locomotion, "octopod", ["50:cut:spine1.back", "120:dock:spine1.back-spine2.front", "130:kill:spine0"]),
+        (locomotion, "snake:12", ["40:cut:m5.back", "77:restart:m3", "90:inject:m8:X(C)"]),
+    ]
+    for program, spec, events in scenarios:
+        topo = parse_spec(spec)
+        fast = Robot(program, topo, seed=6, skip_quiet=True)
+        slow = Robot(program, topo, seed=6, skip_quiet=False)
+        evs = [parse_event(e, topo, program.vocabulary) for e in events]
+        for robot in (fast, slow):
+            robot.pending_events = list(evs)  # type: ignore[attr-defined]
+        fast_iter, slow_iter = fast.run(300, evs), slow.run(300, evs)
+        for _ in range(300):
+            next(fast_iter)
+            next(slow_iter)
+            if fast.cycle % 17 == 0:
+                assert snapshot(fast) == snapshot(slow), (spec, fast.cycle)
+        assert snapshot(fast) == snapshot(slow)
+        assert fast.log == slow.log
+        assert sum(s >= 0 for s in fast._slept_at) > 0 or spec == "dragon"

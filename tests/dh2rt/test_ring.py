@@ -20,7 +20,7 @@ def test_unbound_hormone_dies_out_on_a_ring_of_6(max_hops: int | None) -> None:
     robot.inject(0, Hormone("Z"))
     in_flight = []
     for _ in robot.run(bound + 5):
-        in_flight.append(sum(len(box) for box in robot.inbox))
+        in_flight.append(sum(len(box) for box in robot.inbox.values()))
     # two copies circle the ring (one each way) until their paths reach the bound
     assert in_flight[0] == 2
     assert all(n == 2 for n in in_flight[: bound - 1])

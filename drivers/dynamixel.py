@@ -1,0 +1,387 @@
+"""ROBOTIS Dynamixel X-series servos (Protocol 2.0) behind :class:`ModuleDriver`.
+
+One module's DOF1 (pitch) and DOF2 (yaw) are two servos on one half-duplex bus, ids
+``dof1_id`` and ``dof2_id`` (1 and 2 by default). Built on the vendor's ``dynamixel-sdk``,
+imported lazily so that ``import drivers`` never needs it. The SDK's result tuples
+``(value, comm_result, error)`` become exceptions here and nowhere else:
+
+===============================  ===========================================================
+:class:`ServoNotFound`           no status packet in reply to a PING (absent, unpowered,
+                                 wrong id or baud rate)
+:class:`ServoModelMismatch`      the PING answer carries another model number
+:class:`ServoCommError`          a status packet was corrupt (``COMM_RX_CORRUPT``), timed out
+                                 outside a PING, or the port failed
+:class:`ServoHardwareAlert`      the status error byte has the alert bit (0x80); the message
+                                 names the Hardware Error Status (70) bits
+:class:`ServoInstructionError`   the servo rejected an instruction (access, range, limit)
+===============================  ===========================================================
+
+Calls are serialised by a lock, so a runtime thread may call :meth:`set_targets` while another
+calls :meth:`health` or :meth:`recover`.
+
+What the runtime should call when:
+
+* every control tick: :meth:`set_targets` (one SYNC_WRITE; there is no status packet, so it
+  raises only if the port fails) and, when it needs feedback, :meth:`read_positions` (one
+  SYNC_READ; it reports timeouts, corruption and hardware alerts);
+* on a :class:`ServoCommError`: retry on the next tick; a single corrupt packet is line noise;
+* on :class:`ServoHardwareAlert`, or when comm errors persist for a few ticks, or when
+  :meth:`health` lists faults: call :meth:`recover`. It pings both servos, reboots any with a
+  hardware alert, restores operating mode, limits and torque (a reboot or power loss leaves
+  torque off) and re-sends the last targets. If it raises :class:`ServoNotFound` the servo is
+  still gone: keep the module's program running without that joint, poll :meth:`health`
+  (about once a second; it never raises) and call :meth:`recover` again when it answers.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+import time
+from types import ModuleType
+from typing import Any, Final, Self
+
+from dh2rt.errors import (
+    DriverError,
+    ServoCommError,
+    ServoHardwareAlert,
+    ServoModelMismatch,
+    ServoNotFound,
+)
+from drivers import dxl_table as dxt
+from drivers.base import Health, Joint, JointLimits, ModuleDriver
+
+SUPPORTED_BAUDRATES: Final = (
+    9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
+    1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000,
+)  # fmt: skip
+MAX_UNICAST_ID: Final = 252
+
+
+class DriverConfigError(DriverError, ValueError):
+    """A DynamixelDriver argument is invalid (the message names it)."""
+
+
+class ServoInstructionError(DriverError):
+    """The servo answered but rejected the instruction (access, data range or limit error)."""
+
+
+def _load_sdk() -> ModuleType:
+    try:
+        return importlib.import_module("dynamixel_sdk")
+    except ImportError as exc:  # pragma: no cover - the [dynamixel] extra is missing
+        raise DriverError("dynamixel-sdk is not installed; install dh2rt[dynamixel] to drive Dynamixel servos") from exc
+
+
+def _port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) -> Any:
+    """A PortHandler; with ``latency_timer_ms`` its reply timeout uses that instead of the
+    process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the FTDI default)."""
+    if latency_timer_ms is None:
+        return sdk.PortHandler(path)
+    latency = float(latency_timer_ms)
+
+    class _PortHandler(sdk.PortHandler):  # type: ignore[misc, name-defined]
+        def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK's name
+            # Same formula as the SDK, with this port's latency timer.
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = self.tx_time_per_byte * packet_length + latency * 2.0 + 2.0
+
+    return _PortHandler(path)
+
+
+class DynamixelDriver(ModuleDriver):
+    """Both joints of one module on two Dynamixel X-series servos, in degrees.
+
+    0 degrees is tick 2048 (4096 ticks per revolution). Targets are clamped to ``limits``,
+    which are also written to the servos' position limits (48/52) and, as Profile Velocity,
+    their speed. With ``connect=True`` (the default) the constructor opens the port and calls
+    :meth:`open`; if that fails it closes the port again before raising.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        dof1_id: int = 1,
+        dof2_id: int = 2,
+        baudrate: int = 1_000_000,
+        expected_model: int | None = dxt.MODEL_XM430_W350,
+        limits: tuple[JointLimits, JointLimits] | None = None,
+        *,
+        connect: bool = True,
+        latency_timer_ms: float | None = None,
+        reboot_timeout_s: float = 1.0,
+    ) -> None:
+        if not isinstance(port, str) or not port:
+            raise DriverConfigError(f"port must be a device path such as /dev/ttyUSB0: {port!r}")
+        if "://" in port:
+            raise DriverConfigError(f"port {port!r} is a URL; dynamixel-sdk's PortHandler opens a device path")
+        for name, value in (("dof1_id", dof1_id), ("dof2_id", dof2_id)):
+            if not isinstance(value, int) or not 0 <= value <= MAX_UNICAST_ID:
+                raise DriverConfigError(f"{name} must be in 0..{MAX_UNICAST_ID}, got {value!r}")
+        if dof1_id == dof2_id:
+            raise DriverConfigError(f"dof1_id and dof2_id must differ, both are {dof1_id}")
+        if baudrate not in SUPPORTED_BAUDRATES:
+            raise DriverConfigError(f"baudrate {baudrate!r} is not one dynamixel-sdk supports: {SUPPORTED_BAUDRATES}")
+        if limits is not None:
+            if len(limits) != 2:
+                raise DriverConfigError(f"limits must be two JointLimits, got {limits!r}")
+            for joint, lim in zip(Joint, limits, strict=True):
+                if not -180.0 <= lim.min_deg < lim.max_deg <= 180.0 or lim.max_speed_dps <= 0:
+                    raise DriverConfigError(
+                        f"limits[{joint.name}] must have -180 <= min_deg < max_deg <= 180 and "
+                        f"max_speed_dps > 0, got {lim}"
+                    )
+            self.limits = (limits[0], limits[1])
+        self.port_path = port
+        self.ids: tuple[int, int] = (dof1_id, dof2_id)
+        self.baudrate = baudrate
+        self.expected_model = expected_model
+        self.reboot_timeout_s = reboot_timeout_s
+        self.last_targets: tuple[float, float] | None = None
+        self._latency_timer_ms = latency_timer_ms
+        self._lock = threading.RLock()
+        self._sdk: ModuleType | None = None
+        self._port: Any = None
+        self._ph: Any = None
+        self._sync_write: Any = None
+        self._sync_read: Any = None
+        if connect:
+            try:
+                self.open()
+            except BaseException:
+                self.close()
+                raise
+
+    def __enter__(self) -> Self:
+        return self
+
+    # -- setup --
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    def open(self) -> None:
+        """Open the port (if needed), check both servos and put them in position mode with
+        torque on. On a servo error the port stays open so :meth:`health` and
+        :meth:`recover` can be used."""
+        with self._lock:
+            if self._port is None:
+                self._open_port()
+            for joint in Joint:
+                self._ping(joint)
+            for joint in Joint:
+                self._configure(joint)
+
+    def _open_port(self) -> None:
+        sdk = self._sdk = _load_sdk()
+        port = _port_handler(sdk, self.port_path, self._latency_timer_ms)
+        try:
+            # setBaudRate (re)opens the port; openPort() would open it at the default rate first.
+            ok = port.setBaudRate(self.baudrate)
+        except Exception as exc:  # pyserial's SerialException and OSError
+            raise ServoCommError(f"cannot open servo port {self.port_path!r}: {exc}") from exc
+        if not ok:
+            raise ServoCommError(f"cannot set {self.baudrate} bps on {self.port_path!r}")
+        self._port = port
+        self._ph = sdk.PacketHandler(2.0)
+        goal, present = dxt.GOAL_POSITION, dxt.PRESENT_POSITION
+        self._sync_write = sdk.GroupSyncWrite(port, self._ph, goal.address, goal.size)
+        self._sync_read = sdk.GroupSyncRead(port, self._ph, present.address, present.size)
+        for dxl_id in self.ids:
+            self._sync_read.addParam(dxl_id)
+
+    def close(self) -> None:
+        """Close the port (torque is left as it is, so the module keeps its pose)."""
+        with self._lock:
+            if self._port is not None:
+                try:
+                    self._port.closePort()
+                finally:
+                    self._port = None
+
+    # -- ModuleDriver --
+
+    def set_targets(self, dof1_deg: float, dof2_deg: float) -> None:
+        """Both goal positions in one SYNC_WRITE (no reply: raises only if the port fails)."""
+        targets = (self.limits[0].clamp(dof1_deg), self.limits[1].clamp(dof2_deg))
+        with self._lock:
+            self.last_targets = targets  # kept even if sending fails, for recover()
+            self._send_targets(targets)
+
+    def _send_targets(self, targets: tuple[float, float]) -> None:
+        self._require_open()
+        sync = self._sync_write
+        sync.clearParam()
+        for dxl_id, deg in zip(self.ids, targets, strict=True):
+            sync.addParam(dxl_id, list(dxt.deg_to_ticks(deg).to_bytes(4, "little", signed=True)))
+        result = sync.txPacket()
+        if result != 0:
+            raise ServoCommError(f"SYNC_WRITE of goal positions failed: {self._result(result)}")
+
+    def read_positions(self) -> tuple[float, float]:
+        """Both present positions from one SYNC_READ."""
+        with self._lock:
+            self._require_open()
+            sync, ph, size = self._sync_read, self._ph, dxt.PRESENT_POSITION.size
+            result = sync.txPacket()
+            if result != 0:
+                raise ServoCommError(f"SYNC_READ of present positions: {self._result(result)}")
+            # GroupSyncRead.rxPacket() drops each status's error byte, so receive the statuses
+            # with the packet handler to see hardware alerts.
+            replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
+            angles = []
+            for joint, (data, result, error) in zip(Joint, replies, strict=True):
+                self._check(joint, "SYNC_READ of present position", result, error)
+                ticks = int.from_bytes(bytes(data[:size]), "little", signed=True)
+                angles.append(dxt.ticks_to_deg(ticks))
+            return angles[0], angles[1]
+
+    def set_torque(self, enabled: bool) -> None:
+        with self._lock:
+            self._require_open()
+            for joint in Joint:
+                self._write(joint, dxt.TORQUE_ENABLE, int(enabled))
+
+    # -- health and recovery --
+
+    def health(self) -> Health:
+        """Ping and inspect both servos; faults are listed, never raised."""
+        with self._lock:
+            if self._port is None:
+                return Health(faults=(f"servo port {self.port_path} is closed",))
+            faults: list[str] = []
+            details: dict[str, float] = {}
+            for joint in Joint:
+                key = joint.name.lower()
+                try:
+                    self._ping(joint)
+                    torque = self._read(joint, dxt.TORQUE_ENABLE)
+                    details[f"{key}_temperature_c"] = self._read(joint, dxt.PRESENT_TEMPERATURE)
+                    volts = self._read(joint, dxt.PRESENT_INPUT_VOLTAGE) / 10
+                    details[f"{key}_voltage_v"] = volts
+                    if not torque:
+                        faults.append(f"{self._who(joint)}: torque is off (rebooted or lost power?)")
+                except DriverError as exc:
+                    faults.append(str(exc))
+            return Health(faults=tuple(faults), details=details)
+
+    def recover(self) -> Health:
+        """Bring both servos back after a fault; see the module docstring for when to call it.
+
+        Raises :class:`ServoNotFound` if a servo still does not answer, or another
+        :class:`DriverError` if it cannot be brought back; returns :meth:`health` otherwise.
+        """
+        with self._lock:
+            if self._port is None:
+                self._open_port()
+            for joint in Joint:
+                try:
+                    self._ping(joint)
+                    alert = bool(self._read(joint, dxt.HARDWARE_ERROR_STATUS))
+                except ServoHardwareAlert:
+                    alert = True
+                except ServoCommError:
+                    self._ping(joint)  # one garbled packet is not a lost servo: try once more
+                    alert = bool(self._read(joint, dxt.HARDWARE_ERROR_STATUS))
+                if alert:
+                    self._reboot(joint)
+                self._configure(joint)
+            if self.last_targets is not None:
+                self._send_targets(self.last_targets)
+            return self.health()
+
+    def _reboot(self, joint: Joint) -> None:
+        dxl_id = self.ids[joint]
+        result, _ = self._ph.reboot(self._port, dxl_id)  # the status predates the reboot
+        if result != 0:
+            raise ServoCommError(f"REBOOT of {self._who(joint)}: {self._result(result)}")
+        deadline = time.monotonic() + self.reboot_timeout_s
+        while True:  # the servo is silent while it restarts
+            time.sleep(0.02)
+            try:
+                self._ping(joint)
+                return
+            except ServoNotFound:
+                if time.monotonic() > deadline:
+                    raise
+
+    # -- bus helpers (callers hold the lock) --
+
+    def _configure(self, joint: Joint) -> None:
+        """Position mode, position limits and speed from ``limits``, then torque on."""
+        lim = self.limits[joint]
+        eeprom = (
+            (dxt.OPERATING_MODE, dxt.MODE_POSITION),
+            (dxt.MAX_POSITION_LIMIT, dxt.deg_to_ticks(lim.max_deg)),
+            (dxt.MIN_POSITION_LIMIT, dxt.deg_to_ticks(lim.min_deg)),
+        )
+        # EEPROM is locked while torque is on, and writing it wears the servo's flash:
+        # write only what differs.
+        stale = [(f, v) for f, v in eeprom if self._read(joint, f) != v]
+        if stale:
+            self._write(joint, dxt.TORQUE_ENABLE, 0)
+            for field, value in stale:
+                self._write(joint, field, value)
+        self._write(joint, dxt.PROFILE_VELOCITY, dxt.dps_to_velocity_units(lim.max_speed_dps))
+        self._write(joint, dxt.TORQUE_ENABLE, 1)
+
+    def _ping(self, joint: Joint) -> int:
+        model, result, error = self._ph.ping(self._port, self.ids[joint])
+        if result == self._sdk_const("COMM_RX_TIMEOUT"):
+            raise ServoNotFound(f"{self._who(joint)} did not answer a PING on {self.port_path} at {self.baudrate} bps")
+        self._check(joint, "PING", result, error)
+        if self.expected_model is not None and model != self.expected_model:
+            raise ServoModelMismatch(
+                f"{self._who(joint)} is model {_model_name(model)}, expected {_model_name(self.expected_model)}"
+            )
+        return int(model)
+
+    def _read(self, joint: Joint, field: dxt.Field) -> int:
+        data, result, error = self._ph.readTxRx(self._port, self.ids[joint], field.address, field.size)
+        self._check(joint, f"READ of {field.name}", result, error)
+        return int.from_bytes(bytes(data[: field.size]), "little", signed=field.signed)
+
+    def _write(self, joint: Joint, field: dxt.Field, value: int) -> None:
+        data = list(value.to_bytes(field.size, "little", signed=field.signed))
+        result, error = self._ph.writeTxRx(self._port, self.ids[joint], field.address, field.size, data)
+        self._check(joint, f"WRITE of {field.name}={value}", result, error)
+
+    def _check(self, joint: Joint, what: str, result: int, error: int) -> None:
+        """Turn one SDK result pair into an exception (or nothing)."""
+        if result != 0:
+            raise ServoCommError(f"{what} to {self._who(joint)}: {self._result(result)}")
+        if error & dxt.ERRBIT_ALERT:
+            raise ServoHardwareAlert(f"{self._who(joint)} hardware alert: {self._alert(joint)}")
+        if error:
+            name = dxt.ERROR_NUMBER_NAMES.get(error, f"error number {error}")
+            raise ServoInstructionError(f"{what} to {self._who(joint)} was rejected: {name}")
+
+    def _alert(self, joint: Joint) -> str:
+        f = dxt.HARDWARE_ERROR_STATUS
+        data, result, _ = self._ph.readTxRx(self._port, self.ids[joint], f.address, f.size)
+        if result != 0:
+            return f"Hardware Error Status unreadable ({self._result(result)})"
+        bits = int(data[0])
+        names = ", ".join(dxt.hardware_error_names(bits)) or "no bits set"
+        return f"{names} (Hardware Error Status 0x{bits:02x})"
+
+    def _who(self, joint: Joint) -> str:
+        return f"{joint.name} servo id {self.ids[joint]}"
+
+    def _result(self, result: int) -> str:
+        text = str(self._ph.getTxRxResult(result)).removeprefix("[TxRxResult] ")
+        return f"{text} (comm result {result})"
+
+    def _sdk_const(self, name: str) -> int:
+        assert self._sdk is not None
+        return int(getattr(self._sdk, name))
+
+    def _require_open(self) -> None:
+        if self._port is None:
+            raise ServoCommError(f"servo port {self.port_path} is not open")
+
+
+def _model_name(model: int) -> str:
+    name = dxt.MODEL_NAMES.get(model)
+    return f"{model} ({name})" if name else str(model)

@@ -1,0 +1,340 @@
+"""The link emulator: the physical world's infrared pairs, as pty pairs with a relay.
+
+Each docked connector pair (a *link*) gets two pty pairs. The module at side 0 opens the
+slave path ``link.paths[0]`` as its connector's serial port, the module at side 1 opens
+``link.paths[1]``; one relay thread moves bytes between the two masters. On the way it can:
+
+* drop whole frames (``frame_loss``; frames are cut at the 0x00 delimiter of the serial
+  framing), drop single bytes (``byte_loss``), flip bits (``bit_error``: probability per bit);
+* delay delivery (``latency`` seconds plus uniform ``jitter``), keeping order;
+* stop relaying (``undock``): sends still succeed, bytes go nowhere, and the modules'
+  liveness notices the silence; ``dock`` resumes.
+
+Random choices come from one ``random.Random(seed)``. ``close()`` stops the thread and
+closes every pty; close the modules' ports first (a slave whose master is gone reads EIO).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import itertools
+import os
+import random
+import selectors
+import threading
+import time
+import tty
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import TracebackType
+from typing import Self
+
+from dh2rt.errors import TransportError
+from dh2rt.topology import Topology
+
+#: Bytes held while waiting for a delimiter before they are relayed as they are.
+_MAX_PENDING = 2048
+
+
+@dataclass(frozen=True, slots=True)
+class Impairments:
+    """What the emulated medium does to the bytes it carries."""
+
+    frame_loss: float = 0.0
+    byte_loss: float = 0.0
+    bit_error: float = 0.0
+    latency: float = 0.0
+    jitter: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("frame_loss", "byte_loss", "bit_error"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"link emulator: {name}={value} is not a probability in [0, 1]")
+        for name in ("latency", "jitter"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"link emulator: {name}={getattr(self, name)} must not be negative")
+
+
+@dataclass(slots=True)
+class LinkStats:
+    """Per-link counts, both directions together."""
+
+    frames: int = 0
+    frames_lost: int = 0
+    bytes_lost: int = 0
+    bits_flipped: int = 0
+    bytes_discarded: int = 0  # read while undocked, or refused by a full pty
+    bytes_relayed: int = 0
+
+
+@dataclass(slots=True)
+class _Side:
+    master: int
+    slave: int
+    path: str
+    pending: bytearray = field(default_factory=bytearray)
+
+
+@dataclass(slots=True)
+class EmulatedLink:
+    """One docked pair: ``paths[side]`` is the port a module opens at that end."""
+
+    link_id: int
+    sides: tuple[_Side, _Side]
+    impairments: Impairments
+    docked: bool = True
+    stats: LinkStats = field(default_factory=LinkStats)
+
+    @property
+    def paths(self) -> tuple[str, str]:
+        return self.sides[0].path, self.sides[1].path
+
+
+class LinkEmulator:
+    """Relays bytes between the two ends of each emulated link, with impairments."""
+
+    def __init__(
+        self,
+        *,
+        frame_loss: float = 0.0,
+        byte_loss: float = 0.0,
+        bit_error: float = 0.0,
+        latency: float = 0.0,
+        jitter: float = 0.0,
+        seed: int | None = None,
+    ) -> None:
+        self.default = Impairments(frame_loss, byte_loss, bit_error, latency, jitter)
+        self._rng = random.Random(seed)
+        self._lock = threading.Lock()
+        self._links: dict[int, EmulatedLink] = {}
+        self._by_fd: dict[int, tuple[EmulatedLink, int]] = {}
+        self._sel = selectors.DefaultSelector()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ)
+        self._queue: list[tuple[float, int, int, bytes, int]] = []  # (due, order, master fd, data, link)
+        self._order = itertools.count()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="dh2rt-link-emulator", daemon=True)
+        self._thread.start()
+
+    # -- links --------------------------------------------------------------------------------
+
+    def add_link(self, link_id: int | None = None, *, docked: bool = True, **impairments: float) -> EmulatedLink:
+        """Create a link (two pty pairs); ``impairments`` override the emulator's defaults."""
+        with self._lock:
+            if self._closed:
+                raise TransportError("link emulator is closed")
+            if link_id is None:
+                link_id = max(self._links, default=-1) + 1
+            if link_id in self._links:
+                raise TransportError(f"link emulator: link {link_id} already exists")
+            sides = (_open_side(), _open_side())
+            link = EmulatedLink(link_id, sides, replace(self.default, **impairments), docked)
+            self._links[link_id] = link
+            for i, side in enumerate(sides):
+                self._by_fd[side.master] = (link, i)
+                self._sel.register(side.master, selectors.EVENT_READ)
+        self._wake()
+        return link
+
+    def link(self, link_id: int) -> EmulatedLink:
+        try:
+            return self._links[link_id]
+        except KeyError:
+            raise TransportError(f"link emulator: no link {link_id}") from None
+
+    @property
+    def links(self) -> Mapping[int, EmulatedLink]:
+        return dict(self._links)
+
+    def for_topology(self, topology: Topology) -> dict[tuple[int, int], str]:
+        """One link per docked pair of ``topology``; returns ``(module, connector) -> port path``.
+
+        Link ``i`` is ``topology.links[i]``; its ``a`` end is side 0.
+        """
+        ports: dict[tuple[int, int], str] = {}
+        for i, lk in enumerate(topology.links):
+            em = self.add_link(i)
+            ports[(lk.a, lk.a_conn)] = em.paths[0]
+            ports[(lk.b, lk.b_conn)] = em.paths[1]
+        return ports
+
+    def dock(self, link_id: int) -> None:
+        """Relay bytes on ``link_id`` again."""
+        self.link(link_id).docked = True
+
+    def undock(self, link_id: int) -> None:
+        """Stop relaying on ``link_id``: bytes sent either way are discarded."""
+        link = self.link(link_id)
+        with self._lock:
+            link.docked = False
+            link.sides[0].pending.clear()
+            link.sides[1].pending.clear()
+
+    def set_impairments(self, link_id: int, **impairments: float) -> None:
+        """Change what ``link_id`` does to its bytes from now on."""
+        link = self.link(link_id)
+        link.impairments = replace(link.impairments, **impairments)
+
+    def inject(self, link_id: int, to_side: int, data: bytes) -> None:
+        """Write raw bytes towards the module at ``to_side`` (tests: line noise, garbage)."""
+        link = self.link(link_id)
+        try:
+            os.write(link.sides[to_side].master, bytes(data))
+        except OSError as exc:
+            raise TransportError(f"link emulator: cannot inject on link {link_id}: {exc}") from exc
+
+    def stats(self, link_id: int) -> LinkStats:
+        with self._lock:
+            return replace(self.link(link_id).stats)
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop relaying and close every pty; idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._wake()
+        self._thread.join(5)
+        self._sel.close()
+        for link in self._links.values():
+            for side in link.sides:
+                for fd in (side.master, side.slave):
+                    _close_fd(fd)
+        _close_fd(self._wake_r)
+        _close_fd(self._wake_w)
+        self._links.clear()
+        self._by_fd.clear()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- the relay thread ---------------------------------------------------------------------
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                if self._closed:
+                    return
+                due = self._queue[0][0] if self._queue else None
+            timeout = 0.2 if due is None else max(0.0, due - time.monotonic())
+            for key, _ in self._sel.select(timeout):
+                fd = int(key.fd)
+                if fd == self._wake_r:
+                    with contextlib.suppress(OSError):
+                        os.read(fd, 4096)
+                    continue
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:  # EIO: no slave open right now; the data is gone anyway
+                    data = b""
+                if data:
+                    self._from_master(fd, data)
+            self._deliver_due()
+
+    def _from_master(self, fd: int, data: bytes) -> None:
+        with self._lock:
+            entry = self._by_fd.get(fd)
+            if entry is None:
+                return
+            link, side_index = entry
+            if not link.docked:
+                link.stats.bytes_discarded += len(data)
+                return
+            side = link.sides[side_index]
+            target = link.sides[1 - side_index].master
+            side.pending += data
+            imp = link.impairments
+            now = time.monotonic()
+            while True:
+                idx = side.pending.find(0)
+                if idx < 0:
+                    if len(side.pending) > _MAX_PENDING:  # no framing: pass bytes through
+                        chunk = bytes(side.pending)
+                        side.pending.clear()
+                        self._schedule(link, target, self._impair(link, chunk, imp), now, imp)
+                    return
+                frame = bytes(side.pending[: idx + 1])
+                del side.pending[: idx + 1]
+                link.stats.frames += 1
+                if len(frame) > 1 and imp.frame_loss and self._rng.random() < imp.frame_loss:
+                    link.stats.frames_lost += 1
+                    continue
+                self._schedule(link, target, self._impair(link, frame, imp), now, imp)
+
+    def _impair(self, link: EmulatedLink, data: bytes, imp: Impairments) -> bytes:
+        if not imp.byte_loss and not imp.bit_error:
+            return data
+        out = bytearray()
+        p_byte_hit = 1.0 - (1.0 - imp.bit_error) ** 8
+        for b in data:
+            if imp.byte_loss and self._rng.random() < imp.byte_loss:
+                link.stats.bytes_lost += 1
+                continue
+            if p_byte_hit and self._rng.random() < p_byte_hit:
+                b ^= 1 << self._rng.randrange(8)
+                link.stats.bits_flipped += 1
+            out.append(b)
+        return bytes(out)
+
+    def _schedule(self, link: EmulatedLink, target: int, data: bytes, now: float, imp: Impairments) -> None:
+        if not data:
+            return
+        delay = imp.latency + (self._rng.uniform(0.0, imp.jitter) if imp.jitter else 0.0)
+        # Keep order per direction: never schedule before what is already queued for target.
+        due = now + delay
+        for item in self._queue:
+            if item[2] == target and item[0] > due:
+                due = item[0]
+        heapq.heappush(self._queue, (due, next(self._order), target, data, link.link_id))
+
+    def _deliver_due(self) -> None:
+        now = time.monotonic()
+        while True:
+            with self._lock:
+                if not self._queue or self._queue[0][0] > now:
+                    return
+                _, _, target, data, link_id = heapq.heappop(self._queue)
+                link = self._links.get(link_id)
+                if link is None:
+                    return
+                if not link.docked:
+                    link.stats.bytes_discarded += len(data)
+                    continue
+            try:
+                n = os.write(target, data)
+            except (BlockingIOError, OSError):
+                n = 0
+            with self._lock:
+                link.stats.bytes_relayed += n
+                link.stats.bytes_discarded += len(data) - n
+
+
+def _open_side() -> _Side:
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    return _Side(master, slave, os.ttyname(slave))
+
+
+def _close_fd(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        os.close(fd)

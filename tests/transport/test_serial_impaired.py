@@ -1,0 +1,105 @@
+"""Serial links through the link emulator with loss, bit errors, latency and undocking."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from dh2rt.hormone import Hormone
+from dh2rt.testing import collect, contract_codec, long_hormone, quiet
+from dh2rt.transport.base import PortEnd
+from dh2rt.transport.serial_link import SerialTransport
+from dh2rt.wire.frame import KeepAlive
+from hil.link_emulator import LinkEmulator
+
+COUNT = 600
+
+
+def _long(i: int) -> Hormone:
+    h = long_hormone(5 + i % 20)
+    return Hormone(h.name, (i, -i, "up"), h.path, h.route)
+
+
+def test_loss_and_bit_errors_never_deliver_a_corrupted_frame() -> None:
+    codec = contract_codec()
+    with (
+        LinkEmulator(frame_loss=0.05, bit_error=0.002, seed=1234) as em,
+        SerialTransport(codec) as a,
+        SerialTransport(codec) as b,
+    ):
+        link = em.add_link()
+        a.attach(2, PortEnd(link.paths[0]))
+        b.attach(1, PortEnd(link.paths[1]))
+        sent = [_long(i) if i % 10 == 0 else Hormone("N", (i * 7919,)) for i in range(COUNT)]
+        for i, h in enumerate(sent):
+            assert a.send(2, h)
+            if i % 50 == 49:
+                time.sleep(0.01)  # let the relay keep up; a pty holds only a few kB
+        got = collect(b, COUNT, 3.0)
+        got += quiet(b, 0.2)
+        stats = em.stats(link.link_id)
+    frames = [r.frame for r in got]
+    # Every delivered frame is one that was sent, in the order sent: nothing corrupted got in.
+    positions = [sent.index(f) for f in frames if isinstance(f, Hormone)]
+    assert len(positions) == len(frames)
+    assert positions == sorted(positions)
+    assert all(r.at == 1 and r.remote == 2 for r in got)
+    lost = COUNT - len(frames)
+    assert stats.frames_lost > 0 and stats.bits_flipped > 0
+    # The medium lost whole frames; the rest of the losses are bit errors the receiver caught
+    # and counted. A flip can damage two frames at most (a delimiter turned into data merges
+    # two frames into one corrupted one; data turned into a delimiter splits one in two).
+    assert b.counters.corrupted > 0 and b.counters.dropped == 0
+    assert lost - stats.frames_lost <= 2 * b.counters.corrupted
+    assert b.counters.corrupted <= 2 * stats.bits_flipped
+    assert lost <= stats.frames_lost + 2 * stats.bits_flipped
+    assert b.counters.received == len(frames)
+
+
+def test_undock_stops_relaying_and_dock_resumes() -> None:
+    codec = contract_codec()
+    with (
+        LinkEmulator(latency=0.02, seed=5) as em,
+        SerialTransport(codec) as a,
+        SerialTransport(codec) as b,
+    ):
+        link = em.add_link(42)
+        a.attach(4, link.paths[0])
+        b.attach(1, link.paths[1])
+        t0 = time.monotonic()
+        assert a.send(4, KeepAlive(1))
+        assert [r.frame for r in collect(b, 1, 2.0)] == [KeepAlive(1)]
+        assert time.monotonic() - t0 >= 0.02  # latency applied
+        em.undock(42)
+        assert a.send(4, KeepAlive(2)) is True  # the send succeeds; the bytes go nowhere
+        assert b.send(1, KeepAlive(3)) is True
+        assert quiet(b, 0.2) == [] and quiet(a, 0.05) == []
+        assert em.stats(42).bytes_discarded > 0
+        em.dock(42)
+        assert a.send(4, KeepAlive(4))
+        assert [r.frame for r in collect(b, 1, 2.0)] == [KeepAlive(4)]
+
+
+def test_for_topology_and_clean_shutdown() -> None:
+    from dh2rt.topology import parse_spec
+
+    before = threading.active_count()
+    topo = parse_spec("snake:3")
+    codec = contract_codec()
+    em = LinkEmulator(seed=0)
+    ports = em.for_topology(topo)
+    assert len(ports) == 2 * len(topo.links)
+    mods = [SerialTransport(codec) for _ in range(topo.size)]
+    for (module, conn), path in ports.items():
+        mods[module].attach(conn, path)
+    assert mods[0].send(2, Hormone("X", ("A",)))
+    got = collect(mods[1], 1, 2.0)
+    assert [(r.at, r.remote) for r in got] == [(1, 2)]
+    for m in mods:
+        m.close()
+    em.close()
+    em.close()
+    deadline = time.monotonic() + 2
+    while threading.active_count() > before and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert threading.active_count() == before

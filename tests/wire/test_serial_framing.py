@@ -1,0 +1,124 @@
+"""COBS + CRC-16 serial framing: vectors, round trips, chunking independence, resync."""
+
+from __future__ import annotations
+
+import binascii
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dh2rt.errors import FrameCorrupted
+from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
+from dh2rt.wire.frame import FrameCodec
+from dh2rt.wire.serial_framing import (
+    MAX_PAYLOAD,
+    SerialDecoder,
+    cobs_decode,
+    cobs_encode,
+    crc16,
+    decode_serial,
+    encode_serial,
+)
+
+payloads = st.binary(min_size=1, max_size=MAX_PAYLOAD)
+
+
+@pytest.mark.parametrize(
+    ("raw", "encoded"),
+    [
+        (b"", b"\x01"),
+        (b"\x00", b"\x01\x01"),
+        (b"\x00\x00", b"\x01\x01\x01"),
+        (b"\x11\x22\x00\x33", b"\x03\x11\x22\x02\x33"),
+        (b"\x11\x22\x33\x44", b"\x05\x11\x22\x33\x44"),
+        (b"\x11\x00\x00\x00", b"\x02\x11\x01\x01\x01"),
+        (bytes(range(1, 255)), b"\xff" + bytes(range(1, 255)) + b"\x01"),
+    ],
+)
+def test_cobs_vectors(raw: bytes, encoded: bytes) -> None:
+    assert cobs_encode(raw) == encoded
+    assert cobs_decode(encoded) == raw
+
+
+def test_crc_is_ccitt_false() -> None:
+    assert crc16(b"123456789") == 0x29B1  # the CRC-16/CCITT-FALSE check value
+    assert crc16(b"abc") == binascii.crc_hqx(b"abc", 0xFFFF)
+
+
+def test_caterpillar_hop_is_at_most_12_bytes() -> None:
+    codec = FrameCodec(Vocabulary([HormoneSpec(0, "X", (ParamSpec("a", ("A", "B")),))]), 4)
+    wire = encode_serial(codec.encode(2, Hormone("X", ("A",))))
+    assert len(wire) == 8 <= 12
+    assert wire.count(0) == 1 and wire.endswith(b"\x00")
+
+
+@given(st.binary(max_size=1200))
+@settings(max_examples=300)
+def test_cobs_round_trip_has_no_zero(data: bytes) -> None:
+    enc = cobs_encode(data)
+    assert 0 not in enc
+    assert len(enc) <= len(data) + 1 + len(data) // 254
+    assert cobs_decode(enc) == data
+
+
+@given(st.lists(payloads, max_size=8))
+@settings(max_examples=200)
+def test_whole_equals_byte_by_byte(frames: list[bytes]) -> None:
+    stream = b"".join(encode_serial(p) for p in frames)
+    whole = SerialDecoder()
+    assert whole.feed(stream) == frames
+    one = SerialDecoder()
+    got: list[bytes] = []
+    for i in range(len(stream)):
+        got += one.feed(stream[i : i + 1])
+    assert got == frames
+    assert (one.frames, one.corrupted, one.dropped) == (whole.frames, 0, 0)
+
+
+@given(st.binary(max_size=2000), st.lists(st.integers(1, 64), min_size=1, max_size=50))
+@settings(max_examples=300)
+def test_garbage_is_counted_and_chunking_never_matters(noise: bytes, cuts: list[int]) -> None:
+    stream = noise + b"\x00" + encode_serial(b"hello")
+    whole = SerialDecoder()
+    expect = whole.feed(stream)
+    assert expect[-1] == b"hello"  # resynchronised at the delimiter after the noise
+    chunked = SerialDecoder()
+    got: list[bytes] = []
+    pos = 0
+    i = 0
+    while pos < len(stream):
+        step = cuts[i % len(cuts)]
+        got += chunked.feed(stream[pos : pos + step])
+        pos += step
+        i += 1
+    assert got == expect
+    assert (chunked.corrupted, chunked.dropped) == (whole.corrupted, whole.dropped)
+
+
+def test_bad_frames_are_counted() -> None:
+    dec = SerialDecoder()
+    good = encode_serial(b"\x42\x00\x00\x00")
+    flipped = bytearray(good)
+    flipped[2] ^= 0x10
+    assert dec.feed(bytes(flipped) + b"\x05\x01\x00" + b"\x00\x00" + good) == [b"\x42\x00\x00\x00"]
+    assert (dec.frames, dec.corrupted, dec.dropped) == (1, 2, 0)
+
+
+def test_oversize_frames_are_dropped_then_resync() -> None:
+    dec = SerialDecoder(max_encoded=16)
+    assert dec.feed(b"\x01" * 40) == []
+    assert dec.pending == 0
+    assert dec.feed(b"\x01\x00" + encode_serial(b"ok")) == [b"ok"]
+    assert dec.dropped == 1
+
+
+def test_decode_serial_errors() -> None:
+    with pytest.raises(FrameCorrupted, match="too short"):
+        decode_serial(cobs_encode(b"\x01"))
+    with pytest.raises(FrameCorrupted, match="runs past"):
+        decode_serial(b"\x09\x01")
+    with pytest.raises(FrameCorrupted, match="CRC"):
+        decode_serial(cobs_encode(b"abc\x00\x00"))
+    with pytest.raises(ValueError, match="exceeds"):
+        encode_serial(bytes(MAX_PAYLOAD + 1))
