@@ -68,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--sim", choices=sorted(PHYSICS_RUNNERS), help="run the modules' joints in physics")
     run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation")
     run.add_argument("--plot", type=Path, metavar="PNG", help="with --sim: plot joint angles and displacement")
+    run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     image = sub.add_parser("image", help="write a program's image (what gets flashed) and print its hash")
@@ -207,8 +208,8 @@ def cmd_run(ns: argparse.Namespace) -> int:
         runner = _load(PHYSICS_RUNNERS[ns.sim])
         code: int = runner(robot, ns, events)
         return code
-    if (ns.record or ns.plot) and not ns.sim:
-        _err("--record and --plot need --sim pybullet")
+    if ns.record or ns.plot or ns.gui:
+        _err("--record, --plot and --gui need --sim pybullet")
         return EXIT_USAGE
     trace = TraceWriter.open(ns.trace, robot) if ns.trace else None
     robot.record = trace is not None

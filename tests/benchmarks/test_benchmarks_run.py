@@ -1,0 +1,29 @@
+"""Every benchmark runs (quick mode) and ends with one JSON object, as the README promises."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+NAMES = sorted(p.stem for p in (ROOT / "benchmarks").glob("bench_*.py"))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_benchmark_quick_mode_ends_with_json(name: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", f"benchmarks.{name}", "--quick"], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    data = json.loads(last)
+    assert isinstance(data, dict) and data
+
+
+def test_runner_help() -> None:
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "--help"], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0 and "usage: python -m benchmarks" in proc.stdout
