@@ -91,7 +91,7 @@ class Robot:
         self.records: list[CycleRecord] = []
         self.pending: list[tuple[int, Callable[[], None]]] = []
         self.effect_handlers: dict[str, EffectHandler] = {
-            "reach_and_dock": _reach_and_dock,
+            "reach_and_dock": reach_and_dock,
             "assist": lambda _r, _m, _a: None,
         }
         self.log: list[str] = []
@@ -135,12 +135,12 @@ class Robot:
         """Dock two free connectors of different gender; both modules sense it."""
         if not self.profile.can_link(a_conn, b_conn):
             raise TopologyError(
-                f"cannot dock {self._where(a, a_conn)} to {self._where(b, b_conn)}: both are "
+                f"cannot dock {self.where(a, a_conn)} to {self.where(b, b_conn)}: both are "
                 f"{self.profile.gender(a_conn)}"
             )
         for m, c in ((a, a_conn), (b, b_conn)):
             if (m, c) in self.peer:
-                raise TopologyError(f"cannot dock {self._where(m, c)}: it is already docked")
+                raise TopologyError(f"cannot dock {self.where(m, c)}: it is already docked")
         if a == b:
             raise TopologyError("cannot dock a module to itself")
         self._wake(a)
@@ -159,7 +159,7 @@ class Robot:
         """Break the link at a connector (live surgery); both modules sense it."""
         other = self.peer.pop((module, connector), None)
         if other is None:
-            raise TopologyError(f"cannot cut {self._where(module, connector)}: nothing is docked there")
+            raise TopologyError(f"cannot cut {self.where(module, connector)}: nothing is docked there")
         del self.peer[other]
         self._adjacent[module][connector] = None
         self._adjacent[other[0]][other[1]] = None
@@ -222,7 +222,8 @@ class Robot:
     def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
         self.pending.append((self.cycle + cycles_from_now, action))
 
-    def _where(self, m: int, c: int) -> str:
+    def where(self, m: int, c: int) -> str:
+        """``name.connector`` of a module's connector, for messages."""
         return f"{self.topology.names[m]}.{self.profile.connector_name(c)}"
 
     # ------------------------------------------------------------ running
@@ -331,31 +332,40 @@ def _by_connector(a: Arrival) -> int:
     return a.at
 
 
-def _reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
-    """Carry out ``reach_and_dock(connector, route)``: follow the route from ``module`` to
-    the module at its end, release that module's link at the connector the route arrives at,
-    and dock ``module``'s connector there, DOCK_DELAY cycles later (bending, aligning, latching
-    take time). Nothing happens if the route no longer leads anywhere by then.
+def reach_target(robot: Robot, module: int, connector: int, route: tuple[int, ...]) -> tuple[int, int] | None:
+    """Where ``reach_and_dock(connector, route)`` from ``module`` would dock now: the module at
+    the end of the route and the connector the route arrives at; None (logged) if the route
+    is broken, leads back, or either end is not free to act."""
+    here, at = module, 0
+    for c in route:
+        nxt = robot.peer.get((here, c))
+        if nxt is None:
+            robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot.where(module, connector)}: route broken")
+            return None
+        here, at = nxt
+    if here == module or not robot.alive(here) or not robot.alive(module):
+        return None
+    if (module, connector) in robot.peer:
+        robot.log.append(f"cycle {robot.cycle}: reach_and_dock: {robot.where(module, connector)} is not free")
+        return None
+    return here, at
+
+
+def reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
+    """Carry out ``reach_and_dock(connector, route)`` in the in-process world: DOCK_DELAY
+    cycles later (bending, aligning and latching take time), the module at the end of the
+    route releases its link at the connector the route arrives at, and ``module``'s
+    connector docks there. Nothing happens if the route no longer leads anywhere by then.
     """
     connector, route = args
 
     def carry_out() -> None:
-        here, at = module, 0
-        for c in route:
-            nxt = robot.peer.get((here, c))
-            if nxt is None:
-                robot.log.append(
-                    f"cycle {robot.cycle}: reach_and_dock from {robot._where(module, connector)}: route broken"
-                )
-                return
-            here, at = nxt
-        if here == module or not robot.alive(here) or not robot.alive(module):
+        target = reach_target(robot, module, connector, route)
+        if target is None:
             return
-        if (module, connector) in robot.peer:
-            robot.log.append(f"cycle {robot.cycle}: reach_and_dock: {robot._where(module, connector)} is not free")
-            return
+        here, at = target
         robot.cut(here, at)
         robot.dock(module, connector, here, at)
-        robot.log.append(f"cycle {robot.cycle}: {robot._where(module, connector)} docked to {robot._where(here, at)}")
+        robot.log.append(f"cycle {robot.cycle}: {robot.where(module, connector)} docked to {robot.where(here, at)}")
 
     robot.schedule(DOCK_DELAY, carry_out)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from dh2rt.cli import EXIT_INTERRUPTED, EXIT_OK, print_summary
 from dh2rt.events import Event
-from dh2rt.robot import Robot
+from dh2rt.robot import DOCK_DELAY, Robot, reach_target
 from dh2rt.trace import TraceWriter
 from drivers.base import ModuleDriver
 from sim.record import Recorder, Sample, plot_run
@@ -64,7 +64,6 @@ class PhysicsRun:
         self.samples: list[Sample] = []
         self.log = robot.log
         robot.effect_handlers["reach_and_dock"] = self._reach_and_dock
-        self._logical_reach = _original_reach()
 
     # ------------------------------------------------------------ events and docking
 
@@ -87,18 +86,31 @@ class PhysicsRun:
         self.log.append(f"cycle {self.robot.cycle}: dock refused by physics: connectors not aligned")
 
     def _reach_and_dock(self, robot: Robot, module: int, args: tuple[object, ...]) -> None:
-        # The logical dock happens DOCK_DELAY cycles later; then mirror it in the world.
-        before = set(robot.peer)
-        self._logical_reach(robot, module, args)
+        # As the in-process world does, DOCK_DELAY cycles later; but the link changes only if
+        # the two connectors are physically aligned by then. The bending and aligning motions
+        # of the paper's [17] are not modelled, so far-apart connectors are refused (logged)
+        # and nothing is released.
+        connector, route = args
+        assert isinstance(connector, int) and isinstance(route, tuple)
 
-        def mirror() -> None:
-            for a, ac in set(robot.peer) - before:
-                b, bc = robot.peer[(a, ac)]
-                if a < b:
-                    self.world.undock(b, bc)
-                    self._physical_dock(a, ac, b, bc)
+        def carry_out() -> None:
+            target = reach_target(robot, module, connector, route)
+            if target is None:
+                return
+            here, at = target
+            if not self.world.aligned(module, connector, here, at, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG):
+                robot.log.append(
+                    f"cycle {robot.cycle}: {robot.where(module, connector)} cannot reach {robot.where(here, at)}: "
+                    "not aligned in the world"
+                )
+                return
+            self.world.undock(here, at)
+            robot.cut(here, at)
+            robot.dock(module, connector, here, at)
+            self.world.dock(module, connector, here, at, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG)
+            robot.log.append(f"cycle {robot.cycle}: {robot.where(module, connector)} docked to {robot.where(here, at)}")
 
-        robot.schedule(_dock_delay() + 1, mirror)
+        robot.schedule(DOCK_DELAY, carry_out)
 
     # ------------------------------------------------------------ running
 
@@ -145,18 +157,6 @@ class PhysicsRun:
 
     def close(self) -> None:
         self.world.close()
-
-
-def _original_reach() -> Callable[[Robot, int, tuple[object, ...]], None]:
-    from dh2rt import robot as robot_module
-
-    return robot_module._reach_and_dock
-
-
-def _dock_delay() -> int:
-    from dh2rt import robot as robot_module
-
-    return robot_module.DOCK_DELAY
 
 
 def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> int:

@@ -259,18 +259,34 @@ class World:
         self._check_module(b)
         self._check_connector(a_conn)
         self._check_connector(b_conn)
-        if a == b or (a, a_conn) in self._docks or (b, b_conn) in self._docks:
+        if (a, a_conn) in self._docks or (b, b_conn) in self._docks:
             return False
-        if not self.topology.profile.can_link(a_conn, b_conn):
+        if not self.aligned(a, a_conn, b, b_conn, tolerance_m, tolerance_deg):
+            return False
+        self._attach(Link(a, a_conn, b, b_conn))
+        return True
+
+    def aligned(
+        self,
+        a: int,
+        a_conn: int,
+        b: int,
+        b_conn: int,
+        tolerance_m: float = 0.01,
+        tolerance_deg: float = 10.0,
+    ) -> bool:
+        """Whether two connectors of different gender are aligned within tolerance (see :meth:`dock`)."""
+        self._check_module(a)
+        self._check_module(b)
+        self._check_connector(a_conn)
+        self._check_connector(b_conn)
+        if a == b or not self.topology.profile.can_link(a_conn, b_conn):
             return False
         pa, _ = self.connector_pose(a, a_conn)
         pb, _ = self.connector_pose(b, b_conn)
         if math.dist(pa, pb) > tolerance_m:
             return False
-        if self._attitude_error_deg(a, a_conn, b, b_conn) > tolerance_deg:
-            return False
-        self._attach(Link(a, a_conn, b, b_conn))
-        return True
+        return self._attitude_error_deg(a, a_conn, b, b_conn) <= tolerance_deg
 
     def _attitude_error_deg(self, a: int, a_conn: int, b: int, b_conn: int) -> float:
         ca, cb = self.model.connector(a_conn), self.model.connector(b_conn)
