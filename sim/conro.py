@@ -20,13 +20,18 @@ Sources
 * Castano, Behar, Will, "The Conro Modules for Reconfigurable Robots", IEEE/ASME Trans.
   Mechatronics 7(4):403-409, 2002: self-contained modules, pitch and yaw servos, one female
   and three male docking connectors, palm-sized. Its figures were not available to this
-  build as text, so the numbers below are **assumptions** of the right size class, not
-  quotations.
+  build as text.
+* USC/ISI, "Second CONRO prototype (HARDWARE)", www.isi.edu/robots/conro/proto2H.html: the
+  module has three parts, a passive connector (pins and an infrared pair on three faces; its
+  body "a 1"x1" cube" that also holds the battery), a motor housing for the two servos, and
+  an active connector (an arm on the pitch motor and the face with the latch). **Published
+  figure used: the passive connector (the back body, with the three male faces) is a
+  25.4 mm cube, and the module's cross-section is taken from it.**
 
-Assumptions (every number here)
--------------------------------
-* Cross-section 45 mm x 45 mm; bodies 35 mm (front), 45 mm (centre), 35 mm (back):
-  a 115 mm module.
+Assumptions (every other number here)
+-------------------------------------
+* All bodies share the 25.4 mm cross-section; lengths 35 mm (front: active connector and
+  arm), 45 mm (centre: motor housing), 25.4 mm (back): a 105.4 mm module.
 * Mass 115 g: 30 g front, 55 g centre (batteries, processor), 30 g back.
 * Servos: hobby micro servos of the kind CONRO used, 0.3 N*m stall torque and
   about 0.15 s per 60 deg (400 deg/s); joint range -90..+90 deg.
@@ -102,9 +107,11 @@ def _default_connectors(front: BoxSpec, back: BoxSpec) -> tuple[ConnectorSpec, .
     )
 
 
-_FRONT = BoxSpec("front", (0.035, 0.045, 0.045), 0.030)
-_CENTRE = BoxSpec("centre", (0.045, 0.045, 0.045), 0.055)
-_BACK = BoxSpec("back", (0.035, 0.045, 0.045), 0.030)
+#: The passive connector's body is "a 1 x 1 inch cube" (ISI, second CONRO prototype hardware).
+CROSS_SECTION_M = 0.0254
+_FRONT = BoxSpec("front", (0.035, CROSS_SECTION_M, CROSS_SECTION_M), 0.030)
+_CENTRE = BoxSpec("centre", (0.045, CROSS_SECTION_M, CROSS_SECTION_M), 0.055)
+_BACK = BoxSpec("back", (CROSS_SECTION_M, CROSS_SECTION_M, CROSS_SECTION_M), 0.030)
 _SERVO = JointLimits(min_deg=-90.0, max_deg=90.0, max_speed_dps=400.0, max_torque_nm=0.3)
 
 

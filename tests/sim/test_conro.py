@@ -34,7 +34,8 @@ def _hung_module(client: int) -> tuple[int, PyBulletDriver]:
 
 def test_model_dimensions_and_connectors_match_the_profile() -> None:
     model = DEFAULT_MODEL
-    assert model.length == pytest.approx(0.115)
+    assert model.length == pytest.approx(0.035 + 0.045 + 0.0254)
+    assert model.back.size == (0.0254, 0.0254, 0.0254)  # the published 1 x 1 inch passive connector
     assert model.mass == pytest.approx(0.115)
     assert [c.name for c in model.connectors] == list(CONRO.connectors)
     assert [c.gender for c in model.connectors] == list(CONRO.genders)

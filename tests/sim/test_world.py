@@ -65,10 +65,11 @@ def test_time_steps_and_joint_api() -> None:
         assert w.physics_hz == 200.0
         w.step(100)
         assert w.time == pytest.approx(0.5)
-        w.set_targets(0, 30.0, -15.0)
+        # tip up (negative pitch): a free motion; tip down would meet the floor first
+        w.set_targets(0, -30.0, -15.0)
         w.step(200)
         d1, d2 = w.joint_angles(0)
-        assert d1 == pytest.approx(30.0, abs=3.0)
+        assert d1 == pytest.approx(-30.0, abs=3.0)
         assert d2 == pytest.approx(-15.0, abs=3.0)
         assert w.driver(1).read_positions()[0] == pytest.approx(0.0, abs=3.0)
 
