@@ -213,23 +213,35 @@ def cmd_run(ns: argparse.Namespace) -> int:
         return EXIT_USAGE
     trace = TraceWriter.open(ns.trace, robot) if ns.trace else None
     robot.record = trace is not None
-    interrupted = False
-    started = time.perf_counter()
-    try:
+
+    def body() -> None:
         for _ in robot.run(ns.cycles, events):
             if trace is not None:
                 trace.write_cycle()
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        if trace is not None:
-            trace.close()
-    elapsed = time.perf_counter() - started
+
+    elapsed, interrupted = timed_run(body, trace)
     print_summary(robot, elapsed, as_json=ns.json)
     if interrupted:
         _err(f"interrupted at cycle {robot.cycle}")
         return EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tuple[float, bool]:
+    """Run ``body`` until it ends or Ctrl-C; close the trace either way.
+
+    Returns (seconds, interrupted): an interrupted run still gets its summary printed.
+    """
+    interrupted = False
+    started = time.perf_counter()
+    try:
+        body()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if trace is not None:
+            trace.close()
+    return time.perf_counter() - started, interrupted
 
 
 def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[str] | None = None) -> None:

@@ -177,27 +177,28 @@ class Robot:
         self._wake(module)
         self.engines[module] = None
         self.inbox.pop(module, None)
-        for c in range(1, self.profile.connector_count + 1):
-            other = self.peer.get((module, c))
-            if other is not None:
-                e = self.engines[other[0]]
-                if e is not None:
-                    self._wake(other[0])
-                    e.link_down(other[1])
+        for _c, _other, other_c, e in self._running_neighbours(module):
+            e.link_down(other_c)
 
     def restart(self, module: int) -> None:
         """The module boots again with a fresh state; it and its neighbours sense the links."""
         self.kill(module)
         e = self._boot()
         self.engines[module] = e
+        for c, _other, other_c, oe in self._running_neighbours(module):
+            e.link_up(c, other_c)
+            oe.link_up(other_c, c)
+
+    def _running_neighbours(self, module: int) -> Iterator[tuple[int, int, int, Engine]]:
+        """(my connector, neighbour, its connector, its engine) for each running neighbour,
+        woken so that it senses what happens next."""
         for c in range(1, self.profile.connector_count + 1):
             other = self.peer.get((module, c))
             if other is not None:
-                oe = self.engines[other[0]]
-                if oe is not None:
+                e = self.engines[other[0]]
+                if e is not None:
                     self._wake(other[0])
-                    e.link_up(c, other[1])
-                    oe.link_up(other[1], c)
+                    yield c, other[0], other[1], e
 
     def inject(self, module: int, hormone: Hormone) -> None:
         """Place a hormone in a module's mailbox, as if it had been sensed or created there."""

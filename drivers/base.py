@@ -10,6 +10,8 @@ import abc
 import enum
 from dataclasses import dataclass, field
 
+from dh2rt.closing import Closing
+
 
 class Joint(enum.IntEnum):
     """A module's joints, in the order every driver uses."""
@@ -43,7 +45,7 @@ class Health:
         return not self.faults
 
 
-class ModuleDriver(abc.ABC):
+class ModuleDriver(Closing, abc.ABC):
     """Both joints of one module. Every driver is a context manager."""
 
     limits: tuple[JointLimits, JointLimits] = (JointLimits(), JointLimits())
@@ -63,11 +65,5 @@ class ModuleDriver(abc.ABC):
     def health(self) -> Health:
         return Health()
 
-    def close(self) -> None:  # noqa: B027 - optional hook, nothing to release by default
-        """Release the hardware or the simulation handle."""
-
-    def __enter__(self) -> ModuleDriver:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def close(self) -> None:
+        """Release the hardware or the simulation handle (nothing by default)."""

@@ -39,7 +39,7 @@ import importlib
 import threading
 import time
 from types import ModuleType
-from typing import Any, Final, Self
+from typing import Any, Final
 
 from dh2rt.errors import (
     DriverError,
@@ -151,9 +151,6 @@ class DynamixelDriver(ModuleDriver):
             except BaseException:
                 self.close()
                 raise
-
-    def __enter__(self) -> Self:
-        return self
 
     # -- setup --
 

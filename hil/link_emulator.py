@@ -27,9 +27,8 @@ import time
 import tty
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from types import TracebackType
-from typing import Self
 
+from dh2rt.closing import Closing
 from dh2rt.errors import TransportError
 from dh2rt.topology import Topology
 
@@ -92,7 +91,7 @@ class EmulatedLink:
         return self.sides[0].path, self.sides[1].path
 
 
-class LinkEmulator:
+class LinkEmulator(Closing):
     """Relays bytes between the two ends of each emulated link, with impairments."""
 
     def __init__(
@@ -210,17 +209,6 @@ class LinkEmulator:
         _close_fd(self._wake_w)
         self._links.clear()
         self._by_fd.clear()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- the relay thread ---------------------------------------------------------------------
 

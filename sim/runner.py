@@ -18,11 +18,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
-from dh2rt.cli import EXIT_INTERRUPTED, EXIT_OK, print_summary
+from dh2rt.cli import EXIT_INTERRUPTED, EXIT_OK, print_summary, timed_run
 from dh2rt.events import Event
 from dh2rt.robot import DOCK_DELAY, Robot, reach_target
 from dh2rt.trace import TraceWriter
@@ -176,16 +175,7 @@ def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> in
         if recorder is not None and c % frame_every == 0:
             recorder.capture()
 
-    interrupted = False
-    started = time.perf_counter()
-    try:
-        run.run(ns.cycles, events, on_cycle, sample=bool(ns.plot))
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        if trace is not None:
-            trace.close()
-    elapsed = time.perf_counter() - started
+    elapsed, interrupted = timed_run(lambda: run.run(ns.cycles, events, on_cycle, sample=bool(ns.plot)), trace)
     print_summary(robot, elapsed, as_json=ns.json)
     out = sys.stdout
     gait = robot.program.clock_cycle

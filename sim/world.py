@@ -20,10 +20,10 @@ import math
 import random
 from collections import deque
 from dataclasses import dataclass
-from types import TracebackType
 
 import pybullet as p
 
+from dh2rt.closing import Closing
 from dh2rt.errors import SimulationError
 from dh2rt.topology import Link, Topology
 from drivers.pybullet_driver import PyBulletDriver
@@ -53,7 +53,7 @@ def _rot_z(yaw: float, v: Vec3) -> Vec3:
     return (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
 
 
-class World:
+class World(Closing):
     """A robot of CONRO modules on a flat floor, stepped at ``physics_hz``.
 
     Use as a context manager, or call :meth:`close`.
@@ -452,17 +452,6 @@ class World:
                 drv.close()
             p.disconnect(physicsClientId=self.client)
             self.client = -1
-
-    def __enter__(self) -> World:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __del__(self) -> None:
         # A forgotten World must not leave a physics server behind.

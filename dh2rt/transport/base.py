@@ -48,9 +48,9 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from types import TracebackType
-from typing import ClassVar, NamedTuple, Self
+from typing import ClassVar, NamedTuple
 
+from dh2rt.closing import Closing
 from dh2rt.errors import CodecError, TransportError
 from dh2rt.hormone import Arrival, Hormone
 from dh2rt.wire.frame import Frame, FrameCodec
@@ -116,7 +116,7 @@ def split_arrivals(received: Iterable[Received]) -> tuple[list[Arrival], list[Re
     return arrivals, control
 
 
-class Transport(ABC):
+class Transport(Closing, ABC):
     """A module's links over one medium. See the module docstring for the contract."""
 
     #: The registry name of the backend.
@@ -220,17 +220,6 @@ class Transport(ABC):
             self.detach(connector)
         self._closed = True
         self._close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else f"links={self._links}"
