@@ -1,0 +1,434 @@
+"""One module as its own process: the engine loop on a real transport, with liveness.
+
+A :class:`ModuleRuntime` owns one :class:`~dh2rt.engine.Engine`, one
+:class:`~dh2rt.transport.base.Transport` and optionally a driver (anything with
+``set_targets(dof1_deg, dof2_deg)``). Its clock is its own (injectable); there is no global
+clock and no lockstep: LocalTimer is the engine's, advanced once per cycle.
+
+One cycle (:meth:`ModuleRuntime.step`)::
+
+    receive   frames polled since the last cycle; a Hello verifies the connector's peer
+              (same program digest) or refuses it; frames through an unverified or refused
+              connector are ignored and counted; any frame heard through a verified
+              connector sets ConnectorStatus (engine.link_up) and resets its silence count
+    liveness  a linked connector that heard nothing for SILENCE_CYCLES consecutive cycles
+              falls to 0 (engine.link_down) before the engine runs this cycle
+    engine    engine.step(hormones received); each emission is sent; a refused send sets
+              ConnectorStatus 0 (engine.send_failed)
+    beacons   every attached connector that carried no hormone this cycle sends a KeepAlive
+              (a Hello instead while its peer is not yet verified, or in answer to a peer's
+              Hello when none went out through it in the last SILENCE_CYCLES cycles)
+    driver    set_targets when DOF1/DOF2 changed
+
+Liveness bound: a neighbour that stops sending is noticed in the SILENCE_CYCLES-th
+consecutive cycle without a frame from it, and the engine runs that cycle with the
+connector at 0; in wall time, at most (SILENCE_CYCLES + 1) cycle periods plus the link's
+latency after its last frame.
+
+Hello: sent through a connector when it is attached and until the peer's Hello has been
+heard. A neighbour announcing another program digest is refused (counted in ``refused``,
+logged) rather than fed hormones whose indices it would misread.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from dh2rt.compiler import CompiledProgram
+from dh2rt.engine import Engine, Native
+from dh2rt.hormone import Arrival, Emission, Hormone
+from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.trace import arrival_json, emission_json
+from dh2rt.transport.base import LinkEnd, Received, Transport
+from dh2rt.wire.frame import Hello, KeepAlive, program_digest
+
+#: Consecutive silent cycles after which a linked connector falls to 0.
+SILENCE_CYCLES = 3
+#: A cycle that starts later than this fraction of a period after its deadline is late.
+LATE_TOLERANCE = 0.5
+
+
+class Driver(Protocol):
+    """What the runtime needs of a servo driver (drivers.base.ModuleDriver fits)."""
+
+    def set_targets(self, dof1_deg: float, dof2_deg: float) -> None: ...
+
+
+@dataclass(slots=True)
+class _Link:
+    """What the runtime knows of one attached connector."""
+
+    verified: bool = False
+    refused: bool = False
+    silent: int = 0
+    last_hello: int = -(10**9)  # cycle a Hello last went out
+    hello_due: bool = True
+    seq_out: int = 0
+    seq_in: int | None = None  # last KeepAlive sequence number heard
+
+
+@dataclass(slots=True)
+class RuntimeCounters:
+    """The runtime's own counts (the transport and the engine keep theirs)."""
+
+    cycles: int = 0
+    keepalives_sent: int = 0
+    hellos_sent: int = 0
+    refused: int = 0
+    ignored: int = 0
+    links_lost: int = 0
+    beacons_missed: int = 0
+    late_cycles: int = 0
+    hormones_sent: int = 0
+    hormones_received: int = 0
+    log: list[str] = field(default_factory=list)
+
+
+class ModuleRuntime:
+    """One module: engine, transport, driver, liveness. Step it or :meth:`run` it."""
+
+    def __init__(
+        self,
+        program: CompiledProgram,
+        transport: Transport,
+        *,
+        timer_phase: int = 0,
+        natives: Mapping[str, Native] | None = None,
+        driver: Driver | None = None,
+        cycle_period: float = 0.02,
+        silence_cycles: int = SILENCE_CYCLES,
+        clock: Callable[[], float] = time.monotonic,
+        record: bool = False,
+        module: int = 0,
+        name: str = "",
+    ) -> None:
+        if cycle_period <= 0:
+            raise ValueError(f"cycle_period {cycle_period!r} must be positive")
+        if silence_cycles < 1:
+            raise ValueError(f"silence_cycles {silence_cycles!r} must be at least 1")
+        self.program = program
+        self.transport = transport
+        available = dict(STANDARD_NATIVES)
+        available.update(natives or {})
+        used = {n: available[n] for n in program.natives if n in available}
+        self.engine = Engine(program, timer_phase=timer_phase, natives=used)
+        self.driver = driver
+        self.cycle_period = cycle_period
+        self.silence_cycles = silence_cycles
+        self.clock = clock
+        self.record = record
+        self.module = module
+        self.name = name or f"m{module}"
+        self.digest = program_digest(program.image)
+        self.cycle = 0
+        self.stats = RuntimeCounters()
+        self.records: list[dict[str, Any]] = []
+        self.effects: list[tuple[str, tuple[Any, ...]]] = []
+        self._links: dict[int, _Link] = {}
+        self._pending: list[Received] = []
+        self._heard: set[int] = set()  # connectors heard between cycles (Hellos)
+        self._started = 0.0
+        self._injected: list[Hormone] = []
+        self._commanded = (self.engine.dof[0], self.engine.dof[1])
+
+    # ------------------------------------------------------------ links
+
+    def attach(self, connector: int, end: LinkEnd | str) -> None:
+        """Attach ``connector`` to a link end and announce this module's program there."""
+        if isinstance(end, str):
+            self.transport.attach(connector, end)  # type: ignore[arg-type]  # serial takes a URL
+        else:
+            self.transport.attach(connector, end)
+        self._links[connector] = _Link()
+        # not counted against the reply limit: the peer may not be listening yet
+        self._send_hello(connector, counted=False)
+
+    def detach(self, connector: int) -> None:
+        """Detach ``connector``; the engine senses the link gone at once."""
+        self.transport.detach(connector)
+        self._links.pop(connector, None)
+        if self.engine.status[connector - 1]:
+            self.engine.link_down(connector)
+
+    def inject(self, hormone: Hormone) -> None:
+        """Place a hormone in the mailbox, as if sensed or created here (next cycle)."""
+        self.program.vocabulary.check(hormone)
+        self._injected.append(hormone)
+
+    def verified(self, connector: int) -> bool:
+        link = self._links.get(connector)
+        return link is not None and link.verified
+
+    def handshake(self, timeout: float, *, until: float | None = None) -> bool:
+        """Before cycle 0: beacon every period until every attached connector heard its
+        peer's Hello or ``timeout`` s passed; with ``until`` (a reading of this runtime's
+        clock), go on beaconing until then, so that modules told to start together find
+        each other linked. Frames that arrive meanwhile are kept for cycle 0. Returns
+        whether every connector's peer was verified (or refused)."""
+        start = self.clock()
+        deadline = start + timeout if until is None else max(until, start)
+        next_beacon = start
+        while True:
+            self._absorb(self.transport.poll(0.0))
+            settled = all(link.verified or link.refused for link in self._links.values())
+            now = self.clock()
+            if (settled and until is None) or now >= deadline:
+                return settled
+            if now >= next_beacon:
+                # a neighbour may have opened its end after our first Hello, and one that is
+                # already done waiting must not find us silent: beacon every period meanwhile
+                next_beacon = now + self.cycle_period
+                self._beacon(set())
+            self._absorb(self.transport.poll(min(deadline, next_beacon) - now))
+
+    def _absorb(self, received: list[Received]) -> None:
+        """Handle Hellos now (verification and link status); keep the rest for the cycle."""
+        for r in received:
+            if isinstance(r.frame, Hello):
+                if self._on_frame(r):
+                    self._heard.add(r.at)
+            else:
+                self._pending.append(r)
+
+    # ------------------------------------------------------------ one cycle
+
+    def step(self) -> None:
+        """One cycle: receive, liveness, engine, send, beacons, driver (see module docs)."""
+        engine = self.engine
+        self._started = self.clock()
+        received = self._pending
+        self._pending = []
+        received.extend(self.transport.poll(0.0))
+        heard = self._heard
+        self._heard = set()
+        arrivals: list[Arrival] = []
+        for r in received:
+            if self._on_frame(r):
+                heard.add(r.at)
+                if isinstance(r.frame, Hormone):
+                    arrivals.append(Arrival(r.at, r.remote, r.frame))
+        # liveness
+        for c, link in self._links.items():
+            if c in heard:
+                link.silent = 0
+                continue
+            link.silent += 1
+            if link.silent >= self.silence_cycles and engine.status[c - 1]:
+                engine.link_down(c)
+                self.stats.links_lost += 1
+                link.verified = False  # a peer that comes back must announce itself again
+                link.seq_in = None
+                link.hello_due = True
+                self._log(f"connector {self._cname(c)} silent for {link.silent} cycles: status 0")
+        arrivals.sort(key=_by_connector)  # as the in-process robot orders a mailbox
+        if self._injected:
+            arrivals.extend(Arrival(0, 0, h) for h in self._injected)
+            self._injected = []
+        self.stats.hormones_received += sum(1 for a in arrivals if a.at)
+        out = engine.step(arrivals)
+        sent: list[Emission] = []
+        carried: set[int] = set()
+        for em in out:
+            if self.transport.send(em.through, em.hormone):
+                sent.append(em)
+                carried.add(em.through)
+            else:
+                engine.send_failed(em.through)
+        self.stats.hormones_sent += len(sent)
+        self._beacon(carried)
+        if engine.effects:
+            self.effects.extend(engine.effects)
+        dof = (engine.dof[0], engine.dof[1])
+        if dof != self._commanded:
+            self._commanded = dof
+            if self.driver is not None:
+                self.driver.set_targets(dof[0], dof[1])
+        engine.dof_changed = False
+        if self.record:
+            self.records.append(self._record(arrivals, sent))
+        self.cycle += 1
+        self.stats.cycles = self.cycle
+
+    def _beacon(self, carried: set[int]) -> None:
+        """A KeepAlive (or a Hello, see the module docs) through every attached connector
+        that carried no hormone this cycle."""
+        for c, link in self._links.items():
+            if c in carried:
+                continue
+            if not link.verified or link.hello_due:
+                self._send_hello(c)
+            else:
+                link.seq_out = (link.seq_out + 1) & 0xFF
+                if self.transport.send(c, KeepAlive(link.seq_out)):
+                    self.stats.keepalives_sent += 1
+
+    def _on_frame(self, r: Received) -> bool:
+        """Account for one frame; True if it counts as heard from a verified peer."""
+        link = self._links.get(r.at)
+        if link is None:
+            return False
+        frame = r.frame
+        if isinstance(frame, Hello):
+            if frame.digest != self.digest:
+                if not link.refused:
+                    self._log(
+                        f"connector {self._cname(r.at)}: neighbour runs another program "
+                        f"(digest {frame.digest.hex()}, mine {self.digest.hex()}): refused"
+                    )
+                link.refused = True
+                link.verified = False
+                self.stats.refused += 1
+                if self.engine.status[r.at - 1]:
+                    self.engine.link_down(r.at)
+                return False
+            link.refused = False
+            link.seq_in = None  # a (re)started peer numbers its beacons afresh
+            if self.cycle - link.last_hello >= self.silence_cycles:
+                # the peer may not have heard us (it (re)started, or our Hello was lost):
+                # answer, at most once per SILENCE_CYCLES cycles so two peers never ping-pong
+                link.hello_due = True
+            link.verified = True
+        elif not link.verified:
+            self.stats.ignored += 1
+            return False
+        elif isinstance(frame, KeepAlive):
+            # beacons are numbered per connector: a gap is a beacon the link lost
+            if link.seq_in is not None:
+                self.stats.beacons_missed += (frame.seq - link.seq_in - 1) & 0xFF
+            link.seq_in = frame.seq
+        self.engine.link_up(r.at, r.remote)
+        return True
+
+    def _send_hello(self, connector: int, counted: bool = True) -> None:
+        link = self._links[connector]
+        if counted:
+            link.last_hello = self.cycle
+        link.hello_due = False
+        if self.transport.send(connector, Hello(self.digest)):
+            self.stats.hellos_sent += 1
+
+    def _record(self, arrivals: list[Arrival], sent: list[Emission]) -> dict[str, Any]:
+        """This cycle in the trace format of :mod:`dh2rt.trace`, plus ``t``: the clock when
+        the cycle began (after whatever it received had been sent)."""
+        e = self.engine
+        p = e.profile
+        t = e.topo_type
+        return {
+            "cycle": self.cycle,
+            "module": self.module,
+            "name": self.name,
+            "type": t.name,
+            "T": t.alias,
+            "timer": (e.timer - 1) % e.clock,
+            "actuators": {"DOF1": e.dof[0], "DOF2": e.dof[1]},
+            "status": {c: p.connector_name(s) for c, s in zip(p.connectors, e.status, strict=True)},
+            "received": [arrival_json(a, p) for a in arrivals],
+            "sent": [emission_json(x, p) for x in sent],
+            "t": self._started,
+        }
+
+    # ------------------------------------------------------------ running
+
+    def run(
+        self,
+        cycles: int | None = None,
+        stop_event: threading.Event | None = None,
+        on_cycle: Callable[[ModuleRuntime], None] | None = None,
+        sleep: Callable[[float], None] | None = None,
+    ) -> int:
+        """Cycle every ``cycle_period`` s until ``cycles`` more ran or ``stop_event`` is set.
+
+        Between cycles the loop waits on the transport (frames are kept for the next cycle).
+        A cycle that starts more than LATE_TOLERANCE periods after its deadline counts as
+        late; the schedule then restarts from now rather than bursting to catch up.
+        ``on_cycle`` runs after each cycle (the host reads commands there). Returns cycles run.
+        """
+        period = self.cycle_period
+        done = 0
+        deadline = self.clock()
+        while (cycles is None or done < cycles) and not (stop_event is not None and stop_event.is_set()):
+            now = self.clock()
+            if now - deadline > LATE_TOLERANCE * period:
+                self.stats.late_cycles += 1
+                deadline = now
+            self.step()
+            done += 1
+            if on_cycle is not None:
+                on_cycle(self)
+            deadline += period
+            self._wait_until(deadline, sleep)
+        return done
+
+    def _wait_until(self, deadline: float, sleep: Callable[[float], None] | None) -> None:
+        while True:
+            left = deadline - self.clock()
+            if left <= 0:
+                return
+            if sleep is not None:
+                sleep(left)
+                return
+            self._absorb(self.transport.poll(left))
+
+    # ------------------------------------------------------------ reading
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Transport frame counts, the engine's hormone counts and the runtime's own."""
+        link = self.transport.counters
+        s = self.stats
+        return {
+            "cycles": s.cycles,
+            "frames_sent": link.sent,
+            "frames_received": link.received,
+            "frames_dropped": link.dropped,
+            "frames_corrupted": link.corrupted,
+            "frames_send_failed": link.send_failed,
+            "keepalives_sent": s.keepalives_sent,
+            "hellos_sent": s.hellos_sent,
+            "refused": s.refused,
+            "ignored": s.ignored,
+            "links_lost": s.links_lost,
+            "beacons_missed": s.beacons_missed,
+            "late_cycles": s.late_cycles,
+            "hormones_sent": s.hormones_sent,
+            "hormones_received": s.hormones_received,
+            **{f"engine_{k}": v for k, v in self.engine.counters.items()},
+        }
+
+    def status(self) -> dict[str, Any]:
+        """A status line: type, T, DOF1/DOF2, ConnectorStatus, counters."""
+        e = self.engine
+        t = e.topo_type
+        return {
+            "module": self.module,
+            "name": self.name,
+            "cycle": self.cycle,
+            "type": t.name,
+            "T": t.alias,
+            "DOF1": e.dof[0],
+            "DOF2": e.dof[1],
+            "status": list(e.status),
+            "counters": self.counters,
+        }
+
+    @property
+    def log(self) -> list[str]:
+        return self.stats.log
+
+    def _log(self, message: str) -> None:
+        self.stats.log.append(f"cycle {self.cycle}: {message}")
+        del self.stats.log[:-50]
+
+    def _cname(self, connector: int) -> str:
+        return self.engine.profile.connector_name(connector)
+
+    def close(self) -> None:
+        self.transport.close()
+
+
+def _by_connector(a: Arrival) -> int:
+    return a.at

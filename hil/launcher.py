@@ -1,0 +1,307 @@
+"""``dh2rt --transport vcan0 --module-count 8``: the hardware-in-the-loop launcher.
+
+Starts a :class:`~hil.world.World` in this process and one module per topology module
+(processes over ``socketcan``/``udp``/``serial``, threads over ``virtual``/``inproc``),
+shows a live status table (twice a second on a TTY, progress lines otherwise), applies
+``--event`` s at world cycles, writes ``--trace`` (merged from the modules, the JSON Lines
+format of ``dh2rt run``) and prints a summary.
+
+``udp`` (python-can ``udp_multicast``) only ever runs inside a private network namespace:
+the launcher re-executes itself under ``unshare -rn`` with only loopback up and a multicast
+route on it, and refuses when it cannot.
+
+Exit codes: 0 ok, 1 a module failed, 2 bad input or transport unavailable, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import IO, Any
+
+from dh2rt.cli import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
+from dh2rt.compiler import compile_file
+from dh2rt.errors import DH2Error, ProgramError
+from dh2rt.events import Event, parse_event
+from dh2rt.topology import parse_spec
+from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
+from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from hil.world import World, WorldError
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_PROGRAM = ROOT / "examples" / "caterpillar.dh2"
+#: Set in the environment of a launcher re-executed inside its private network namespace.
+NETNS_ENV = "DH2RT_HIL_NETNS"
+NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dh2rt",
+        description="Hardware-in-the-loop: run each module of a robot as its own process over a real "
+        "link layer (SocketCAN, python-can udp_multicast in a private network namespace, emulated "
+        "serial infrared links) or as threads over an in-process bus.",
+        epilog="Without SocketCAN, try: dh2rt --transport serial --module-count 8 --cycles 300",
+    )
+    p.add_argument("--program", type=Path, default=DEFAULT_PROGRAM, help="a .dh2 file (default: the caterpillar)")
+    add_run_options(p, program_required=False)
+    p.set_defaults(topology=None)
+    p.add_argument(
+        "--transport",
+        default="serial",
+        help="vcan0, can0 (any SocketCAN name), udp, serial, virtual, inproc (default: serial)",
+    )
+    p.add_argument("--module-count", type=int, default=8, help="modules of the default snake:N (default: 8)")
+    p.add_argument("--cycle-ms", type=float, default=20.0, help="cycle period in ms (default: 20)")
+    p.add_argument("--silence-cycles", type=int, default=3, help="liveness bound in cycles (default: 3)")
+    p.add_argument("--frame-loss", type=float, default=0.0, help="serial: frame loss probability per link")
+    p.add_argument("--bit-error", type=float, default=0.0, help="serial: bit error probability")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    return p
+
+
+def _err(message: str) -> None:
+    print(f"dh2rt: {message}", file=sys.stderr)
+
+
+def _namespace_only_loopback() -> bool:
+    try:
+        names = [n for _i, n in socket.if_nameindex()]
+    except OSError:
+        return False
+    return names == ["lo"]
+
+
+def _reexec_in_namespace(argv: list[str]) -> int:
+    """Run this launcher again inside ``unshare -rn`` (loopback only); its exit code."""
+    missing = [tool for tool in ("unshare", "ip") if shutil.which(tool) is None]
+    if missing:
+        _err(
+            f"--transport udp runs python-can udp_multicast only inside a private network namespace, "
+            f"and {', '.join(missing)} is not installed; use --transport serial or virtual"
+        )
+        return EXIT_USAGE
+    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, text=True, timeout=30)
+    if probe.returncode != 0:
+        _err(
+            "--transport udp runs python-can udp_multicast only inside a private network namespace, "
+            f"and this machine cannot create one ({probe.stderr.strip() or 'unshare -rn failed'}); "
+            "use --transport serial or virtual"
+        )
+        return EXIT_USAGE
+    env = dict(os.environ)
+    env[NETNS_ENV] = "1"
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    inner = [sys.executable, "-m", "hil.launcher", *argv]
+    cmd = ["unshare", "-rn", "sh", "-c", NETNS_SETUP + ' && exec "$@"', "sh", *inner]
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the child gets Ctrl-C itself
+    try:
+        return subprocess.run(cmd, env=env, check=False).returncode
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def transport_problem(spec: str) -> str | None:
+    """Why ``spec`` cannot run here (SocketCAN missing), or None."""
+    kind, options = parse_transport_spec(spec)
+    if kind != "socketcan":
+        return None
+    channel = str(options.get("channel", "vcan0"))
+    problem = socketcan_problem(channel)
+    if problem is None:
+        return None
+    return (
+        f"--transport {spec}: SocketCAN interface {channel!r} is unavailable: {problem}.\n"
+        f"  To create a virtual CAN interface (Linux, root): {VCAN_SETUP}\n"
+        f"  Transports that work without SocketCAN: {FALLBACKS}.\n"
+        f"  For example: dh2rt --transport serial --module-count 8 --cycles 300"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        ns = parser.parse_args(args)
+    except SystemExit as exc:  # argparse: --help (0) or a bad option (2)
+        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
+    try:
+        if ns.module_count < 1:
+            raise DH2Error(f"--module-count {ns.module_count}: must be 1 or more")
+        if ns.cycles < 0:
+            raise DH2Error(f"--cycles {ns.cycles}: must be 0 or more")
+        if ns.cycle_ms <= 0:
+            raise DH2Error(f"--cycle-ms {ns.cycle_ms}: must be positive")
+        if ns.silence_cycles < 1:
+            raise DH2Error(f"--silence-cycles {ns.silence_cycles}: must be 1 or more")
+        program = compile_file(str(ns.program))
+        spec = ns.topology or f"snake:{ns.module_count}"
+        topology = parse_spec(spec, program.profile)
+        if ns.topology and any(a.startswith("--module-count") for a in args) and topology.size != ns.module_count:
+            raise DH2Error(
+                f"--topology {ns.topology} has {topology.size} modules but --module-count is {ns.module_count}"
+            )
+        events = [parse_event(e, topology, program.vocabulary) for e in ns.event]
+        kind, _ = parse_transport_spec(ns.transport)
+    except ProgramError as exc:
+        print(exc.render(), file=sys.stderr)
+        return EXIT_USAGE
+    except (DH2Error, OSError, ValueError) as exc:
+        _err(str(exc))
+        return EXIT_USAGE
+    problem = transport_problem(ns.transport)
+    if problem is not None:
+        _err(problem)
+        return EXIT_USAGE
+    if kind == "udp" and os.environ.get(NETNS_ENV) != "1":
+        return _reexec_in_namespace(args)
+    if kind == "udp" and not _namespace_only_loopback():
+        _err("--transport udp: refusing to send multicast outside a loopback-only network namespace")
+        return EXIT_USAGE
+    return _run(ns, program, topology, events)
+
+
+def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event]) -> int:
+    out = sys.stdout
+    tty = out.isatty()
+    try:
+        world = World(
+            program,
+            topology,
+            ns.transport,
+            seed=ns.seed,
+            cycle_period=ns.cycle_ms / 1000.0,
+            cycles=ns.cycles,
+            trace=ns.trace is not None,
+            silence_cycles=ns.silence_cycles,
+            frame_loss=ns.frame_loss,
+            bit_error=ns.bit_error,
+            emulator_seed=ns.seed,
+        )
+    except (DH2Error, OSError, ValueError) as exc:
+        _err(f"cannot start the world: {exc}")
+        return EXIT_USAGE
+    interrupted = False
+    failed = False
+    started = time.monotonic()
+    try:
+        world.start()
+        applied: set[int] = set()
+        last_draw = 0.0
+        while not world.done():
+            world.run_events(events, applied)
+            world.tick()
+            now = time.monotonic()
+            if now - last_draw >= (0.5 if tty else 2.0):
+                last_draw = now
+                _draw(world, out, tty)
+            time.sleep(0.02)
+        world.tick()
+    except KeyboardInterrupt:
+        interrupted = True
+    except (WorldError, DH2Error, OSError) as exc:
+        _err(str(exc))
+        failed = True
+    finally:
+        try:
+            world.stop()
+        except KeyboardInterrupt:
+            world.stop()
+    elapsed = time.monotonic() - started
+    failed = failed or any(v.failed for v in world.views)
+    if ns.trace is not None:
+        _write_trace(ns.trace, world.sorted_records())
+    _summary(world, elapsed, out, ns.json)
+    if interrupted:
+        _err(f"interrupted at world cycle {world.cycle}")
+        return EXIT_INTERRUPTED
+    if failed:
+        for v in world.views:
+            for e in v.errors:
+                _err(f"module {v.name}: {e}")
+        return EXIT_FAIL
+    return EXIT_OK
+
+
+def _write_trace(path: Path, records: list[dict[str, Any]]) -> None:
+    with path.open("w", encoding="utf-8") as f:
+        for rec in records:
+            f.write(json.dumps(rec, separators=(",", ":")))
+            f.write("\n")
+
+
+def _table(world: World) -> list[str]:
+    lines = [
+        f"{'module':<8} {'state':<8} {'cycle':>6} {'type':<10} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
+        f"{'frames/s':>9} {'errors':>6}"
+    ]
+    for r in world.rows():
+        alias = "" if r["T"] is None else str(r["T"])
+        lines.append(
+            f"{r['name']:<8} {r['state']:<8} {r['cycle']:>6} {r['type']:<10} {alias:>3} {r['DOF1']:>6.0f} "
+            f"{r['DOF2']:>6.0f} {r['frames_per_s']:>9.0f} {r['errors']:>6}"
+        )
+    return lines
+
+
+def _draw(world: World, out: IO[str], tty: bool) -> None:
+    if tty:
+        out.write("\x1b[H\x1b[2J")
+        out.write(
+            f"dh2rt hil: {world.program.name} on {world.topology.spec} over {world.spec}, world cycle {world.cycle}\n"
+        )
+        out.write("\n".join(_table(world)) + "\n")
+    else:
+        cycles = [r["cycle"] for r in world.rows()]
+        out.write(f"world cycle {world.cycle}: module cycles {min(cycles)}..{max(cycles)}\n")
+    out.flush()
+
+
+def _summary(world: World, elapsed: float, out: IO[str], as_json: bool) -> None:
+    rows = world.rows()
+    if as_json:
+        summary = {
+            "transport": world.spec,
+            "seconds": elapsed,
+            "cycle_period": world.cycle_period,
+            "modules": rows,
+            "events": [{"text": text, "t": t} for text, t in world.event_times],
+            "log": world.log[-200:],
+        }
+        json.dump(summary, out)
+        out.write("\n")
+        return
+    out.write(
+        f"{world.program.name} on {world.topology.spec} over {world.spec}: {world.topology.size} modules, "
+        f"{elapsed:.2f} s, cycle {world.cycle_period * 1000:.0f} ms, seed {world.seed}\n"
+    )
+    out.write("\n".join(_table(world)) + "\n")
+    totals: dict[str, int] = {}
+    for r in rows:
+        for k in (
+            "frames_sent",
+            "frames_received",
+            "frames_dropped",
+            "frames_corrupted",
+            "refused",
+            "links_lost",
+            "beacons_missed",
+            "late_cycles",
+        ):
+            totals[k] = totals.get(k, 0) + int(r["counters"].get(k, 0))
+    out.write("totals: " + ", ".join(f"{k} {v}" for k, v in totals.items()) + "\n")
+    for line in world.log[-20:]:
+        out.write(f"  {line}\n")
+    out.flush()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,249 @@
+"""The caterpillar with one OS process per module, over real links, against the in-process Robot.
+
+Each module process keeps its own clock and cycle count, so HIL traces are compared with the
+Robot's by order, not by cycle: module k must receive the same sequence of hormones as in
+the Robot run (same program, topology and seed), each after module k-1 got (or, for the
+head, sent) the matching one, and set Table I's angle for it. Trace records carry ``t``
+(CLOCK_MONOTONIC, one clock for every process on the machine).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dh2rt.compiler import compile_file
+from dh2rt.events import parse_event
+from dh2rt.robot import Robot
+from dh2rt.runtime import SILENCE_CYCLES
+from dh2rt.topology import parse_spec
+from hil.world import World, module_pids
+
+ROOT = Path(__file__).resolve().parents[2]
+PROGRAM = ROOT / "examples" / "caterpillar.dh2"
+TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
+NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
+N = 8
+PERIOD_MS = 20
+NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
+
+
+def _namespace_problem() -> str | None:
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return "unshare or ip (util-linux, iproute2) is not installed"
+    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS], capture_output=True, text=True, timeout=20)
+    if probe.returncode != 0:
+        return f"cannot create a private network namespace: {probe.stderr.strip()}"
+    return None
+
+
+def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Run the launcher as a subprocess; its JSON summary and merged trace."""
+    trace = tmp_path / f"{transport}.jsonl"
+    cmd = [
+        sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", str(N),
+        "--cycles", str(cycles), "--cycle-ms", str(PERIOD_MS), "--trace", str(trace), "--json", *extra,
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr + proc.stdout[-2000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    return summary, records
+
+
+def robot_receptions(cycles: int, seed: int = 0) -> dict[int, list[str]]:
+    program = compile_file(str(PROGRAM))
+    robot = Robot(program, parse_spec(f"snake:{N}"), seed=seed, record=True)
+    for _ in robot.run(cycles):
+        pass
+    got: dict[int, list[str]] = {m: [] for m in range(N)}
+    for rec in robot.records:
+        got[rec.module].extend(a.hormone.content() for a in rec.received)
+    return got
+
+
+def steady(records: list[dict[str, Any]], period: float) -> list[dict[str, Any]]:
+    """Records before any module stopped (modules finish their cycles at slightly different
+    times and their neighbours then see silence)."""
+    last: dict[int, float] = {}
+    for r in records:
+        last[r["module"]] = max(last.get(r["module"], 0.0), r["t"])
+    cutoff = min(last.values()) - (SILENCE_CYCLES + 1) * period
+    return [r for r in records if r["t"] <= cutoff]
+
+
+def receptions(records: list[dict[str, Any]], module: int) -> list[dict[str, Any]]:
+    out = []
+    for r in records:
+        if r["module"] == module:
+            for a in r["received"]:
+                out.append({"hormone": a["hormone"], "at": a["at"], "t": r["t"], "DOF1": r["actuators"]["DOF1"]})
+    return out
+
+
+def emissions(records: list[dict[str, Any]], module: int) -> list[dict[str, Any]]:
+    return [{"hormone": s["hormone"], "t": r["t"]} for r in records if r["module"] == module for s in r["sent"]]
+
+
+def check_wave_matches_robot(records: list[dict[str, Any]], cycles: int) -> None:
+    period = PERIOD_MS / 1000
+    records = steady(records, period)
+    reference = robot_receptions(cycles + 40)
+    for k in range(1, N):
+        got = receptions(records, k)
+        seq = [g["hormone"] for g in got]
+        assert len(seq) >= 4, f"module {k} got only {seq}"
+        assert seq == reference[k][: len(seq)], f"module {k}: {seq} vs Robot {reference[k][: len(seq)]}"
+        for g in got:
+            assert g["at"] == "front"
+            assert g["DOF1"] == TABLE_I[g["hormone"][2]], g  # Table I's angle for what it got
+        # per-hop order: module k acts after module k-1 did, within a few periods
+        before = emissions(records, 0) if k == 1 else receptions(records, k - 1)
+        for i, g in enumerate(got):
+            assert g["t"] > before[i]["t"], f"module {k} hop {i} came before its predecessor's"
+            assert g["t"] - before[i]["t"] < 4 * period, f"module {k} hop {i} took {g['t'] - before[i]['t']:.3f} s"
+
+
+def check_clean_links(summary: dict[str, Any]) -> None:
+    for row in summary["modules"]:
+        c = row["counters"]
+        assert row["state"] == "done", row
+        assert c["frames_dropped"] == 0 and c["frames_corrupted"] == 0, row
+        assert c["beacons_missed"] == 0, row  # no keep-alive lost on any link
+        assert c["refused"] == 0 and c["engine_faults"] == 0, row
+
+
+def test_serial_processes_reproduce_the_robot_wave(tmp_path: Path) -> None:
+    summary, records = launch("serial", 150, tmp_path)
+    check_clean_links(summary)
+    check_wave_matches_robot(records, 150)
+
+
+def test_udp_processes_reproduce_the_robot_wave(tmp_path: Path) -> None:
+    problem = _namespace_problem()
+    if problem is not None:
+        pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
+    # the launcher re-executes itself (and so every module process) under unshare -rn
+    summary, records = launch("udp", 150, tmp_path)
+    check_clean_links(summary)
+    check_wave_matches_robot(records, 150)
+
+
+def test_killed_module_splits_the_snake_in_two(tmp_path: Path) -> None:
+    period = PERIOD_MS / 1000
+    summary, records = launch("serial", 160, tmp_path, "--event", "60:kill:m3")
+    (kill,) = summary["events"]
+    t_kill = kill["t"]
+    states = {row["name"]: row["state"] for row in summary["modules"]}
+    assert states["m3"] == "killed" and all(s == "done" for n, s in states.items() if n != "m3")
+    bound = (SILENCE_CYCLES + 1) * period + 3 * period  # the documented bound plus scheduling slack
+    for module, conn in ((2, "back"), (4, "front")):
+        fell = [r["t"] for r in records if r["module"] == module and r["t"] > t_kill and r["status"][conn] == "0"]
+        assert fell, f"m{module}.{conn} never fell to 0"
+        assert fell[0] - t_kill <= bound, f"m{module}.{conn} fell {fell[0] - t_kill:.3f} s after the kill"
+    after = steady([r for r in records if r["t"] > t_kill + bound], period)
+    # the front half: m2 is its tail and still gets the head's wave
+    assert {r["T"] for r in after if r["module"] == 2} == {2}
+    assert len(receptions(after, 2)) >= 3
+    # the back half: m4 is a head and starts its own wave, which m5..m7 carry in order
+    assert {r["T"] for r in after if r["module"] == 4} == {1}
+    sent = [e["hormone"] for e in emissions(after, 4)]
+    assert len(sent) >= 3
+    for k in (5, 6, 7):
+        got = receptions(after, k)
+        assert len(got) >= 2, f"m{k} got nothing from the new head"
+        for prev, nxt in itertools.pairwise(got):
+            assert nxt["hormone"][2] == NEXT[prev["hormone"][2]], f"m{k}: {prev} then {nxt}"
+
+
+def test_impaired_serial_links_never_feed_a_corrupted_hormone_and_recover() -> None:
+    program = compile_file(str(PROGRAM))
+    topology = parse_spec(f"snake:{N}")
+    period = PERIOD_MS / 1000
+    world = World(
+        program, topology, "serial", cycle_period=period, cycles=260, trace=True,
+        frame_loss=0.05, bit_error=0.0005, emulator_seed=7,
+    )  # fmt: skip
+    try:
+        world.start()
+        while world.cycle < 130:
+            world.tick()
+            time.sleep(0.02)
+        assert world.emulator is not None
+        for link_id in world.links:
+            world.emulator.set_impairments(link_id, frame_loss=0.0, bit_error=0.0)
+        t_clean = time.monotonic()
+        stats = [world.emulator.stats(link_id) for link_id in world.links]
+        deadline = time.monotonic() + 30
+        while not world.done() and time.monotonic() < deadline:
+            world.tick()
+            time.sleep(0.02)
+        assert world.done()
+        pids = module_pids(world)
+    finally:
+        world.stop()
+    for pid in pids:
+        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
+    rows = world.rows()
+    assert all(r["state"] == "done" for r in rows), rows
+    # the medium lost and damaged frames; the modules counted what reached them
+    assert sum(s.frames_lost for s in stats) > 0 and sum(s.bits_flipped for s in stats) > 0
+    assert sum(r["counters"]["frames_corrupted"] for r in rows) > 0
+    assert sum(r["counters"]["beacons_missed"] for r in rows) > 0
+    records = world.sorted_records()
+    # every hormone an engine received is one its neighbour sent, in order
+    for k in range(1, N):
+        got = [g["hormone"] for g in receptions(records, k)]
+        sent = iter(e["hormone"] for e in emissions(records, k - 1))
+        assert all(any(h == s for s in sent) for h in got), f"m{k} received a hormone m{k - 1} never sent"
+    # once the faults stop, the wave runs whole again: no phase skipped anywhere
+    settled = steady([r for r in records if r["t"] > t_clean + (SILENCE_CYCLES + 3) * period], period)
+    for k in range(1, N):
+        got = receptions(settled, k)
+        assert len(got) >= 4, f"m{k} got {len(got)} hormones after recovery"
+        for prev, nxt in itertools.pairwise(got):
+            assert nxt["hormone"][2] == NEXT[prev["hormone"][2]], f"m{k}: {prev} then {nxt}"
+            assert nxt["DOF1"] == TABLE_I[nxt["hormone"][2]]
+
+
+def test_world_events_change_links() -> None:
+    """cut, dock and inject over CAN-style link ids (python-can virtual, modules as threads)."""
+    program = compile_file(str(PROGRAM))
+    topology = parse_spec("snake:3")
+    period = 0.01
+    events = [
+        parse_event(text, topology, program.vocabulary)
+        for text in ("20:cut:m1.back", "50:dock:m1.back-m2.front", "70:inject:m2:X(C)")
+    ]
+    world = World(program, topology, "virtual", cycle_period=period, cycles=110, trace=True)
+    try:
+        world.start()
+        applied: set[int] = set()
+        deadline = time.monotonic() + 20
+        while not world.done() and time.monotonic() < deadline:
+            world.run_events(events, applied)
+            world.tick()
+            time.sleep(0.005)
+    finally:
+        world.stop()
+    assert applied == {0, 1, 2}
+    times = dict(world.event_times)
+    records = world.sorted_records()
+
+    def types(module: int, start: float, end: float) -> set[int]:
+        return {r["T"] for r in records if r["module"] == module and start + 3 * period < r["t"] < end}
+
+    t_cut, t_dock, t_inject = times["20:cut:m1.back"], times["50:dock:m1.back-m2.front"], times["70:inject:m2:X(C)"]
+    assert types(2, t_cut, t_dock) == {1}  # alone after the cut: a head
+    assert types(2, t_dock, t_inject) == {2}  # docked again: the tail
+    injected = [r for r in records if r["module"] == 2 and r["t"] >= t_inject for a in r["received"] if a["at"] is None]
+    assert injected and injected[0]["received"][0]["hormone"] == "X(C)"
+    assert injected[0]["actuators"]["DOF1"] == TABLE_I["C"]

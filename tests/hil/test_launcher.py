@@ -1,0 +1,170 @@
+"""The launcher: `dh2rt --transport ...` through dh2rt.cli.main and the console script."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dh2rt import cli
+from dh2rt.transport.can_bus import socketcan_problem
+from hil import launcher
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = Path(sys.executable).parent / "dh2rt"
+
+
+def _no_vcan0() -> None:
+    if socketcan_problem("vcan0") is None:
+        pytest.skip("this machine has a working vcan0: the unavailable path cannot be exercised")
+
+
+def test_vcan0_unavailable_exits_2_with_the_cause_and_the_fix(capsys: pytest.CaptureFixture[str]) -> None:
+    _no_vcan0()
+    code = cli.main(["--transport", "vcan0", "--module-count", "8"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "vcan0" in err and ("AF_CAN" in err or "no network interface" in err)
+    assert "ip link add dev vcan0 type vcan" in err
+    assert "serial" in err and "udp" in err and "virtual" in err
+
+
+def test_console_script_vcan0_exits_2() -> None:
+    _no_vcan0()
+    if not SCRIPT.exists():
+        pytest.skip(f"console script not installed at {SCRIPT}")
+    proc = subprocess.run(
+        [str(SCRIPT), "--transport", "vcan0", "--module-count", "8"], capture_output=True, text=True, timeout=30
+    )
+    assert proc.returncode == 2
+    assert "modprobe vcan" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_help(capsys: pytest.CaptureFixture[str]) -> None:
+    assert launcher.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for option in ("--transport", "--module-count", "--program", "--topology", "--event", "--trace", "--cycle-ms"):
+        assert option in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--module-count", "0"], "--module-count"),
+        (["--transport", "carrier-pigeon"], "unknown transport"),
+        (["--cycle-ms", "-5"], "--cycle-ms"),
+        (["--event", "5:explode:m1"], "unknown kind"),
+        (["--topology", "snake:3", "--event", "5:kill:m9"], "m9"),
+        (["--program", "/nonexistent/x.dh2"], "x.dh2"),
+        (["--topology", "snake:4", "--module-count", "8"], "--module-count"),
+        (["--no-such-option"], "unrecognized"),
+    ],
+)
+def test_bad_input_exits_2(argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
+
+
+def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trace = tmp_path / "t.jsonl"
+    code = cli.main(
+        ["--transport", "virtual", "--module-count", "4", "--cycles", "60", "--cycle-ms", "10", "--json",
+         "--trace", str(trace), "--event", "30:inject:m2:X(A)"]
+    )  # fmt: skip
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [m["state"] for m in summary["modules"]] == ["done"] * 4
+    assert [m["T"] for m in summary["modules"]][:1] == [1]
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    keys = [(r["cycle"], r["module"]) for r in records]
+    assert keys == sorted(keys) and len(keys) == 4 * 60
+    assert {"cycle", "module", "name", "type", "T", "timer", "actuators", "status", "received", "sent"} <= set(
+        records[0]
+    )
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def test_ctrl_c_ends_every_module_process_and_exits_130() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil.launcher", "--transport", "serial", "--module-count", "4", "--cycles", "100000",
+         "--cycle-ms", "20"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 30
+        kids: list[int] = []
+        while time.monotonic() < deadline and len(kids) < 4:
+            time.sleep(0.2)
+            kids = _children(proc.pid)
+        assert len(kids) == 4, f"expected 4 module processes, found {kids}"
+        time.sleep(1.0)
+        os.kill(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert "m3" in out  # the summary
+    for pid in kids:
+        assert not Path(f"/proc/{pid}").exists(), f"module process {pid} outlived the launcher"
+
+
+def test_udp_refuses_outside_a_loopback_only_namespace(capsys: pytest.CaptureFixture[str]) -> None:
+    names = [n for _i, n in socket.if_nameindex()]
+    if names == ["lo"]:
+        pytest.skip("this namespace has only loopback: the refusal cannot be exercised safely")
+    os.environ[launcher.NETNS_ENV] = "1"  # pretend the re-exec happened; the check must still refuse
+    try:
+        assert launcher.main(["--transport", "udp", "--module-count", "2", "--cycles", "5"]) == 2
+    finally:
+        del os.environ[launcher.NETNS_ENV]
+    assert "refusing" in capsys.readouterr().err
+
+
+def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
+    """Effects from module processes: the world carries out reach_and_dock on serial links."""
+    code = cli.main(
+        ["--transport", "serial", "--program", str(ROOT / "examples" / "legs_to_snake.dh2"), "--topology",
+         "dragon", "--cycles", "400", "--cycle-ms", "25", "--event", "5:inject:tail2:LTS", "--json"]
+    )  # fmt: skip
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    types = sorted(m["type"] for m in summary["modules"])
+    assert types == ["body"] * (len(types) - 2) + ["head", "tail"], types
+    assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
+
+
+def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(
+        ["--transport", "serial", "--module-count", "4", "--cycles", "150", "--cycle-ms", "20",
+         "--event", "30:kill:m2", "--event", "70:restart:m2", "--json"]
+    )  # fmt: skip
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rows = {m["name"]: m for m in summary["modules"]}
+    assert [rows[n]["state"] for n in ("m0", "m1", "m2", "m3")] == ["done"] * 4
+    assert [rows[n]["T"] for n in ("m0", "m1", "m2", "m3")] == [1, 16, 16, 2]  # one snake again
+    assert rows["m2"]["cycle"] < 150  # the restarted module ran the cycles that were left
+    assert rows["m2"]["counters"]["hormones_received"] > 0  # and carries the wave again

@@ -1,0 +1,211 @@
+"""The module runtime in one process on the inproc transport, with injected clocks.
+
+Modules are stepped one after another (A then B then ...): on the inproc bus a frame sent in
+A's cycle n is in B's mailbox for B's cycle n, so every count here is exact.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.hormone import Hormone
+from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
+from dh2rt.transport.base import BusEnd
+from dh2rt.transport.inproc import InprocBus, InprocTransport
+from dh2rt.wire.frame import FrameCodec
+from drivers.recording import RecordingDriver
+
+ROOT = Path(__file__).resolve().parents[2]
+FRONT, BACK = 1, 2
+TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}  # body receptors: DOF1 per hormone got
+
+
+class FakeClock:
+    """Advances a fixed step on every reading: deterministic, and never stalls a wait."""
+
+    def __init__(self, step: float = 0.001) -> None:
+        self.now = 0.0
+        self.step = step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+@pytest.fixture(scope="module")
+def caterpillar() -> CompiledProgram:
+    return compile_file(str(ROOT / "examples" / "caterpillar.dh2"))
+
+
+def make(program: CompiledProgram, bus: InprocBus, phase: int = 0, **kw: object) -> ModuleRuntime:
+    codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+    return ModuleRuntime(program, InprocTransport(codec, bus=bus), timer_phase=phase, clock=FakeClock(), **kw)  # type: ignore[arg-type]
+
+
+def snake(program: CompiledProgram, n: int, phases: list[int] | None = None) -> list[ModuleRuntime]:
+    """n runtimes docked back-to-front on a fresh bus, links attached (Hellos exchanged)."""
+    bus = InprocBus()
+    mods = [
+        make(program, bus, (phases or [0] * n)[i], module=i, driver=RecordingDriver(), record=True) for i in range(n)
+    ]
+    for i in range(n - 1):
+        mods[i].attach(BACK, BusEnd(i, 0))
+        mods[i + 1].attach(FRONT, BusEnd(i, 1))
+    return mods
+
+
+def step_all(mods: list[ModuleRuntime], cycles: int = 1) -> None:
+    for _ in range(cycles):
+        for m in mods:
+            m.step()
+
+
+@pytest.fixture
+def closing() -> Iterator[list[ModuleRuntime]]:
+    made: list[ModuleRuntime] = []
+    yield made
+    for m in made:
+        m.close()
+
+
+def test_hellos_verify_links_and_set_topological_types(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime]
+) -> None:
+    mods = snake(caterpillar, 3)
+    closing.extend(mods)
+    step_all(mods, 2)
+    assert [m.engine.topo_type.alias for m in mods] == [1, 16, 2]
+    assert all(m.verified(c) for m, c in ((mods[0], BACK), (mods[1], FRONT), (mods[1], BACK), (mods[2], FRONT)))
+    assert mods[1].engine.status == [BACK, FRONT, 0, 0]
+    assert all(m.counters["refused"] == 0 for m in mods)
+
+
+def test_wave_follows_table_one_and_drives_the_servos(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime]
+) -> None:
+    # the head emits X(A) at its timer 0 (cycle 9); the others' timers never hit a head
+    # receptor's value in the first cycles, before the Hellos made them bodies
+    mods = snake(caterpillar, 4, phases=[31, 1, 1, 1])
+    closing.extend(mods)
+    # stepped tail first, a hormone crosses one link per cycle, as in the in-process Robot
+    step_all(mods[::-1], 30)
+    for k in range(1, 4):
+        got = [(r["cycle"], r["received"][0]["hormone"]) for r in mods[k].records if r["received"]]
+        assert got, f"module {k} received nothing"
+        cycle, hormone = got[0]
+        assert cycle == 9 + k  # the head emits in its cycle 9, module k gets it k cycles later
+        phase = hormone[2]
+        expected = "ABCD"[(k - 1) % 4]
+        assert phase == expected
+        assert mods[k].records[cycle]["actuators"]["DOF1"] == TABLE_I[phase]
+        driver = mods[k].driver
+        assert isinstance(driver, RecordingDriver) and (TABLE_I[phase], 0.0) in driver.history
+    # nothing lost on a clean link: every hormone sent through back arrived at the next front
+    for k in range(3):
+        sent = [s["hormone"] for r in mods[k].records for s in r["sent"]]
+        got = [a["hormone"] for r in mods[k + 1].records for a in r["received"]]
+        assert got == sent[: len(got)] and len(sent) - len(got) <= 1
+    assert all(m.counters["beacons_missed"] == 0 and m.counters["frames_dropped"] == 0 for m in mods)
+
+
+def test_liveness_bound_is_exact(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
+    a, b = snake(caterpillar, 2)
+    closing.extend((a, b))
+    step_all([a, b], 5)
+    assert a.engine.status[BACK - 1] == FRONT
+    # b falls silent after its cycle 4; a (stepped before b) hears that in its cycle 5
+    a.step()
+    for silent in range(1, SILENCE_CYCLES):
+        a.step()
+        assert a.engine.status[BACK - 1] == FRONT, f"fell after only {silent} silent cycles"
+    a.step()
+    assert a.engine.status[BACK - 1] == 0
+    # and the engine already ran that cycle alone: its trace record shows it
+    assert a.records[-1]["status"]["back"] == "0"
+    assert a.counters["links_lost"] == 1
+    # b comes back: the link is up again as soon as b is heard (after a Hello)
+    b.step()
+    a.step()
+    b.step()
+    a.step()
+    assert a.engine.status[BACK - 1] == FRONT
+
+
+def test_restarted_peer_is_answered_and_verified(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
+    bus = InprocBus()
+    a = make(caterpillar, bus)
+    b = make(caterpillar, bus)
+    closing.extend((a, b))
+    a.attach(BACK, BusEnd(1, 0))
+    b.attach(FRONT, BusEnd(1, 1))
+    step_all([a, b], 4)
+    b.close()  # b reboots before a notices the silence
+    b2 = make(caterpillar, bus, phase=7)
+    closing.append(b2)
+    b2.attach(FRONT, BusEnd(1, 1))
+    step_all([a, b2], 3)
+    assert b2.verified(FRONT) and b2.engine.status[FRONT - 1] == BACK
+    assert a.engine.status[BACK - 1] == FRONT
+
+
+def test_neighbour_with_another_program_is_refused(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime], tmp_path: Path
+) -> None:
+    text = (ROOT / "examples" / "caterpillar.dh2").read_text().replace("ClockCycle = 40", "ClockCycle = 20")
+    other_file = tmp_path / "fast.dh2"
+    other_file.write_text(text)
+    other = compile_file(str(other_file))
+    assert other.image != caterpillar.image
+    bus = InprocBus()
+    a = make(caterpillar, bus, phase=0)
+    b = make(other, bus, phase=0)
+    closing.extend((a, b))
+    b.attach(FRONT, BusEnd(3, 1))
+    a.attach(BACK, BusEnd(3, 0))
+    b.inject(Hormone("X", ("A",)))
+    step_all([a, b], 12)
+    # a hormone from the refused neighbour (its X has another meaning there) is not fed to a
+    assert b.transport.send(FRONT, Hormone("X", ("A",)))
+    a.step()
+    assert a.engine.status == [0, 0, 0, 0] and b.engine.status == [0, 0, 0, 0]
+    assert a.counters["refused"] > 0 and b.counters["refused"] > 0
+    assert a.counters["engine_received"] == 0 and b.counters["engine_received"] == 1  # only b's own injection
+    assert a.counters["ignored"] == 1
+    assert any("another program" in line for line in a.log)
+    assert not a.verified(BACK)
+
+
+def test_run_paces_cycles_on_the_injected_clock(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
+    bus = InprocBus()
+    clock = FakeClock(step=0.0)
+    codec = FrameCodec(caterpillar.vocabulary, 4)
+    rt = ModuleRuntime(caterpillar, InprocTransport(codec, bus=bus), cycle_period=0.01, clock=clock)
+    closing.append(rt)
+    slept: list[float] = []
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        clock.now += seconds
+
+    assert rt.run(cycles=5, sleep=sleep) == 5
+    assert rt.cycle == 5 and rt.counters["late_cycles"] == 0
+    assert slept == pytest.approx([0.01] * 5)
+
+    def slow_sleep(seconds: float) -> None:
+        clock.now += seconds + 0.02  # every wait overshoots by two periods
+
+    rt.run(cycles=3, sleep=slow_sleep)
+    assert rt.counters["late_cycles"] == 2  # the first of the three started on time
+
+
+def test_detach_drops_the_link_at_once(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
+    a, b = snake(caterpillar, 2)
+    closing.extend((a, b))
+    step_all([a, b], 2)
+    a.detach(BACK)
+    assert a.engine.status[BACK - 1] == 0
+    assert not a.transport.send(BACK, Hormone("X", ("A",)))
