@@ -18,7 +18,11 @@ One cycle (:meth:`ModuleRuntime.step`)::
     beacons   every attached connector that carried no hormone this cycle sends a KeepAlive
               (a Hello instead while its peer is not yet verified, or in answer to a peer's
               Hello when none went out through it in the last SILENCE_CYCLES cycles)
-    driver    set_targets when DOF1/DOF2 changed
+    driver    set_targets when DOF1/DOF2 changed; every HEALTH_EVERY cycles the driver's
+              health() (if it has one) is read, since servo faults surface on reads, not
+              on unacknowledged writes; a fault is reported (status, log, counters) and,
+              while it lasts, recover() (if the driver has one) is tried on each check.
+              A DriverError never stops the module: the engine keeps running.
 
 Liveness bound: a neighbour that stops sending is noticed in the SILENCE_CYCLES-th
 consecutive cycle without a frame from it, and the engine runs that cycle with the
@@ -36,10 +40,11 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 from dh2rt.compiler import CompiledProgram
 from dh2rt.engine import Engine, Native
+from dh2rt.errors import DriverError
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.trace import arrival_json, emission_json
@@ -50,12 +55,20 @@ from dh2rt.wire.frame import Hello, KeepAlive, program_digest
 SILENCE_CYCLES = 3
 #: A cycle that starts later than this fraction of a period after its deadline is late.
 LATE_TOLERANCE = 0.5
+#: Cycles between two reads of the driver's health (servo faults show on reads).
+HEALTH_EVERY = 25
 
 
 class Driver(Protocol):
     """What the runtime needs of a servo driver (drivers.base.ModuleDriver fits)."""
 
     def set_targets(self, dof1_deg: float, dof2_deg: float) -> None: ...
+
+
+class _Recoverable(Protocol):
+    def health(self) -> Any: ...
+
+    def recover(self) -> Any: ...
 
 
 @dataclass(slots=True)
@@ -85,6 +98,7 @@ class RuntimeCounters:
     late_cycles: int = 0
     hormones_sent: int = 0
     hormones_received: int = 0
+    actuator_faults: int = 0
     log: list[str] = field(default_factory=list)
 
 
@@ -117,6 +131,8 @@ class ModuleRuntime:
         used = {n: available[n] for n in program.natives if n in available}
         self.engine = Engine(program, timer_phase=timer_phase, natives=used)
         self.driver = driver
+        #: The servo fault in force, as the driver reported it (None when all is well).
+        self.actuator_fault: str | None = None
         self.cycle_period = cycle_period
         self.silence_cycles = silence_cycles
         self.clock = clock
@@ -133,7 +149,7 @@ class ModuleRuntime:
         self._heard: set[int] = set()  # connectors heard between cycles (Hellos)
         self._started = 0.0
         self._injected: list[Hormone] = []
-        self._commanded = (self.engine.dof[0], self.engine.dof[1])
+        self._commanded: tuple[float, float] | None = (self.engine.dof[0], self.engine.dof[1])
 
     # ------------------------------------------------------------ links
 
@@ -242,16 +258,46 @@ class ModuleRuntime:
         self._beacon(carried)
         if engine.effects:
             self.effects.extend(engine.effects)
-        dof = (engine.dof[0], engine.dof[1])
-        if dof != self._commanded:
-            self._commanded = dof
-            if self.driver is not None:
-                self.driver.set_targets(dof[0], dof[1])
+        self._actuate(engine.dof[0], engine.dof[1])
         engine.dof_changed = False
         if self.record:
             self.records.append(self._record(arrivals, sent))
         self.cycle += 1
         self.stats.cycles = self.cycle
+
+    def _actuate(self, dof1: float, dof2: float) -> None:
+        """Command the driver; report servo faults and try to recover, never stop the module."""
+        driver = self.driver
+        if driver is None:
+            return
+        try:
+            if self.actuator_fault is not None or self.cycle % HEALTH_EVERY == 0:
+                self._check_health(driver)
+            if (dof1, dof2) != self._commanded and self.actuator_fault is None:
+                driver.set_targets(dof1, dof2)
+                self._commanded = (dof1, dof2)
+        except DriverError as exc:
+            self._actuator_fault(str(exc))
+
+    def _check_health(self, driver: Driver) -> None:
+        health = getattr(driver, "health", None)
+        if health is None:
+            return
+        faults = tuple(health().faults)
+        if faults and self.actuator_fault is not None and callable(getattr(driver, "recover", None)):
+            faults = tuple(cast(_Recoverable, driver).recover().faults)
+        if faults:
+            self._actuator_fault("; ".join(faults))
+        elif self.actuator_fault is not None:
+            self._log(f"actuators recovered (after: {self.actuator_fault})")
+            self.actuator_fault = None
+            self._commanded = None  # send the targets again
+
+    def _actuator_fault(self, message: str) -> None:
+        self.stats.actuator_faults += 1
+        if message != self.actuator_fault:
+            self._log(f"actuator fault: {message}")
+        self.actuator_fault = message
 
     def _beacon(self, carried: set[int]) -> None:
         """A KeepAlive (or a Hello, see the module docs) through every attached connector
@@ -413,6 +459,7 @@ class ModuleRuntime:
             "DOF2": e.dof[1],
             "status": list(e.status),
             "counters": self.counters,
+            "actuator_fault": self.actuator_fault,
         }
 
     @property

@@ -73,6 +73,13 @@ def _load_sdk() -> ModuleType:
         raise DriverError("dynamixel-sdk is not installed; install dh2rt[dynamixel] to drive Dynamixel servos") from exc
 
 
+#: What the SDK's communication results mean for someone debugging a servo bus.
+_COMM_MEANING = {
+    -3001: "no reply in time: servo missing, unpowered, wrong id or baud rate",
+    -3002: "corrupt reply: bad CRC or framing on the bus",
+}
+
+
 def _port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) -> Any:
     """A PortHandler; with ``latency_timer_ms`` its reply timeout uses that instead of the
     process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the FTDI default)."""
@@ -368,7 +375,8 @@ class DynamixelDriver(ModuleDriver):
 
     def _result(self, result: int) -> str:
         text = str(self._ph.getTxRxResult(result)).removeprefix("[TxRxResult] ")
-        return f"{text} (comm result {result})"
+        meaning = _COMM_MEANING.get(result)
+        return f"{text} (comm result {result}{': ' + meaning if meaning else ''})"
 
     def _sdk_const(self, name: str) -> int:
         assert self._sdk is not None

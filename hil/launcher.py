@@ -64,6 +64,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--silence-cycles", type=int, default=3, help="liveness bound in cycles (default: 3)")
     p.add_argument("--frame-loss", type=float, default=0.0, help="serial: frame loss probability per link")
     p.add_argument("--bit-error", type=float, default=0.0, help="serial: bit error probability")
+    p.add_argument(
+        "--stand-in",
+        choices=("pybullet", "recording", "none"),
+        default="pybullet",
+        help="the modules' body: pybullet (default; each module drives emulated Dynamixel servos whose joints "
+        "are PyBullet joints, the full firmware path), recording (each module records its angles), none",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     return p
 
@@ -185,6 +192,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             frame_loss=ns.frame_loss,
             bit_error=ns.bit_error,
             emulator_seed=ns.seed,
+            stand_in=ns.stand_in,
         )
     except (DH2Error, OSError, ValueError) as exc:
         _err(f"cannot start the world: {exc}")
@@ -270,6 +278,8 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool) -> None:
     if as_json:
         summary = {
             "transport": world.spec,
+            "stand_in": world.stand_in,
+            "displacement_m": world.physics.displacement() if world.physics is not None else None,
             "seconds": elapsed,
             "cycle_period": world.cycle_period,
             "modules": rows,
@@ -298,6 +308,12 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool) -> None:
         ):
             totals[k] = totals.get(k, 0) + int(r["counters"].get(k, 0))
     out.write("totals: " + ", ".join(f"{k} {v}" for k, v in totals.items()) + "\n")
+    if world.physics is not None:
+        faults = sum(1 for r in rows if r.get("actuator_fault"))
+        out.write(
+            f"physics: {world.physics.simulated_s:.1f} s simulated; moved {world.physics.displacement() * 100:+.1f} cm "
+            f"forward; servos driven through dynamixel-sdk and emulators, {faults} module(s) with an actuator fault\n"
+        )
     for line in world.log[-20:]:
         out.write(f"  {line}\n")
     out.flush()

@@ -8,7 +8,14 @@ in-process transports). The config (a JSON object, inline or ``@file``)::
      "attach": {"2": {"link_id": 7, "side": 0}, "1": {"port": "/dev/pts/9"}},
      "timer_phase": 17, "cycle_period": 0.02, "cycles": 300 | null,
      "silence_cycles": 3, "driver": "recording" | "none", "trace": false,
+     "servo_port": "/dev/ttyUSB0" | null, "servo_ids": [1, 2],
      "status_every": 10, "handshake": 1.0}
+
+Actuators: with ``servo_port`` the module drives its DOF1/DOF2 Dynamixel servos (ids
+``servo_ids``) through dynamixel-sdk; without one it takes the stand-in (``driver``:
+``recording`` records the commanded angles, ``none`` drives nothing). Servos that cannot be
+opened (missing, wrong model, a bad bus) are reported as an actuator fault, and the module
+runs its program without actuators rather than not at all.
 
 Control channel. Commands arrive as JSON lines on stdin (``{"cmd": ...}``): ``go`` (start
 cycling; with ``at``, a CLOCK_MONOTONIC reading, exchange Hellos until then and start at that
@@ -42,10 +49,30 @@ from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import open_transport
 from dh2rt.wire.frame import FrameCodec
+from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 
 Report = Callable[[dict[str, Any]], None]
 
+
+
+def open_driver(config: Mapping[str, Any], stand_in: str) -> tuple[ModuleDriver | None, str | None]:
+    """The module's driver: Dynamixel servos when ``servo_port`` is set, else the stand-in.
+
+    Returns (driver, fault): a servo bus that cannot be opened gives (None, why).
+    """
+    port = config.get("servo_port")
+    if not port:
+        return (RecordingDriver() if stand_in == "recording" else None), None
+    from drivers.dynamixel import DynamixelDriver
+
+    ids = list(config.get("servo_ids", [1, 2]))
+    if len(ids) != 2 or not all(isinstance(i, int) for i in ids):
+        raise ConfigError(f"config servo_ids {ids!r}: expected two servo ids [DOF1, DOF2]")
+    try:
+        return DynamixelDriver(str(port), dof1_id=ids[0], dof2_id=ids[1]), None
+    except DH2Error as exc:
+        return None, str(exc)
 
 class ConfigError(DH2Error, ValueError):
     """A module config is malformed; the message names the field."""
@@ -89,7 +116,7 @@ class ModuleHost:
                 raise ConfigError(f"config driver {driver_name!r}: expected 'recording' or 'none'")
         except (OSError, ValueError, TypeError) as exc:
             raise ConfigError(str(exc)) from exc
-        self.driver = RecordingDriver() if driver_name == "recording" else None
+        self.driver, driver_fault = open_driver(config, driver_name)
         codec = FrameCodec(self.program.vocabulary, self.program.profile.connector_count)
         transport = open_transport(str(config.get("transport", "inproc")), codec)
         self.runtime = ModuleRuntime(
@@ -103,6 +130,10 @@ class ModuleHost:
             module=self.module,
             name=str(config.get("name", f"m{self.module}")),
         )
+        if driver_fault is not None:
+            self.runtime.actuator_fault = driver_fault
+            self.runtime.stats.actuator_faults += 1
+            self.runtime.log.append(f"actuator fault: {driver_fault}")
         self._attach = attach
         self._logged = 0
 
@@ -138,7 +169,7 @@ class ModuleHost:
             final = rt.status()
             final["event"] = "final"
             final["failed"] = self.failed
-            final["targets"] = list(self.driver.targets) if self.driver is not None else None
+            final["targets"] = list(self.driver.read_positions()) if self.driver is not None else None
             rt.close()
             self.report(final)
         return 1 if self.failed else 0

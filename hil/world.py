@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dh2rt.compiler import CompiledProgram
 from dh2rt.errors import DH2Error, TopologyError
@@ -57,6 +57,10 @@ from hil.module_process import ModuleHost
 ROOT = Path(__file__).resolve().parents[1]
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
+
+
+if TYPE_CHECKING:
+    from hil.physics_stand_in import PhysicsStandIn
 
 
 class WorldError(DH2Error, RuntimeError):
@@ -214,6 +218,7 @@ class World:
         emulator_seed: int | None = None,
         handshake: float = 2.0,
         start_delay: float = 0.3,
+        stand_in: str = "recording",
     ) -> None:
         self.program = program
         self.topology = topology
@@ -240,6 +245,17 @@ class World:
         self.emulator: LinkEmulator | None = None
         if self.kind == "serial":
             self.emulator = LinkEmulator(frame_loss=frame_loss, bit_error=bit_error, seed=emulator_seed)
+        #: The modules' body: "recording" (each module records its commanded angles),
+        #: "pybullet" (the full firmware path: Dynamixel servos emulated on ptys whose joints
+        #: are PyBullet joints; see hil.physics_stand_in) or "none".
+        self.stand_in = stand_in
+        self.physics: PhysicsStandIn | None = None
+        if stand_in == "pybullet":
+            from hil.physics_stand_in import PhysicsStandIn
+
+            self.physics = PhysicsStandIn(topology, seed=seed)
+        elif stand_in not in ("recording", "none"):
+            raise WorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         self.reports: queue.Queue[tuple[int, dict[str, Any]]] = queue.Queue()
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         self.handles: list[_Handle | None] = [None] * topology.size
@@ -293,7 +309,8 @@ class World:
             "cycle_period": self.cycle_period,
             "cycles": cycles,
             "silence_cycles": self.silence_cycles,
-            "driver": "recording",
+            "driver": "none" if self.stand_in == "none" else "recording",
+            "servo_port": self.physics.port(module) if self.physics is not None else None,
             "trace": self.trace,
             "status_every": self.status_every,
             "handshake": self.handshake,
@@ -422,13 +439,25 @@ class World:
         if (module, connector) in self.peer:
             self.log.append(f"reach_and_dock: {self._where(module, connector)} is not free")
             return
+        if self.physics is not None and not self.physics.aligned(module, connector, here, at):
+            # as sim.runner does: the motions that align the two are not modelled
+            self.log.append(
+                f"world cycle {self.cycle}: {self._where(module, connector)} cannot reach "
+                f"{self._where(here, at)}: not aligned in the world"
+            )
+            return
         self.cut(here, at)
         self.dock(module, connector, here, at)
+        if self.physics is not None:
+            self.physics.dock(module, connector, here, at)
         self.log.append(f"world cycle {self.cycle}: {self._where(module, connector)} docked to {self._where(here, at)}")
 
     def tick(self) -> None:
-        """Read reports; carry out due effects; notice modules that died on their own."""
+        """Read reports; carry out due effects; notice modules that died on their own; step
+        physics up to now (with the PyBullet stand-in)."""
         self.poll()
+        if self.physics is not None and self._go_at is not None and time.monotonic() >= self._go_at:
+            self.physics.advance()
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]
@@ -475,6 +504,8 @@ class World:
             raise TopologyError(f"cannot cut {self._where(module, connector)}: nothing is docked there")
         del self.peer[(link.a, link.a_conn)]
         del self.peer[(link.b, link.b_conn)]
+        if self.physics is not None:
+            self.physics.undock(module, connector)
         if self.emulator is not None:
             self.emulator.undock(link.link_id)
         else:
@@ -554,6 +585,7 @@ class World:
                     "DOF2": s.get("DOF2", 0.0),
                     "frames_per_s": v.frames_per_s,
                     "counters": c,
+                    "actuator_fault": s.get("actuator_fault"),
                     "errors": int(c.get("frames_dropped", 0))
                     + int(c.get("frames_corrupted", 0))
                     + int(c.get("refused", 0)),
@@ -582,6 +614,8 @@ class World:
         self.poll()
         if self.emulator is not None:
             self.emulator.close()
+        if self.physics is not None:
+            self.physics.close()
 
     def __enter__(self) -> World:
         return self

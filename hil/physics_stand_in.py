@@ -1,0 +1,128 @@
+"""The PyBullet world as the body of a hardware-in-the-loop robot: the full firmware path.
+
+Each module process drives its DOF1/DOF2 servos with dynamixel-sdk on a serial port, as it
+would on a physical CONRO-like module; the port is a pty whose far end is a Dynamixel
+Protocol 2.0 emulator (``hil.servo_emulator``) whose joints are that module's joints in one
+PyBullet world. The world steps physics in real time as the launcher ticks.
+
+PyBullet is not thread-safe: one lock serialises the emulators' joint reads and writes (each
+in its own thread) with the stepping.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+from dh2rt.closing import Closing
+from dh2rt.topology import Topology
+from drivers.base import Health, ModuleDriver
+from hil.servo_emulator import ServoEmulator
+from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from sim.world import World as PhysicsWorld
+
+#: A long hiccup (a slow start, a paused process) is not caught up: physics never runs more
+#: than this many seconds of simulated time in one advance.
+MAX_CATCH_UP_S = 0.25
+
+
+@dataclass
+class _LockedDriver(ModuleDriver):
+    """A driver whose every call holds the world's lock."""
+
+    inner: ModuleDriver
+    lock: threading.Lock
+
+    def __post_init__(self) -> None:
+        self.limits = self.inner.limits
+
+    def set_targets(self, dof1_deg: float, dof2_deg: float) -> None:
+        with self.lock:
+            self.inner.set_targets(dof1_deg, dof2_deg)
+
+    def read_positions(self) -> tuple[float, float]:
+        with self.lock:
+            return self.inner.read_positions()
+
+    def set_torque(self, enabled: bool) -> None:
+        with self.lock:
+            self.inner.set_torque(enabled)
+
+    def health(self) -> Health:
+        with self.lock:
+            return self.inner.health()
+
+
+class PhysicsStandIn(Closing):
+    """One PyBullet world and one servo emulator (a pty) per module of ``topology``."""
+
+    def __init__(self, topology: Topology, *, seed: int = 0) -> None:
+        self.world = PhysicsWorld(topology, seed=seed)
+        self.lock = threading.Lock()
+        self.emulators: list[ServoEmulator] = []
+        try:
+            for m in range(topology.size):
+                emulator = ServoEmulator.for_module(_LockedDriver(self.world.driver(m), self.lock))
+                emulator.start()
+                self.emulators.append(emulator)
+        except BaseException:
+            self.close()
+            raise
+        self.start_centroid = self.world.centroid()
+        self._t0: float | None = None
+        self._steps = 0
+        self._final: tuple[float, float] | None = None  # (displacement, simulated s) once closed
+
+    def port(self, module: int) -> str:
+        """The serial port module ``module``'s servos answer on."""
+        return self.emulators[module].port_path
+
+    def advance(self, now: float | None = None) -> None:
+        """Step physics up to wall-clock ``now`` (monotonic seconds)."""
+        now = time.monotonic() if now is None else now
+        if self._t0 is None:
+            self._t0 = now
+        due = int((now - self._t0) * self.world.physics_hz) - self._steps
+        if due <= 0:
+            return
+        limit = int(MAX_CATCH_UP_S * self.world.physics_hz)
+        if due > limit:  # do not try to catch up a long stall: let simulated time slip
+            self._t0 += (due - limit) / self.world.physics_hz
+            due = limit
+        with self.lock:
+            self.world.step(due)
+        self._steps += due
+
+    def undock(self, module: int, connector: int) -> None:
+        with self.lock:
+            self.world.undock(module, connector)
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        with self.lock:
+            return self.world.aligned(a, a_conn, b, b_conn, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
+
+    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        with self.lock:
+            return self.world.dock(a, a_conn, b, b_conn, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG)
+
+    def displacement(self) -> float:
+        """Metres the robot moved along the direction its head faced at the start."""
+        if self._final is not None:
+            return self._final[0]
+        with self.lock:
+            return self.world.travel(self.start_centroid)
+
+    @property
+    def simulated_s(self) -> float:
+        return self._final[1] if self._final is not None else self.world.time
+
+    def close(self) -> None:
+        """Stop the emulators and the world; the last figures stay readable."""
+        for emulator in self.emulators:
+            emulator.stop()
+        self.emulators.clear()
+        if self._final is None and self.world.client >= 0:
+            self._final = (self.displacement(), self.world.time)
+        with self.lock:
+            self.world.close()

@@ -1,0 +1,103 @@
+"""Servo faults from the emulator reach the module runtime as reported actuator faults; the
+module keeps running its program throughout, and recovers when the servo does."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.errors import ServoModelMismatch, ServoNotFound
+from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
+from dh2rt.transport.inproc import InprocBus, InprocTransport
+from dh2rt.wire.frame import FrameCodec
+from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
+from drivers.dynamixel import DynamixelDriver
+from hil.servo_emulator import ServoEmulator
+
+ROOT = Path(__file__).resolve().parents[2]
+# a generous reply timeout: the emulator shares this process's GIL with the SDK's busy wait
+LATENCY_MS = 60
+
+
+@pytest.fixture(scope="module")
+def caterpillar() -> CompiledProgram:
+    return compile_file(str(ROOT / "examples" / "caterpillar.dh2"))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        self.now += 0.001
+        return self.now
+
+
+def lone_head(program: CompiledProgram, driver: DynamixelDriver) -> ModuleRuntime:
+    codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+    return ModuleRuntime(program, InprocTransport(codec, bus=InprocBus()), driver=driver, clock=Clock())
+
+
+@pytest.mark.parametrize(
+    ("fault", "words"),
+    [
+        ("no_reply", "did not answer"),
+        ("crc_error", "bad CRC"),
+        ("hardware_alert", "overload"),
+        ("wrong_model", "model"),
+    ],
+)
+def test_fault_is_reported_module_keeps_running_and_recovers(
+    caterpillar: CompiledProgram, fault: str, words: str
+) -> None:
+    with ServoEmulator((1, 2)) as emulator:
+        emulator.start()
+        with DynamixelDriver(emulator.port_path, latency_timer_ms=LATENCY_MS) as driver:
+            rt = lone_head(caterpillar, driver)
+            for _ in range(2 * HEALTH_EVERY):
+                rt.step()
+            assert rt.actuator_fault is None
+            kwargs = {"hardware_bits": 0x20} if fault == "hardware_alert" else {}
+            emulator.set_fault(2, fault, **kwargs)  # type: ignore[arg-type]
+            sent_before = rt.engine.counters["sent"]
+            reported = None
+            for _ in range(2 * HEALTH_EVERY):
+                rt.step()  # never raises
+                reported = reported or rt.status()["actuator_fault"]
+            # reported at the next health check, with words that say what is wrong
+            assert reported is not None and words.lower() in reported.lower(), reported
+            assert rt.stats.actuator_faults >= 1
+            assert any("actuator fault" in line for line in rt.log)
+            # the program runs on: the head still emits its four hormones per ClockCycle
+            assert rt.engine.counters["sent"] - sent_before >= 2 * HEALTH_EVERY // caterpillar.clock_cycle * 4
+            if fault == "hardware_alert":
+                # recover() rebooted the servo, which clears the alert: already back
+                assert rt.actuator_fault is None
+            else:
+                assert rt.actuator_fault is not None  # lasts as long as the servo is faulty
+                emulator.clear_faults(2)
+                for _ in range(2 * HEALTH_EVERY):
+                    rt.step()
+                assert rt.actuator_fault is None, rt.log
+            assert any("actuators recovered" in line for line in rt.log)
+            # commands reach the servos again: the goal registers follow the engine's targets
+            for _ in range(caterpillar.clock_cycle):
+                rt.step()
+            dof1, dof2 = rt.engine.dof
+            driver.read_positions()  # a round trip: the emulator has handled the last (unacknowledged) write
+            assert emulator.servo(1).get(GOAL_POSITION) == deg_to_ticks(dof1)
+            assert emulator.servo(2).get(GOAL_POSITION) == deg_to_ticks(dof2)
+            assert dof1 in (45.0, -45.0)
+
+
+def test_missing_servo_and_wrong_model_fail_clearly_at_open() -> None:
+    with ServoEmulator((1,)) as emulator:  # no servo with id 2
+        emulator.start()
+        with pytest.raises(ServoNotFound, match="2"):
+            DynamixelDriver(emulator.port_path, latency_timer_ms=LATENCY_MS)
+    with ServoEmulator((1, 2), model_number=1060) as emulator:  # an XL430, not the XM430 expected
+        emulator.start()
+        with pytest.raises(ServoModelMismatch, match="1060"):
+            DynamixelDriver(emulator.port_path, latency_timer_ms=LATENCY_MS)
