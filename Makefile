@@ -15,8 +15,12 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# The paper's results in one process, then the same caterpillar with one OS process per
+# module over emulated infrared serial links, each driving its emulated Dynamixel servos
+# whose joints are PyBullet joints. Needs no hardware and no SocketCAN.
 demo: $(STAMP)
 	$(BIN)/dh2rt demo
+	$(BIN)/dh2rt --transport serial --module-count 8 --cycles 300
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
