@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--udp-inner", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     program = compile_file(str(PROGRAM))
-    periods = [20.0] if args.quick else [20.0, 10.0, 5.0, 3.0, 2.0]
+    periods = [20.0] if args.quick else [40.0, 20.0, 10.0, 5.0, 3.0, 2.0]
     cycles = 60 if args.quick else 200
     if args.udp_inner:
         import socket

@@ -126,17 +126,23 @@ def _emulator_round_trips(iterations: int, warmup: int) -> dict[str, dict[str, f
             writer.addParam(dxl_id, list((2048).to_bytes(4, "little")))
             reader.addParam(dxl_id)
 
+        # A reply can miss the SDK's timeout when the emulator thread waits for the GIL (both
+        # live in this process): such round trips are counted, not fatal, and reported.
+        failures = {"sync": 0, "ping": 0}
+
         def sync_cycle() -> None:
             if writer.txPacket() != 0 or reader.txRxPacket() != 0:
-                raise RuntimeError("sync write/read failed")
+                failures["sync"] += 1
 
         def ping() -> None:
             if ph.ping(port, 1)[1] != 0:
-                raise RuntimeError("ping failed")
+                failures["ping"] += 1
 
         try:
             results["sync"] = _timed(sync_cycle, iterations, warmup)
             results["ping"] = _timed(ping, iterations, warmup)
+            for name, count in failures.items():
+                results[name]["failed"] = float(count)
         finally:
             port.closePort()
         with DynamixelDriver(emu.port_path) as driver:
