@@ -47,7 +47,7 @@ from dh2rt.engine import Engine, Native
 from dh2rt.errors import DriverError
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
-from dh2rt.trace import arrival_json, emission_json
+from dh2rt.trace import cycle_json
 from dh2rt.transport.base import LinkEnd, Received, Transport
 from dh2rt.wire.frame import Hello, KeepAlive, program_digest
 
@@ -360,22 +360,9 @@ class ModuleRuntime:
     def _record(self, arrivals: list[Arrival], sent: list[Emission]) -> dict[str, Any]:
         """This cycle in the trace format of :mod:`dh2rt.trace`, plus ``t``: the clock when
         the cycle began (after whatever it received had been sent)."""
-        e = self.engine
-        p = e.profile
-        t = e.topo_type
-        return {
-            "cycle": self.cycle,
-            "module": self.module,
-            "name": self.name,
-            "type": t.name,
-            "T": t.alias,
-            "timer": (e.timer - 1) % e.clock,
-            "actuators": {"DOF1": e.dof[0], "DOF2": e.dof[1]},
-            "status": {c: p.connector_name(s) for c, s in zip(p.connectors, e.status, strict=True)},
-            "received": [arrival_json(a, p) for a in arrivals],
-            "sent": [emission_json(x, p) for x in sent],
-            "t": self._started,
-        }
+        record = cycle_json(self.engine, self.cycle, self.module, self.name, arrivals, sent)
+        record["t"] = self._started
+        return record
 
     # ------------------------------------------------------------ running
 

@@ -11,10 +11,11 @@ front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
+from dh2rt.engine import Engine
 from dh2rt.hormone import Arrival, Emission
 from dh2rt.profile import Profile
 from dh2rt.robot import CycleRecord, Robot
@@ -37,22 +38,30 @@ def emission_json(e: Emission, profile: Profile) -> dict[str, Any]:
     return d
 
 
-def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:
-    e = robot.engine(rec.module)
-    p = robot.profile
-    t = e.topo_type
+def cycle_json(
+    engine: Engine, cycle: int, module: int, name: str, received: Sequence[Arrival], sent: Sequence[Emission]
+) -> dict[str, Any]:
+    """One module's cycle in the trace format, read from its engine just after the cycle ran
+    (the in-process robot and the module runtime both write these)."""
+    p = engine.profile
+    t = engine.topo_type
     return {
-        "cycle": rec.cycle,
-        "module": rec.module,
-        "name": robot.topology.names[rec.module],
+        "cycle": cycle,
+        "module": module,
+        "name": name,
         "type": t.name,
         "T": t.alias,
-        "timer": (e.timer - 1) % e.clock,
-        "actuators": {"DOF1": e.dof[0], "DOF2": e.dof[1]},
-        "status": {c: p.connector_name(s) for c, s in zip(p.connectors, e.status, strict=True)},
-        "received": [arrival_json(a, p) for a in rec.received],
-        "sent": [emission_json(x, p) for x in rec.sent],
+        "timer": (engine.timer - 1) % engine.clock,
+        "actuators": {"DOF1": engine.dof[0], "DOF2": engine.dof[1]},
+        "status": {c: p.connector_name(s) for c, s in zip(p.connectors, engine.status, strict=True)},
+        "received": [arrival_json(a, p) for a in received],
+        "sent": [emission_json(x, p) for x in sent],
     }
+
+
+def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:
+    name = robot.topology.names[rec.module]
+    return cycle_json(robot.engine(rec.module), rec.cycle, rec.module, name, rec.received, rec.sent)
 
 
 class TraceWriter:

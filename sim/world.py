@@ -255,10 +255,7 @@ class World(Closing):
         the same way up). The genders must be able to link (male-female). The constraint
         then pulls the faces into exact contact.
         """
-        self._check_module(a)
-        self._check_module(b)
-        self._check_connector(a_conn)
-        self._check_connector(b_conn)
+        self._check_ends(a, a_conn, b, b_conn)
         if (a, a_conn) in self._docks or (b, b_conn) in self._docks:
             return False
         if not self.aligned(a, a_conn, b, b_conn, tolerance_m, tolerance_deg):
@@ -276,10 +273,7 @@ class World(Closing):
         tolerance_deg: float = 10.0,
     ) -> bool:
         """Whether two connectors of different gender are aligned within tolerance (see :meth:`dock`)."""
-        self._check_module(a)
-        self._check_module(b)
-        self._check_connector(a_conn)
-        self._check_connector(b_conn)
+        self._check_ends(a, a_conn, b, b_conn)
         if a == b or not self.topology.profile.can_link(a_conn, b_conn):
             return False
         pa, _ = self.connector_pose(a, a_conn)
@@ -425,6 +419,12 @@ class World(Closing):
             p.resetJointState(body, j, 0.0, 0.0, physicsClientId=self.client)
 
     # -- checks and lifetime ----------------------------------------------------------
+
+    def _check_ends(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
+        self._check_module(a)
+        self._check_module(b)
+        self._check_connector(a_conn)
+        self._check_connector(b_conn)
 
     def _check_module(self, module: int) -> None:
         if not isinstance(module, int) or not 0 <= module < len(self._modules):
