@@ -46,11 +46,15 @@ def _namespace_problem() -> str | None:
 
 
 def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Run the launcher as a subprocess; its JSON summary and merged trace."""
+    """Run the launcher as a subprocess; its JSON summary and merged trace.
+
+    These tests are about links and liveness: the modules record their angles (the physics
+    body, the launcher's default, is tested in test_launcher.py)."""
     trace = tmp_path / f"{transport}.jsonl"
     cmd = [
         sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", str(N),
-        "--cycles", str(cycles), "--cycle-ms", str(PERIOD_MS), "--trace", str(trace), "--json", *extra,
+        "--cycles", str(cycles), "--cycle-ms", str(PERIOD_MS), "--trace", str(trace), "--json",
+        "--stand-in", "recording", *extra,
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr + proc.stdout[-2000:]

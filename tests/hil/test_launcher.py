@@ -77,7 +77,7 @@ def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.C
     trace = tmp_path / "t.jsonl"
     code = cli.main(
         ["--transport", "virtual", "--module-count", "4", "--cycles", "60", "--cycle-ms", "10", "--json",
-         "--trace", str(trace), "--event", "30:inject:m2:X(A)"]
+         "--trace", str(trace), "--event", "30:inject:m2:X(A)", "--stand-in", "recording"]
     )  # fmt: skip
     assert code == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
