@@ -219,10 +219,14 @@ def cmd_run(ns: argparse.Namespace) -> int:
     gc.collect()
     gc.freeze()
 
+    progress = Progress(ns.cycles, robot.size)
+
     def body() -> None:
-        for _ in robot.run(ns.cycles, events):
+        for cycle in robot.run(ns.cycles, events):
             if trace is not None:
                 trace.write_cycle()
+            progress.update(cycle + 1)
+        progress.done()
 
     elapsed, interrupted = timed_run(body, trace)
     print_summary(robot, elapsed, as_json=ns.json)
@@ -230,6 +234,36 @@ def cmd_run(ns: argparse.Namespace) -> int:
         _err(f"interrupted at cycle {robot.cycle}")
         return EXIT_INTERRUPTED
     return EXIT_OK
+
+
+class Progress:
+    """A one-line progress report on stderr, redrawn at most twice a second; silent unless
+    stderr is a terminal (pipes and logs get only the summary)."""
+
+    def __init__(self, total: int, modules: int, stream: IO[str] | None = None) -> None:
+        self.stream = stream or sys.stderr
+        self.enabled = self.stream.isatty() and total > 0
+        self.total = total
+        self.modules = modules
+        self.started = self.last = time.perf_counter()
+        self.shown = False
+
+    def update(self, cycle: int) -> None:
+        if not self.enabled or cycle % 64:
+            return
+        now = time.perf_counter()
+        if now - self.last < 0.5:
+            return
+        self.last = now
+        rate = cycle * self.modules / (now - self.started)
+        self.stream.write(f"\rcycle {cycle}/{self.total} ({cycle * 100 // self.total}%), {rate:,.0f} module-cycles/s ")
+        self.stream.flush()
+        self.shown = True
+
+    def done(self) -> None:
+        if self.shown:
+            self.stream.write("\r" + " " * 72 + "\r")
+            self.stream.flush()
 
 
 def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tuple[float, bool]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -117,3 +118,24 @@ def test_console_script_help(args: list[str]) -> None:
     proc = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=60, cwd=ROOT, env={**os.environ})
     assert proc.returncode == 0, proc.stderr
     assert "usage: dh2rt" in proc.stdout
+
+
+class _Tty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dh2rt import cli
+
+    clock = iter(float(x) for x in range(1000))
+    monkeypatch.setattr(cli.time, "perf_counter", lambda: next(clock))
+    tty, pipe = _Tty(), io.StringIO()
+    for stream in (tty, pipe):
+        p = cli.Progress(1280, 10, stream)
+        for cycle in range(1, 1281):
+            p.update(cycle)
+        p.done()
+    assert "cycle 64/1280 (5%)" in tty.getvalue() and "module-cycles/s" in tty.getvalue()
+    assert tty.getvalue().endswith("\r")  # the line is cleared at the end
+    assert pipe.getvalue() == ""
