@@ -684,13 +684,12 @@ class _Compiler:
         receptors: list[CompiledReceptor] = []
         for i, r in enumerate(self.p.receptors):
             binds: dict[str, _Binding] = {}
-            self.pattern(r.pattern, binds, True)  # checks the whole pattern, with positions
-            binds = {}
             # The index files a receptor only under the types its pattern allows, so the
             # compiled match leaves out top-level type tests: the bucket already made them.
+            # guard() checks those type names, with their positions, as the match would have.
             match = self.pattern(_without_type_tests(r.pattern) if self.indexed else r.pattern, binds, True)
-            act, keep = self.actions(r, binds)
             guard = self.guard(r.pattern) if self.indexed else Guard()
+            act, keep = self.actions(r, binds)
             receptors.append(CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, guard))
         image = to_image(self.p)
         cp = CompiledProgram(
