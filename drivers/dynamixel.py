@@ -35,9 +35,11 @@ What the runtime should call when:
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import threading
 import time
+from collections.abc import Iterator
 from types import ModuleType
 from typing import Any, Final
 
@@ -219,7 +221,8 @@ class DynamixelDriver(ModuleDriver):
         sync.clearParam()
         for dxl_id, deg in zip(self.ids, targets, strict=True):
             sync.addParam(dxl_id, list(dxt.deg_to_ticks(deg).to_bytes(4, "little", signed=True)))
-        result = sync.txPacket()
+        with self._port_io("SYNC_WRITE of goal positions"):
+            result = sync.txPacket()
         if result != 0:
             raise ServoCommError(f"SYNC_WRITE of goal positions failed: {self._result(result)}")
 
@@ -228,12 +231,13 @@ class DynamixelDriver(ModuleDriver):
         with self._lock:
             self._require_open()
             sync, ph, size = self._sync_read, self._ph, dxt.PRESENT_POSITION.size
-            result = sync.txPacket()
-            if result != 0:
-                raise ServoCommError(f"SYNC_READ of present positions: {self._result(result)}")
-            # GroupSyncRead.rxPacket() drops each status's error byte, so receive the statuses
-            # with the packet handler to see hardware alerts.
-            replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
+            with self._port_io("SYNC_READ of present positions"):
+                result = sync.txPacket()
+                if result != 0:
+                    raise ServoCommError(f"SYNC_READ of present positions: {self._result(result)}")
+                # GroupSyncRead.rxPacket() drops each status's error byte, so receive the
+                # statuses with the packet handler to see hardware alerts.
+                replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
             angles = []
             for joint, (data, result, error) in zip(Joint, replies, strict=True):
                 self._check(joint, "SYNC_READ of present position", result, error)
@@ -297,7 +301,8 @@ class DynamixelDriver(ModuleDriver):
 
     def _reboot(self, joint: Joint) -> None:
         dxl_id = self.ids[joint]
-        result, _ = self._ph.reboot(self._port, dxl_id)  # the status predates the reboot
+        with self._port_io(f"REBOOT of {self._who(joint)}"):
+            result, _ = self._ph.reboot(self._port, dxl_id)  # the status predates the reboot
         if result != 0:
             raise ServoCommError(f"REBOOT of {self._who(joint)}: {self._result(result)}")
         deadline = time.monotonic() + self.reboot_timeout_s
@@ -331,7 +336,8 @@ class DynamixelDriver(ModuleDriver):
         self._write(joint, dxt.TORQUE_ENABLE, 1)
 
     def _ping(self, joint: Joint) -> int:
-        model, result, error = self._ph.ping(self._port, self.ids[joint])
+        with self._port_io(f"PING of {self._who(joint)}"):
+            model, result, error = self._ph.ping(self._port, self.ids[joint])
         if result == self._sdk_const("COMM_RX_TIMEOUT"):
             raise ServoNotFound(f"{self._who(joint)} did not answer a PING on {self.port_path} at {self.baudrate} bps")
         self._check(joint, "PING", result, error)
@@ -342,14 +348,27 @@ class DynamixelDriver(ModuleDriver):
         return int(model)
 
     def _read(self, joint: Joint, field: dxt.Field) -> int:
-        data, result, error = self._ph.readTxRx(self._port, self.ids[joint], field.address, field.size)
+        with self._port_io(f"READ of {field.name} from {self._who(joint)}"):
+            data, result, error = self._ph.readTxRx(self._port, self.ids[joint], field.address, field.size)
         self._check(joint, f"READ of {field.name}", result, error)
         return int.from_bytes(bytes(data[: field.size]), "little", signed=field.signed)
 
     def _write(self, joint: Joint, field: dxt.Field, value: int) -> None:
         data = list(value.to_bytes(field.size, "little", signed=field.signed))
-        result, error = self._ph.writeTxRx(self._port, self.ids[joint], field.address, field.size, data)
+        with self._port_io(f"WRITE of {field.name} to {self._who(joint)}"):
+            result, error = self._ph.writeTxRx(self._port, self.ids[joint], field.address, field.size, data)
         self._check(joint, f"WRITE of {field.name}={value}", result, error)
+
+    @contextlib.contextmanager
+    def _port_io(self, what: str) -> Iterator[None]:
+        """The port itself failing (a USB adapter pulled, a pty closed) as ServoCommError:
+        pyserial and termios raise their own errors from inside the SDK."""
+        try:
+            yield
+        except DriverError:
+            raise
+        except Exception as exc:  # OSError, termios.error, serial.SerialException
+            raise ServoCommError(f"{what}: port {self.port_path!r} failed: {exc}") from exc
 
     def _check(self, joint: Joint, what: str, result: int, error: int) -> None:
         """Turn one SDK result pair into an exception (or nothing)."""
@@ -363,7 +382,8 @@ class DynamixelDriver(ModuleDriver):
 
     def _alert(self, joint: Joint) -> str:
         f = dxt.HARDWARE_ERROR_STATUS
-        data, result, _ = self._ph.readTxRx(self._port, self.ids[joint], f.address, f.size)
+        with self._port_io(f"READ of {f.name} from {self._who(joint)}"):
+            data, result, _ = self._ph.readTxRx(self._port, self.ids[joint], f.address, f.size)
         if result != 0:
             return f"Hardware Error Status unreadable ({self._result(result)})"
         bits = int(data[0])

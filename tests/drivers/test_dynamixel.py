@@ -273,3 +273,19 @@ def test_driver_commands_a_module_driver_behind_the_emulator() -> None:
         assert inner.targets == pytest.approx((30.0, -20.0), abs=dxt.DEG_PER_TICK)
         assert drv.read_positions() == pytest.approx((30.0, -20.0), abs=dxt.DEG_PER_TICK)
         assert emu.error is None
+
+
+def test_a_bus_that_goes_away_is_a_servo_comm_error() -> None:
+    """The far end of the port closes under an open driver (a pulled USB adapter; here the
+    emulator's pty): reads raise ServoCommError naming the port, health() reports it."""
+    emulator = ServoEmulator((1, 2)).start()
+    driver = DynamixelDriver(emulator.port_path)
+    try:
+        emulator.stop()  # closes the pty's master: the port now fails with EIO
+        with pytest.raises(ServoCommError, match="failed") as info:
+            driver.read_positions()
+        assert emulator.port_path in str(info.value)
+        health = driver.health()
+        assert not health.ok and len(health.faults) == 2
+    finally:
+        driver.close()
