@@ -265,6 +265,11 @@ class ModuleRuntime:
         self.cycle += 1
         self.stats.cycles = self.cycle
 
+    @property
+    def commanded(self) -> tuple[float, float]:
+        """The DOF1/DOF2 targets the driver was last given (or the engine's, before any)."""
+        return self._commanded or (self.engine.dof[0], self.engine.dof[1])
+
     def _actuate(self, dof1: float, dof2: float) -> None:
         """Command the driver; report servo faults and try to recover, never stop the module."""
         driver = self.driver

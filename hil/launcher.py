@@ -23,8 +23,10 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from types import FrameType
 from typing import IO, Any
 
 from dh2rt.cli import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
@@ -134,6 +136,35 @@ def transport_problem(spec: str) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The launcher; Ctrl-C at any moment (even while starting) ends it with exit 130."""
+    sigints: list[int] = []
+
+    def on_sigint(signum: int, frame: FrameType | None) -> None:
+        sigints.append(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint) if _in_main_thread() else None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        _err("interrupted while starting")
+        return EXIT_INTERRUPTED
+    except ImportError:
+        # numpy (loaded by pybullet) turns a Ctrl-C during its import into a bare ImportError
+        if not sigints:
+            raise
+        _err("interrupted while starting")
+        return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _main(argv: list[str] | None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     try:

@@ -169,7 +169,8 @@ class ModuleHost:
             final = rt.status()
             final["event"] = "final"
             final["failed"] = self.failed
-            final["targets"] = list(self.driver.read_positions()) if self.driver is not None else None
+            # what was last commanded: the servos themselves may be gone by now
+            final["targets"] = list(self.runtime.commanded) if self.driver is not None else None
             rt.close()
             self.report(final)
         return 1 if self.failed else 0

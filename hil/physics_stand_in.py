@@ -58,9 +58,13 @@ class PhysicsStandIn(Closing):
     """One PyBullet world and one servo emulator (a pty) per module of ``topology``."""
 
     def __init__(self, topology: Topology, *, seed: int = 0) -> None:
-        self.world = PhysicsWorld(topology, seed=seed)
+        # everything close() reads exists before anything can fail (or be interrupted)
         self.lock = threading.Lock()
         self.emulators: list[ServoEmulator] = []
+        self._t0: float | None = None
+        self._steps = 0
+        self._final: tuple[float, float] | None = None  # (displacement, simulated s) once closed
+        self.world = PhysicsWorld(topology, seed=seed)
         try:
             for m in range(topology.size):
                 emulator = ServoEmulator.for_module(_LockedDriver(self.world.driver(m), self.lock))
@@ -70,9 +74,6 @@ class PhysicsStandIn(Closing):
             self.close()
             raise
         self.start_centroid = self.world.centroid()
-        self._t0: float | None = None
-        self._steps = 0
-        self._final: tuple[float, float] | None = None  # (displacement, simulated s) once closed
 
     def port(self, module: int) -> str:
         """The serial port module ``module``'s servos answer on."""
@@ -122,7 +123,7 @@ class PhysicsStandIn(Closing):
         for emulator in self.emulators:
             emulator.stop()
         self.emulators.clear()
-        if self._final is None and self.world.client >= 0:
+        if self._final is None and self.world.client >= 0 and hasattr(self, "start_centroid"):
             self._final = (self.displacement(), self.world.time)
         with self.lock:
             self.world.close()

@@ -111,8 +111,13 @@ class _ProcessModule:
             env=env,
         )
         self.pid = self.proc.pid
-        self._reader = threading.Thread(target=self._read, args=(reports,), daemon=True)
-        self._reader.start()
+        try:
+            self._reader = threading.Thread(target=self._read, args=(reports,), daemon=True)
+            self._reader.start()
+        except BaseException:  # interrupted before the world holds this handle: end it here
+            self.proc.kill()
+            self.proc.wait()
+            raise
 
     def _read(self, reports: queue.Queue[tuple[int, dict[str, Any]]]) -> None:
         assert self.proc.stdout is not None
@@ -250,12 +255,17 @@ class World:
         #: are PyBullet joints; see hil.physics_stand_in) or "none".
         self.stand_in = stand_in
         self.physics: PhysicsStandIn | None = None
-        if stand_in == "pybullet":
-            from hil.physics_stand_in import PhysicsStandIn
+        try:
+            if stand_in == "pybullet":
+                from hil.physics_stand_in import PhysicsStandIn
 
-            self.physics = PhysicsStandIn(topology, seed=seed)
-        elif stand_in not in ("recording", "none"):
-            raise WorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
+                self.physics = PhysicsStandIn(topology, seed=seed)
+            elif stand_in not in ("recording", "none"):
+                raise WorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
+        except BaseException:  # a failed or interrupted start leaves no pty or thread behind
+            if self.emulator is not None:
+                self.emulator.close()
+            raise
         self.reports: queue.Queue[tuple[int, dict[str, Any]]] = queue.Queue()
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         self.handles: list[_Handle | None] = [None] * topology.size
@@ -599,9 +609,10 @@ class World:
 
     def stop(self, grace: float = 3.0) -> None:
         """Tell every module to stop, end the stragglers by pid, close the link emulator."""
+        # _closed is set only once everything is released: a stop interrupted by a second
+        # Ctrl-C can be called again and finishes the job (every step below is idempotent)
         if self._closed:
             return
-        self._closed = True
         for m, h in enumerate(self.handles):
             if h is not None and h.running():
                 self._send(m, {"cmd": "stop"})
@@ -611,17 +622,49 @@ class World:
         for h in self.handles:
             if h is not None:
                 h.end(grace=1.0)
+        self._end_strays()
         self.poll()
         if self.emulator is not None:
             self.emulator.close()
         if self.physics is not None:
             self.physics.close()
+        self._closed = True
+
+    def _end_strays(self) -> None:
+        """End module processes this world started but holds no handle for (a Ctrl-C between
+        starting one and recording it): its own children running hil.module_process, by pid."""
+        known = {h.pid for h in self.handles if isinstance(h, _ProcessModule)}
+        for pid in _own_module_processes():
+            if pid not in known:
+                with contextlib.suppress(ProcessLookupError, ChildProcessError):
+                    os.kill(pid, signal.SIGKILL)
+                    os.waitpid(pid, 0)
 
     def __enter__(self) -> World:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _own_module_processes() -> list[int]:
+    """Pids of this process's children that run hil.module_process (Linux /proc; else none)."""
+    me = os.getpid()
+    found: list[int] = []
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return found
+    for entry in proc.iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == me and b"hil.module_process" in cmdline:
+            found.append(int(entry.name))
+    return found
 
 
 def module_pids(world: World) -> Sequence[int]:

@@ -131,6 +131,33 @@ def test_ctrl_c_ends_every_module_process_and_exits_130() -> None:
         assert not Path(f"/proc/{pid}").exists(), f"module process {pid} outlived the launcher"
 
 
+def test_ctrl_c_while_the_world_starts_leaves_nothing_behind() -> None:
+    """Interrupted while module processes are still starting (physics body and servo
+    emulators already up): exit 130, a message, no traceback, no process left."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil.launcher", "--transport", "serial", "--module-count", "4", "--cycles", "100000"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    kids: list[int] = []
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not kids:
+            time.sleep(0.01)
+            kids = _children(proc.pid)
+        assert kids, "no module process started"
+        os.kill(proc.pid, signal.SIGINT)
+        _out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    time.sleep(0.5)
+    for pid in kids + _children(proc.pid):
+        assert not Path(f"/proc/{pid}").exists(), f"module process {pid} outlived the launcher"
+
+
 def test_udp_refuses_outside_a_loopback_only_namespace(capsys: pytest.CaptureFixture[str]) -> None:
     names = [n for _i, n in socket.if_nameindex()]
     if names == ["lo"]:
