@@ -17,6 +17,7 @@ import argparse
 import gc
 import importlib
 import json
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -222,10 +223,13 @@ def cmd_run(ns: argparse.Namespace) -> int:
     progress = Progress(ns.cycles, robot.size)
 
     def body() -> None:
-        for cycle in robot.run(ns.cycles, events):
-            if trace is not None:
-                trace.write_cycle()
-            progress.update(cycle + 1)
+        with StopAtCycleEnd() as stop:
+            # without a trace nobody looks at single cycles: let the robot run in skewed windows
+            for cycle in robot.run(ns.cycles, events, every_cycle=trace is not None):
+                if trace is not None:
+                    trace.write_cycle()
+                progress.update(cycle + 1)
+                stop.check()
         progress.done()
 
     elapsed, interrupted = timed_run(body, trace)
@@ -246,11 +250,13 @@ class Progress:
         self.total = total
         self.modules = modules
         self.started = self.last = time.perf_counter()
+        self.last_cycle = 0
         self.shown = False
 
     def update(self, cycle: int) -> None:
-        if not self.enabled or cycle % 64:
+        if not self.enabled or cycle - self.last_cycle < 64:
             return
+        self.last_cycle = cycle
         now = time.perf_counter()
         if now - self.last < 0.5:
             return
@@ -264,6 +270,35 @@ class Progress:
         if self.shown:
             self.stream.write("\r" + " " * 72 + "\r")
             self.stream.flush()
+
+
+class StopAtCycleEnd:
+    """Ctrl-C stops the run at the end of the cycle (or skewed window) being computed, so the
+    summary shows every module at the same cycle; a second Ctrl-C stops at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: Any = None
+
+    def __enter__(self) -> StopAtCycleEnd:
+        try:
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        except ValueError:  # not the main thread: Ctrl-C is not ours to handle
+            self._old = None
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def _on_sigint(self, _signum: int, _frame: object) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
 
 
 def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tuple[float, bool]:

@@ -48,6 +48,10 @@ Entry = list[Any]
 # Shared empty sentinels: an idle module reads these instead of its own empty containers.
 _NO_HORMONES: dict[str, list[Entry]] = {}
 _NO_PERIODICS: dict[str, list[Any]] = {}
+_NO_NATIVES: Mapping[str, Native] = {}
+_NO_FAULTS: list[str] = []  # never appended to: see _fault
+_NO_ENTRIES: list[Entry] = []  # never appended to: steps make their own
+_NO_EMISSIONS: list[Emission] = []  # never appended to: steps make their own
 MAX_FAULTS_KEPT = 16
 
 
@@ -105,21 +109,21 @@ class Engine:
         self.dof_changed = False
         self.present: dict[str, list[Entry]] = _NO_HORMONES
         self.periodics: dict[str, list[Any]] = _NO_PERIODICS
-        self.out: list[Emission] = []
-        self.matched: list[Entry] = []
+        self.out: list[Emission] = _NO_EMISSIONS
+        self.matched: list[Entry] = _NO_ENTRIES
         self.effects: Sequence[tuple[str, tuple[Any, ...]]] = ()
-        self.faults: list[str] = []
+        self.faults: list[str] = _NO_FAULTS  # a list of its own from the first fault
         self.n_received = 0
         self.n_sent = 0
         self.n_forwarded = 0
         self.n_dropped_hops = 0
         self.n_send_failed = 0
         self.n_faults = 0
-        natives = dict(natives or {})
+        natives = natives or _NO_NATIVES  # shared, not copied: thousands of engines share one
         missing = sorted(set(program.natives) - set(natives))
         if missing:
             raise DH2Error(f"program {program.name} needs native action(s) the runtime lacks: {', '.join(missing)}")
-        self.natives = natives
+        self.natives: Mapping[str, Native] = natives
 
     # ------------------------------------------------------------ what callers read
 
@@ -304,6 +308,11 @@ class Engine:
         self.n_sent += len(out)
         timer = self.timer + 1
         self.timer = 0 if timer >= self.clock else timer
+        # Let go of this step's scratch now, while it is in cache: kept until the module's
+        # next step, it would be a third of the module's memory, freed when long gone cold.
+        self.present = _NO_HORMONES
+        self.matched = _NO_ENTRIES
+        self.out = _NO_EMISSIONS
         return out
 
     def _forward(self, present: dict[str, list[Entry]], bound: set[int], out: list[Emission]) -> None:
@@ -335,5 +344,7 @@ class Engine:
 
     def _fault(self, message: str) -> None:
         self.n_faults += 1
+        if self.faults is _NO_FAULTS:
+            self.faults = []
         self.faults.append(message)
         del self.faults[:-MAX_FAULTS_KEPT]

@@ -24,6 +24,7 @@ from dh2rt.errors import TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
 from dh2rt.topology import Link, Topology
 
 #: Cycles the in-process world takes to carry out a "reach_and_dock" (bend, align, latch).
@@ -80,6 +81,10 @@ class Robot:
         self.skip_quiet = skip_quiet
         self._slept_at: list[int] = [-1] * self.size  # cycle it fell asleep, -1 awake
         self._wake_at: dict[int, list[int]] = {}
+        #: advance() steps windows of up to skew_depth cycles over blocks of skew_block modules
+        self.skew_block = DEFAULT_BLOCK
+        self.skew_depth = DEFAULT_DEPTH
+        self._skew_plan: SkewPlan | None = None
         self.peer: dict[tuple[int, int], tuple[int, int]] = {}
         # the same links per module, indexed by connector: the hot path's lookup
         self._adjacent: list[list[tuple[int, int] | None]] = [
@@ -148,6 +153,7 @@ class Robot:
         self.peer[(a, a_conn)] = (b, b_conn)
         self.peer[(b, b_conn)] = (a, a_conn)
         self._adjacent[a][a_conn] = (b, b_conn)
+        self._skew_plan = None  # the links changed
         self._adjacent[b][b_conn] = (a, a_conn)
         for m, c, rc in ((a, a_conn, b_conn), (b, b_conn, a_conn)):
             e = self.engines[m]
@@ -162,6 +168,7 @@ class Robot:
             raise TopologyError(f"cannot cut {self.where(module, connector)}: nothing is docked there")
         del self.peer[other]
         self._adjacent[module][connector] = None
+        self._skew_plan = None  # the links changed
         self._adjacent[other[0]][other[1]] = None
         self._wake(module)
         self._wake(other[0])
@@ -236,66 +243,139 @@ class Robot:
             self.pending = [(w, a) for w, a in self.pending if w > self.cycle]
             for action in due:
                 action()
-        inbox = self.inbox
-        nxt: dict[int, list[Arrival]] = {}
-        engines = self.engines
-        adjacent = self._adjacent
-        record = self.record
-        effects: list[tuple[int, str, tuple[Any, ...]]] = []
-        nothing: list[Arrival] = []
-        slept_at = self._slept_at
-        cycle = self.cycle
-        sleep = self.skip_quiet and not record
-        # wake who has mail or is due now
-        for m in inbox:
-            if slept_at[m] >= 0:
-                self._wake(m)
-        for m in self._wake_at.pop(cycle, ()):
-            if slept_at[m] >= 0:
-                self._wake(m)
-        if not sleep and any(s >= 0 for s in slept_at):
+        if (not self.skip_quiet or self.record) and any(s >= 0 for s in self._slept_at):
             for m in range(self.size):
                 self._wake(m)
-        for m in self.step_order:
-            if slept_at[m] >= 0:
-                continue
-            e = engines[m]
-            if e is None:
-                continue
-            arrivals = inbox.get(m, nothing)
-            if len(arrivals) > 1:
-                arrivals.sort(key=_by_connector)
-            out = e.step(arrivals)
-            for through, h in out:
-                target = adjacent[m][through]
-                if target is None or engines[target[0]] is None:
-                    e.send_failed(through)
-                else:
-                    box = nxt.get(target[0])
-                    if box is None:
-                        nxt[target[0]] = [Arrival(target[1], through, h)]
-                    else:
-                        box.append(Arrival(target[1], through, h))
-            if e.effects:
-                effects.extend((m, kind, args) for kind, args in e.effects)
-            if record:
-                self.records.append(CycleRecord(self.cycle, m, list(arrivals), list(out)))
-            elif sleep:
-                quiet = e.quiet_cycles()
-                if quiet is None:
-                    slept_at[m] = cycle + 1
-                elif quiet > 0:
-                    slept_at[m] = cycle + 1
-                    self._wake_at.setdefault(cycle + 1 + quiet, []).append(m)
+        nxt: dict[int, list[Arrival]] = {}
+        wakes = [set(self._wake_at.pop(self.cycle, ()))]
+        effects = self._sweep(((0, self.step_order),), self.cycle, [self.inbox, nxt], wakes)
         self.inbox = nxt
+        self._carry_out(effects)
+        self.cycle += 1
+
+    def advance(self, cycles: int) -> None:
+        """Run ``cycles`` cycles with no events: exactly what calling :meth:`step` that many
+        times does, done in time-skewed windows (:mod:`dh2rt.skew`) whenever the world holds
+        still over one: nothing scheduled, no native actions, no trace being recorded."""
+        end = self.cycle + cycles
+        while self.cycle < end:
+            window = min(self.skew_depth, end - self.cycle)
+            if window > 1 and self._can_skew(window):
+                self._skewed(window)
+            else:
+                self.step()
+
+    def _can_skew(self, window: int) -> bool:
+        return (
+            self.skip_quiet
+            and not self.record
+            and not self.program.natives
+            and all(when >= self.cycle + window for when, _ in self.pending)
+        )
+
+    def _skewed(self, window: int) -> None:
+        """Cycles ``cycle .. cycle+window-1`` in the two phases of :mod:`dh2rt.skew`."""
+        plan = self._skew_plan
+        if plan is None or (plan.block, plan.depth) != (self.skew_block, self.skew_depth):
+            neighbours = [sorted({t[0] for t in adj if t is not None}) for adj in self._adjacent]
+            plan = self._skew_plan = make_plan(neighbours, block=self.skew_block, depth=self.skew_depth)
+        t0 = self.cycle
+        boxes: list[dict[int, list[Arrival]]] = [self.inbox] + [{} for _ in range(window)]
+        wakes = [set(self._wake_at.pop(t0 + i, ())) for i in range(window)]
+        effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        for rounds in plan.rounds:
+            effects += self._sweep(enumerate(rounds[:window]), t0, boxes, wakes)
+        effects += self._sweep(((i, plan.band[i]) for i in range(1, window)), t0, boxes, wakes)
+        self.inbox = boxes[window]
+        self.cycle = t0 + window - 1
+        self._carry_out(effects)  # none without native actions; kept for the contract
+        self.cycle += 1
+
+    def _sweep(
+        self,
+        rounds: Iterable[tuple[int, Sequence[int]]],
+        t0: int,
+        boxes: list[dict[int, list[Arrival]]],
+        wakes: list[set[int]],
+    ) -> list[tuple[int, str, tuple[Any, ...]]]:
+        """Step cycle ``t0+i`` of each listed module, for each round ``(i, modules)``.
+
+        ``boxes[i]`` holds the mail for cycle t0+i (what is sent goes to ``boxes[i+1]``) and
+        ``wakes[i]`` the sleeping modules due at t0+i; the caller guarantees each module's
+        neighbours have done cycle t0+i-1 and none has done t0+i+1.
+        """
+        engines = self.engines
+        adjacent = self._adjacent
+        slept_at = self._slept_at
+        record = self.record
+        sleep = self.skip_quiet and not record
+        window = len(wakes)
+        effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        nothing: list[Arrival] = []
+        for i, members in rounds:
+            cycle = t0 + i
+            box = boxes[i]
+            nxt = boxes[i + 1]
+            wake = wakes[i]
+            for m in members:
+                slept = slept_at[m]
+                if slept >= 0:
+                    if m not in box and m not in wake:
+                        continue  # asleep: this cycle would only advance its LocalTimer
+                    e = engines[m]
+                    if e is None:
+                        continue
+                    if cycle > slept:
+                        e.skip(cycle - slept)
+                    slept_at[m] = -1
+                else:
+                    e = engines[m]
+                    if e is None:
+                        continue
+                arrivals = box.pop(m, nothing)  # freed after this step, while in cache
+                if len(arrivals) > 1:
+                    arrivals.sort(key=_by_connector)
+                out = e.step(arrivals)
+                for through, h in out:
+                    target = adjacent[m][through]
+                    if target is None or engines[target[0]] is None:
+                        e.send_failed(through)
+                    else:
+                        mail = nxt.get(target[0])
+                        if mail is None:
+                            nxt[target[0]] = [Arrival(target[1], through, h)]
+                        else:
+                            mail.append(Arrival(target[1], through, h))
+                if e.effects:
+                    effects.extend((m, kind, args) for kind, args in e.effects)
+                if record:
+                    self.records.append(CycleRecord(cycle, m, list(arrivals), list(out)))
+                elif sleep:
+                    quiet = e.quiet_cycles()
+                    if quiet is None:
+                        slept_at[m] = cycle + 1
+                    elif quiet > 0:
+                        slept_at[m] = cycle + 1
+                        due = i + 1 + quiet
+                        if due < window:
+                            wakes[due].add(m)
+                        else:
+                            self._wake_at.setdefault(t0 + due, []).append(m)
+        return effects
+
+    def _carry_out(self, effects: list[tuple[int, str, tuple[Any, ...]]]) -> None:
         for m, kind, args in effects:
             handler = self.effect_handlers.get(kind)
             if handler is not None:
                 handler(self, m, args)
-        self.cycle += 1
 
-    def run(self, cycles: int, events: Iterable[Event] = ()) -> Iterator[int]:
-        """Run ``cycles`` cycles applying events at their cycles; yields each finished cycle."""
+    def run(self, cycles: int, events: Iterable[Event] = (), *, every_cycle: bool = True) -> Iterator[int]:
+        """Run ``cycles`` cycles applying events at their cycles; yields each finished cycle.
+
+        With ``every_cycle=False`` the cycles between events go through :meth:`advance`
+        (time-skewed windows) and only the last cycle of each window is yielded: the same
+        run, faster on large robots, for callers that do not look at every cycle.
+        """
         by_cycle: dict[int, list[Event]] = {}
         for ev in events:
             by_cycle.setdefault(ev.cycle, []).append(ev)
@@ -303,7 +383,11 @@ class Robot:
         while self.cycle < end:
             for ev in by_cycle.pop(self.cycle, []):
                 self.apply(ev)
-            self.step()
+            if every_cycle:
+                self.step()
+            else:
+                later = [c for c in by_cycle if c > self.cycle]
+                self.advance(min([end, self.skew_depth + self.cycle, *later]) - self.cycle)
             yield self.cycle - 1
 
     def summary(self) -> list[dict[str, Any]]:

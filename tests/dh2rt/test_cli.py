@@ -139,3 +139,34 @@ def test_progress_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     assert "cycle 64/1280 (5%)" in tty.getvalue() and "module-cycles/s" in tty.getvalue()
     assert tty.getvalue().endswith("\r")  # the line is cleared at the end
     assert pipe.getvalue() == ""
+
+
+def test_ctrl_c_stops_at_a_whole_cycle(examples: Path, caterpillar: object) -> None:
+    """Ctrl-C: exit 130 and a summary of every module at one cycle, the very state a run of
+    exactly that many cycles ends in (the run goes in skewed windows; none is left half done)."""
+    import signal
+    import time
+
+    from dh2rt.robot import Robot
+    from dh2rt.topology import parse_spec
+
+    args = ["run", str(examples / "caterpillar.dh2"), "--topology", "snake:3000", "--cycles", "10000000", "--json"]
+    exe = Path(sys.executable).with_name("dh2rt")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
+    proc = subprocess.Popen([*cmd, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        time.sleep(3.0)  # well into the run: start-up takes about 1 s
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    summary = json.loads(out)
+    cycles = summary["cycles"]
+    assert 0 < cycles < 10000000 and f"interrupted at cycle {cycles}" in err
+    robot = Robot(caterpillar, parse_spec("snake:3000"), seed=0)  # type: ignore[arg-type]
+    robot.advance(cycles)
+    expected = json.loads(json.dumps(robot.summary()))
+    assert summary["modules"] == expected
