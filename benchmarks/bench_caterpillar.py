@@ -1,8 +1,10 @@
 """Caterpillar (Table I) on snakes of 10 to 10,000 modules in one process, on one core.
 
 Reports module-cycles per second, the per-module cost at 10,000 against that at 100, and
-memory per module; the baseline, run in the same process on the same snakes, is the same
-engine with the receptor index turned off (every receptor tried every cycle, as the
+memory per module. The robot runs headless as ``dh2rt run`` does, with ``Robot.advance``
+(time-skewed windows, see dh2rt/skew.py). Two baselines run in the same process on the same
+snakes: plain lockstep (``Robot.step`` every cycle: every module's state touched every few
+cycles), and the receptor index turned off (every receptor tried every cycle, as the
 paper's loop does).
 
 Snakes start in the wave's steady state: the hormones in flight at cycle 0 are placed where
@@ -49,15 +51,19 @@ def steady_state_robot(program: CompiledProgram, n: int, seed: int = 1) -> Robot
     return robot
 
 
-def measure(program: CompiledProgram, n: int, cycles: int) -> tuple[float, list[int]]:
+def measure(program: CompiledProgram, n: int, cycles: int, lockstep: bool = False) -> tuple[float, list[int]]:
     robot = steady_state_robot(program, n)
+    robot.advance(program.clock_cycle)  # untimed: every module settles into its sleep/wake rhythm
     before = [robot.engine(m).counters["received"] for m in range(n)]
     gc.collect()
     gc.disable()
     try:
         t0 = time.perf_counter()
-        for _ in range(cycles):
-            robot.step()
+        if lockstep:
+            for _ in range(cycles):
+                robot.step()
+        else:
+            robot.advance(cycles)
         elapsed = time.perf_counter() - t0
     finally:
         gc.enable()
@@ -70,8 +76,7 @@ def memory_per_module(program: CompiledProgram, n: int) -> float:
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]
     robot = steady_state_robot(program, n)
-    for _ in range(program.clock_cycle):
-        robot.step()
+    robot.advance(program.clock_cycle)  # with the skew plan and one ClockCycle's garbage
     used = tracemalloc.get_traced_memory()[0] - base
     tracemalloc.stop()
     del robot
@@ -89,12 +94,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     work = 200_000 if args.quick else 2_000_000  # module-cycles per measurement
     sizes = (10, 100, 1000) if args.quick else (10, 100, 1000, 10000)
     rows: list[dict[str, Any]] = []
+    modes = {"indexed": (indexed, False), "lockstep": (indexed, True), "flat": (flat, False)}
     for n in sizes:
         cycles = max(clock, work // n // clock * clock)  # whole ClockCycles
-        best = {"indexed": float("inf"), "flat": float("inf")}
+        best = dict.fromkeys(modes, float("inf"))
         for _ in range(1 if args.quick else 3):  # interleaved, best of 3
-            for name, prog in (("indexed", indexed), ("flat", flat)):
-                elapsed, received = measure(prog, n, cycles)
+            for name, (prog, lockstep) in modes.items():
+                elapsed, received = measure(prog, n, cycles, lockstep)
                 best[name] = min(best[name], elapsed)
                 per_clock = [r * clock / cycles for r in received[1:]]
                 assert all(x == 4 for x in per_clock), f"snake:{n} is not in steady state: {set(per_clock)}"
@@ -105,20 +111,24 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "cycles": cycles,
                 "module_cycles_per_s": rate,
                 "ns_per_module_cycle": 1e9 / rate,
+                "lockstep_ns_per_module_cycle": 1e9 * best["lockstep"] / (n * cycles),
+                "speedup_vs_lockstep": best["lockstep"] / best["indexed"],
                 "flat_module_cycles_per_s": n * cycles / best["flat"],
                 "speedup_vs_flat": best["flat"] / best["indexed"],
             }
         )
         print(
-            f"  snake:{n:<6} {cycles:>6} cycles: {rate:>12,.0f} module-cycles/s ({1e9 / rate:6.0f} ns each); "
-            f"without the index {n * cycles / best['flat']:>11,.0f}/s -> index {best['flat'] / best['indexed']:.2f}x"
+            f"  snake:{n:<6} {cycles:>6} cycles: {rate:>10,.0f} module-cycles/s ({1e9 / rate:4.0f} ns each); "
+            f"lockstep {1e9 * best['lockstep'] / (n * cycles):4.0f} ns ({best['lockstep'] / best['indexed']:.2f}x); "
+            f"without the index {n * cycles / best['flat']:>9,.0f}/s ({best['flat'] / best['indexed']:.2f}x)"
         )
     by_n = {r["modules"]: r for r in rows}
     mem_n = 1000 if args.quick else 10000
     mem = memory_per_module(indexed, mem_n)
     largest = max(sizes)
     scaling = by_n[largest]["ns_per_module_cycle"] / by_n[100]["ns_per_module_cycle"]
-    print(f"  per-module cost at {largest} / at 100: {scaling:.2f} (target <= 1.3)")
+    lockstep_scaling = by_n[largest]["lockstep_ns_per_module_cycle"] / by_n[100]["lockstep_ns_per_module_cycle"]
+    print(f"  per-module cost at {largest} / at 100: {scaling:.2f} (target <= 1.3); lockstep: {lockstep_scaling:.2f}")
     print(f"  memory per module (snake:{mem_n}, tracemalloc): {mem:,.0f} bytes (target <= 10,000)")
     print(f"  at 1,000 modules: {by_n[1000]['module_cycles_per_s']:,.0f} module-cycles/s (target >= 250,000)")
     result = {
@@ -127,6 +137,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "rows": rows,
         "module_cycles_per_s_at_1000": by_n[1000]["module_cycles_per_s"],
         "cost_ratio_largest_vs_100": scaling,
+        "lockstep_cost_ratio_largest_vs_100": lockstep_scaling,
         "largest": largest,
         "bytes_per_module": mem,
         "targets": {"module_cycles_per_s_at_1000": 250000, "cost_ratio": 1.3, "bytes_per_module": 10000},

@@ -247,8 +247,9 @@ class Robot:
             for m in range(self.size):
                 self._wake(m)
         nxt: dict[int, list[Arrival]] = {}
-        wakes = [set(self._wake_at.pop(self.cycle, ()))]
-        effects = self._sweep(((0, self.step_order),), self.cycle, [self.inbox, nxt], wakes)
+        boxes = [self.inbox, nxt]
+        self._due_in(boxes, self.cycle)
+        effects = self._sweep(((0, self.step_order),), self.cycle, boxes)
         self.inbox = nxt
         self._carry_out(effects)
         self.cycle += 1
@@ -281,46 +282,47 @@ class Robot:
             plan = self._skew_plan = make_plan(neighbours, block=self.skew_block, depth=self.skew_depth)
         t0 = self.cycle
         boxes: list[dict[int, list[Arrival]]] = [self.inbox] + [{} for _ in range(window)]
-        wakes = [set(self._wake_at.pop(t0 + i, ())) for i in range(window)]
+        self._due_in(boxes, t0)
         effects: list[tuple[int, str, tuple[Any, ...]]] = []
-        for rounds in plan.rounds:
-            effects += self._sweep(enumerate(rounds[:window]), t0, boxes, wakes)
-        effects += self._sweep(((i, plan.band[i]) for i in range(1, window)), t0, boxes, wakes)
+        for sweep in plan.sweeps:
+            effects += self._sweep(sweep.rounds(window), t0, boxes)
         self.inbox = boxes[window]
         self.cycle = t0 + window - 1
         self._carry_out(effects)  # none without native actions; kept for the contract
         self.cycle += 1
 
+    def _due_in(self, boxes: list[dict[int, list[Arrival]]], t0: int) -> None:
+        """Give each sleeping module due at cycle t0+i a (maybe empty) mailbox in ``boxes[i]``:
+        a sleeping module steps when it has a mailbox, and sleeps on otherwise."""
+        for i, box in enumerate(boxes[:-1]):
+            for m in self._wake_at.pop(t0 + i, ()):
+                box.setdefault(m, [])
+
     def _sweep(
-        self,
-        rounds: Iterable[tuple[int, Sequence[int]]],
-        t0: int,
-        boxes: list[dict[int, list[Arrival]]],
-        wakes: list[set[int]],
+        self, rounds: Iterable[tuple[int, Sequence[int]]], t0: int, boxes: list[dict[int, list[Arrival]]]
     ) -> list[tuple[int, str, tuple[Any, ...]]]:
         """Step cycle ``t0+i`` of each listed module, for each round ``(i, modules)``.
 
-        ``boxes[i]`` holds the mail for cycle t0+i (what is sent goes to ``boxes[i+1]``) and
-        ``wakes[i]`` the sleeping modules due at t0+i; the caller guarantees each module's
-        neighbours have done cycle t0+i-1 and none has done t0+i+1.
+        ``boxes[i]`` holds the mailboxes for cycle t0+i (what is sent goes to ``boxes[i+1]``);
+        the caller guarantees each listed module's neighbours have done cycle t0+i-1 and
+        none has done t0+i+1.
         """
         engines = self.engines
         adjacent = self._adjacent
         slept_at = self._slept_at
         record = self.record
         sleep = self.skip_quiet and not record
-        window = len(wakes)
+        window = len(boxes) - 1
         effects: list[tuple[int, str, tuple[Any, ...]]] = []
         nothing: list[Arrival] = []
         for i, members in rounds:
             cycle = t0 + i
             box = boxes[i]
             nxt = boxes[i + 1]
-            wake = wakes[i]
             for m in members:
                 slept = slept_at[m]
                 if slept >= 0:
-                    if m not in box and m not in wake:
+                    if m not in box:
                         continue  # asleep: this cycle would only advance its LocalTimer
                     e = engines[m]
                     if e is None:
@@ -358,7 +360,7 @@ class Robot:
                         slept_at[m] = cycle + 1
                         due = i + 1 + quiet
                         if due < window:
-                            wakes[due].add(m)
+                            boxes[due].setdefault(m, [])
                         else:
                             self._wake_at.setdefault(t0 + due, []).append(m)
         return effects

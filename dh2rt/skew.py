@@ -18,7 +18,9 @@ of W cycles starting at t0:
               t0+i-1 already (in this block's round i-1, or at t0 if i = 0), so its mail is
               complete; each block's state is reused W times while it is in cache.
     phase 2   for i = 1 .. W-1: step cycle t0+i of each module with d <= i, the lagging
-              band near block borders, in plain lockstep.
+              band near block borders, in plain lockstep. The band falls apart into pieces
+              around each border; each piece runs as soon as the blocks it lies in are done,
+              while they are still in cache.
 
 After both phases every module has done cycles t0 .. t0+W-1 exactly once, each with
 exactly the mail lockstep would have given it: neighbours' cycles never differ by more
@@ -42,15 +44,29 @@ DEFAULT_DEPTH = 16
 
 
 @dataclass(frozen=True, slots=True)
+class Sweep:
+    """Rounds ``first, first+1, ...``: round ``first+k`` steps ``modules[:counts[k]]``."""
+
+    first: int
+    modules: tuple[int, ...]
+    counts: tuple[int, ...]
+
+    def rounds(self, window: int) -> list[tuple[int, tuple[int, ...]]]:
+        """(i, modules stepping cycle t0+i) for the rounds with i < ``window``."""
+        out = []
+        for k, count in enumerate(self.counts[: max(0, window - self.first)]):
+            out.append((self.first + k, self.modules if count == len(self.modules) else self.modules[:count]))
+        return out
+
+
+@dataclass(frozen=True, slots=True)
 class SkewPlan:
     """Which modules step in which round of a skewed window (see the module docs)."""
 
     block: int
     depth: int
-    #: per block, per round i (0 .. depth-1): the block's modules with d > i, in index order
-    rounds: tuple[tuple[tuple[int, ...], ...], ...]
-    #: per round i (0 .. depth-1): the modules with d <= i, in index order (empty for i = 0)
-    band: tuple[tuple[int, ...], ...]
+    #: in order: each block's phase 1, then the pieces of the band whose blocks are all done
+    sweeps: tuple[Sweep, ...]
 
 
 def breadth_first_order(neighbours: Sequence[Sequence[int]]) -> list[int]:
@@ -80,15 +96,40 @@ def make_plan(
     if block < 1 or depth < 1:
         raise ValueError("block and depth must be at least 1")
     order = breadth_first_order(neighbours)
+    blocks = [sorted(order[i : i + block]) for i in range(0, len(order), block)]
     in_block = [0] * len(neighbours)
-    blocks = [order[i : i + block] for i in range(0, len(order), block)]
     for b, members in enumerate(blocks):
         for m in members:
             in_block[m] = b
-    dist = [depth] * len(neighbours)  # d capped at depth: rounds beyond it do not exist
-    rounds: list[tuple[tuple[int, ...], ...]] = []
+    dist = _distances_to_block_border(neighbours, blocks, in_block, depth)
+    band = _band_pieces(neighbours, dist, depth)
+    # a piece of the band depends only on its own modules' blocks: run it right after the
+    # last of them, while they are still in cache
+    after: dict[int, list[list[int]]] = {}
+    for piece in band:
+        after.setdefault(max(in_block[m] for m in piece), []).append(piece)
+    sweeps: list[Sweep] = []
     for b, members in enumerate(blocks):
-        # multi-source breadth-first search inside the block from its border (d = 1)
+        # phase 1, round i: d > i; farthest from the border first, so each round is a prefix
+        inner = tuple(sorted(members, key=lambda m: -dist[m]))
+        sweeps.append(Sweep(0, inner, tuple(sum(dist[m] > i for m in inner) for i in range(depth))))
+        for piece in after.get(b, ()):
+            # phase 2, round i: d <= i; nearest to the border first
+            outer = tuple(sorted(piece, key=lambda m: dist[m]))
+            sweeps.append(Sweep(1, outer, tuple(sum(dist[m] <= i for m in outer) for i in range(1, depth))))
+    return SkewPlan(block, depth, tuple(sweeps))
+
+
+def _distances_to_block_border(
+    neighbours: Sequence[Sequence[int]], blocks: Sequence[Sequence[int]], in_block: Sequence[int], depth: int
+) -> list[int]:
+    """d of each module (capped at ``depth``): links to the nearest module of another block.
+
+    A shortest way out of the block leaves it from a border module (one with a neighbour in
+    another block, d = 1), so a breadth-first search inside each block from its border gives d.
+    """
+    dist = [depth] * len(neighbours)
+    for b, members in enumerate(blocks):
         queue: deque[int] = deque()
         for m in members:
             if any(in_block[k] != b for k in neighbours[m]):
@@ -97,15 +138,36 @@ def make_plan(
         reached = set(queue)
         while queue:
             m = queue.popleft()
-            if dist[m] >= depth:
+            if dist[m] + 1 >= depth:
                 continue
             for k in neighbours[m]:
                 if k not in reached and in_block[k] == b:
                     reached.add(k)
                     dist[k] = dist[m] + 1
                     queue.append(k)
-        ordered = sorted(members)
-        rounds.append(tuple(tuple(m for m in ordered if dist[m] > i) for i in range(depth)))
-    everyone = range(len(neighbours))
-    band = tuple(tuple(m for m in everyone if dist[m] <= i) for i in range(depth))
-    return SkewPlan(block, depth, tuple(rounds), band)
+    return dist
+
+
+def _band_pieces(neighbours: Sequence[Sequence[int]], dist: Sequence[int], depth: int) -> list[list[int]]:
+    """The connected pieces of the band (modules with d < depth), each in index order.
+
+    Phase 2 steps a band module at round i only after its band neighbours' round i-1, and
+    its neighbours outside the band are done with the whole window already, so pieces with
+    no link between them can be run one after the other.
+    """
+    seen = [False] * len(neighbours)
+    pieces: list[list[int]] = []
+    for start in range(len(neighbours)):
+        if seen[start] or dist[start] >= depth:
+            continue
+        seen[start] = True
+        piece, queue = [], deque([start])
+        while queue:
+            m = queue.popleft()
+            piece.append(m)
+            for k in neighbours[m]:
+                if not seen[k] and dist[k] < depth:
+                    seen[k] = True
+                    queue.append(k)
+        pieces.append(sorted(piece))
+    return pieces

@@ -47,11 +47,9 @@ def test_plan_steps_every_module_once_per_cycle_after_its_neighbours(spec: str, 
             neighbours[k.b].append(k.a)
         plan = make_plan(neighbours, block=block, depth=depth)
         assert sorted(breadth_first_order(neighbours)) == list(range(topo.size))
-        # replay the plan: phase 1 block by block, then phase 2; done[m] = cycles done
+        # replay the plan's sweeps in order; done[m] = cycles module m has done
         done = [0] * topo.size
-        rounds = [r for b in plan.rounds for r in enumerate(b)] + [(i, plan.band[i]) for i in range(1, depth)]
-        assert plan.band[0] == ()
-        for i, members in rounds:
+        for i, members in (r for sweep in plan.sweeps for r in sweep.rounds(depth)):
             for m in members:
                 assert done[m] == i, "each module does its cycles in order, once each"
                 assert all(i <= done[k] <= i + 1 for k in neighbours[m]), "mail complete, none pending"
