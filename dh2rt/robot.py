@@ -260,11 +260,20 @@ class Robot:
         still over one: nothing scheduled, no native actions, no trace being recorded."""
         end = self.cycle + cycles
         while self.cycle < end:
-            window = min(self.skew_depth, end - self.cycle)
-            if window > 1 and self._can_skew(window):
-                self._skewed(window)
-            else:
-                self.step()
+            left = end - self.cycle
+            if left > 1 and self._can_skew(min(left, self.skew_depth)):
+                window = min(left, self._plan().depth)
+                if window > 1:
+                    self._skewed(window)
+                    continue
+            self.step()
+
+    def _plan(self) -> SkewPlan:
+        plan = self._skew_plan
+        if plan is None or (plan.block, plan.requested) != (self.skew_block, self.skew_depth):
+            neighbours = [sorted({t[0] for t in adj if t is not None}) for adj in self._adjacent]
+            plan = self._skew_plan = make_plan(neighbours, block=self.skew_block, depth=self.skew_depth)
+        return plan
 
     def _can_skew(self, window: int) -> bool:
         return (
@@ -276,10 +285,7 @@ class Robot:
 
     def _skewed(self, window: int) -> None:
         """Cycles ``cycle .. cycle+window-1`` in the two phases of :mod:`dh2rt.skew`."""
-        plan = self._skew_plan
-        if plan is None or (plan.block, plan.depth) != (self.skew_block, self.skew_depth):
-            neighbours = [sorted({t[0] for t in adj if t is not None}) for adj in self._adjacent]
-            plan = self._skew_plan = make_plan(neighbours, block=self.skew_block, depth=self.skew_depth)
+        plan = self._plan()
         t0 = self.cycle
         boxes: list[dict[int, list[Arrival]]] = [self.inbox] + [{} for _ in range(window)]
         self._due_in(boxes, t0)
