@@ -91,13 +91,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     indexed = compile_program(ast_program)
     flat = compile_program(ast_program, indexed=False)
     clock = indexed.clock_cycle
-    work = 200_000 if args.quick else 2_000_000  # module-cycles per measurement
+    work = 200_000 if args.quick else 1_280_000  # module-cycles per measurement
     sizes = (10, 100, 1000) if args.quick else (10, 100, 1000, 10000)
     rows: list[dict[str, Any]] = []
     modes = {"indexed": (indexed, False), "lockstep": (indexed, True), "flat": (flat, False)}
     cycles_for = {n: max(clock, work // n // clock * clock) for n in sizes}  # whole ClockCycles
     best = {(n, name): float("inf") for n in sizes for name in modes}
-    repeats = 1 if args.quick else 5
+    repeats = 1 if args.quick else 9
     # Every size and mode in each round, best of the rounds: the machine's load swings over
     # a run, and it must not fall on one size only. The slow unindexed reference: 2 rounds.
     for round_ in range(repeats):

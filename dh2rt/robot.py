@@ -257,7 +257,8 @@ class Robot:
     def advance(self, cycles: int) -> None:
         """Run ``cycles`` cycles with no events: exactly what calling :meth:`step` that many
         times does, done in time-skewed windows (:mod:`dh2rt.skew`) whenever the world holds
-        still over one: nothing scheduled, no native actions, no trace being recorded."""
+        still over one: nothing scheduled, no native actions, no trace being recorded, and
+        more modules than one block."""
         end = self.cycle + cycles
         while self.cycle < end:
             left = end - self.cycle
@@ -277,7 +278,8 @@ class Robot:
 
     def _can_skew(self, window: int) -> bool:
         return (
-            self.skip_quiet
+            self.size > self.skew_block  # a robot within one block stays in cache anyway
+            and self.skip_quiet
             and not self.record
             and not self.program.natives
             and all(when >= self.cycle + window for when, _ in self.pending)
@@ -294,7 +296,7 @@ class Robot:
             effects += self._sweep(sweep.rounds(window), t0, boxes)
         self.inbox = boxes[window]
         self.cycle = t0 + window - 1
-        self._carry_out(effects)  # none without native actions; kept for the contract
+        self._carry_out(effects)  # empty: only programs without native actions run in windows
         self.cycle += 1
 
     def _due_in(self, boxes: list[dict[int, list[Arrival]]], t0: int) -> None:

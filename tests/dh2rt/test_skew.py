@@ -116,6 +116,7 @@ def test_advance_falls_back_to_steps_when_the_world_may_change(legs_to_snake: Co
     topo = parse_spec("dragon")
     inject = parse_event("3:inject:tail1:LTS", topo, legs_to_snake.vocabulary)
     stepped, skewed = Robot(legs_to_snake, topo, seed=8), Robot(legs_to_snake, topo, seed=8)
+    skewed.skew_block = 4
     for robot in (stepped, skewed):
         robot.advance(3)
         robot.apply(inject)
@@ -130,6 +131,7 @@ def test_advance_falls_back_to_steps_when_the_world_may_change(legs_to_snake: Co
 def test_advance_keeps_scheduled_actions_on_their_cycle(caterpillar: CompiledProgram) -> None:
     topo = parse_spec("snake:30")
     stepped, skewed = Robot(caterpillar, topo, seed=4), Robot(caterpillar, topo, seed=4)
+    skewed.skew_block = 8
     for robot in (stepped, skewed):
         robot.schedule(23, lambda r=robot: r.cut(10, 1))  # type: ignore[misc]
     for _ in range(80):
@@ -141,6 +143,7 @@ def test_advance_keeps_scheduled_actions_on_their_cycle(caterpillar: CompiledPro
 
 def test_recording_robot_steps_every_cycle(caterpillar: CompiledProgram) -> None:
     robot = Robot(caterpillar, parse_spec("snake:5"), seed=1, record=True)
+    robot.skew_block = 2
     robot.advance(20)
     assert sorted({r.cycle for r in robot.records}) == list(range(20))
     assert robot._skew_plan is None
