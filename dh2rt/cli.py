@@ -221,9 +221,10 @@ def cmd_run(ns: argparse.Namespace) -> int:
     gc.freeze()
 
     progress = Progress(ns.cycles, robot.size)
+    stop = StopAtCycleEnd()
 
     def body() -> None:
-        with StopAtCycleEnd() as stop:
+        with stop:
             # without a trace nobody looks at single cycles: let the robot run in skewed windows
             for cycle in robot.run(ns.cycles, events, every_cycle=trace is not None):
                 if trace is not None:
@@ -235,7 +236,10 @@ def cmd_run(ns: argparse.Namespace) -> int:
     elapsed, interrupted = timed_run(body, trace)
     print_summary(robot, elapsed, as_json=ns.json)
     if interrupted:
-        _err(f"interrupted at cycle {robot.cycle}")
+        if stop.forced:
+            _err(f"interrupted during cycle {robot.cycle}: modules may be at different cycles")
+        else:
+            _err(f"interrupted at cycle {robot.cycle}")
         return EXIT_INTERRUPTED
     return EXIT_OK
 
@@ -278,6 +282,7 @@ class StopAtCycleEnd:
 
     def __init__(self) -> None:
         self.requested = False
+        self.forced = False  # the second Ctrl-C: stopped wherever the run was
         self._old: Any = None
 
     def __enter__(self) -> StopAtCycleEnd:
@@ -293,6 +298,7 @@ class StopAtCycleEnd:
 
     def _on_sigint(self, _signum: int, _frame: object) -> None:
         if self.requested:
+            self.forced = True
             raise KeyboardInterrupt
         self.requested = True
 

@@ -170,3 +170,22 @@ def test_ctrl_c_stops_at_a_whole_cycle(examples: Path, caterpillar: object) -> N
     robot.advance(cycles)
     expected = json.loads(json.dumps(robot.summary()))
     assert summary["modules"] == expected
+
+
+def test_second_ctrl_c_stops_at_once() -> None:
+    import signal
+
+    from dh2rt.cli import StopAtCycleEnd
+
+    before = signal.getsignal(signal.SIGINT)
+    with StopAtCycleEnd() as stop:
+        assert signal.getsignal(signal.SIGINT) is not before
+        stop.check()  # nothing asked yet
+        signal.raise_signal(signal.SIGINT)
+        assert stop.requested and not stop.forced
+        with pytest.raises(KeyboardInterrupt):
+            stop.check()
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        assert stop.forced
+    assert signal.getsignal(signal.SIGINT) is before
