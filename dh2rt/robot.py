@@ -427,17 +427,30 @@ def _by_connector(a: Arrival) -> int:
     return a.at
 
 
+def route_end(
+    peer_of: Callable[[tuple[int, int]], tuple[int, int] | None], module: int, route: Sequence[int]
+) -> tuple[int, int] | None:
+    """Where ``route`` (the connector to leave through at each hop, as ``path``-1 gives it)
+    leads from ``module``: the module reached and the connector it is reached at; None if
+    some hop has no link. ``peer_of((m, c))`` is what is docked at module m's connector c."""
+    here, at = module, 0
+    for c in route:
+        nxt = peer_of((here, c))
+        if nxt is None:
+            return None
+        here, at = nxt
+    return here, at
+
+
 def reach_target(robot: Robot, module: int, connector: int, route: tuple[int, ...]) -> tuple[int, int] | None:
     """Where ``reach_and_dock(connector, route)`` from ``module`` would dock now: the module at
     the end of the route and the connector the route arrives at; None (logged) if the route
     is broken, leads back, or either end is not free to act."""
-    here, at = module, 0
-    for c in route:
-        nxt = robot.peer.get((here, c))
-        if nxt is None:
-            robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot.where(module, connector)}: route broken")
-            return None
-        here, at = nxt
+    end = route_end(robot.peer.get, module, route)
+    if end is None:
+        robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot.where(module, connector)}: route broken")
+        return None
+    here, at = end
     if here == module or not robot.alive(here) or not robot.alive(module):
         return None
     if (module, connector) in robot.peer:

@@ -47,7 +47,7 @@ from dh2rt.compiler import CompiledProgram
 from dh2rt.errors import DH2Error, TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
-from dh2rt.robot import DOCK_DELAY
+from dh2rt.robot import DOCK_DELAY, route_end
 from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import Topology
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
@@ -433,17 +433,22 @@ class World:
             return
         self._pending.append((self.cycle + DOCK_DELAY, lambda: self.reach_and_dock(module, connector, route)))
 
+    def _peer_of(self, end: tuple[int, int]) -> tuple[int, int] | None:
+        """The module and connector docked at ``end`` (module, connector), if any."""
+        link = self.peer.get(end)
+        if link is None:
+            return None
+        return (link.b, link.b_conn) if end == (link.a, link.a_conn) else (link.a, link.a_conn)
+
     def reach_and_dock(self, module: int, connector: int, route: Sequence[int]) -> None:
         """Follow ``route`` from ``module`` to the module at its end, release that module's
         link at the connector the route arrives at, and dock ``module``'s ``connector`` there
         (the in-process Robot's ``reach_and_dock``, on real links)."""
-        here, at = module, 0
-        for c in route:
-            link = self.peer.get((here, c))
-            if link is None:
-                self.log.append(f"reach_and_dock from {self._where(module, connector)}: route broken")
-                return
-            here, at = (link.b, link.b_conn) if (here, c) == (link.a, link.a_conn) else (link.a, link.a_conn)
+        end = route_end(self._peer_of, module, route)
+        if end is None:
+            self.log.append(f"reach_and_dock from {self._where(module, connector)}: route broken")
+            return
+        here, at = end
         if here == module or not self.views[here].alive or not self.views[module].alive:
             return
         if (module, connector) in self.peer:
