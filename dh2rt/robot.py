@@ -153,8 +153,8 @@ class Robot:
         self.peer[(a, a_conn)] = (b, b_conn)
         self.peer[(b, b_conn)] = (a, a_conn)
         self._adjacent[a][a_conn] = (b, b_conn)
-        self._skew_plan = None  # the links changed
         self._adjacent[b][b_conn] = (a, a_conn)
+        self._skew_plan = None  # the links changed
         for m, c, rc in ((a, a_conn, b_conn), (b, b_conn, a_conn)):
             e = self.engines[m]
             other = self.engines[b if m == a else a]
@@ -168,8 +168,8 @@ class Robot:
             raise TopologyError(f"cannot cut {self.where(module, connector)}: nothing is docked there")
         del self.peer[other]
         self._adjacent[module][connector] = None
-        self._skew_plan = None  # the links changed
         self._adjacent[other[0]][other[1]] = None
+        self._skew_plan = None  # the links changed
         self._wake(module)
         self._wake(other[0])
         for m, c in ((module, connector), other):
