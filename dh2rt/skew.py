@@ -124,12 +124,24 @@ def make_plan(
     for b, members in enumerate(blocks):
         # phase 1, round i: d > i; farthest from the border first, so each round is a prefix
         inner = tuple(sorted(members, key=lambda m: -dist[m]))
-        sweeps.append(Sweep(0, inner, tuple(sum(dist[m] > i for m in inner) for i in range(depth))))
+        at_most = _at_most(inner, dist, depth)
+        sweeps.append(Sweep(0, inner, tuple(len(inner) - at_most[i] for i in range(depth))))
         for piece in after.get(b, ()):
             # phase 2, round i: d <= i; nearest to the border first
             outer = tuple(sorted(piece, key=lambda m: dist[m]))
-            sweeps.append(Sweep(1, outer, tuple(sum(dist[m] <= i for m in outer) for i in range(1, depth))))
+            at_most = _at_most(outer, dist, depth)
+            sweeps.append(Sweep(1, outer, tuple(at_most[i] for i in range(1, depth))))
     return SkewPlan(block, requested, depth, tuple(sweeps))
+
+
+def _at_most(modules: Sequence[int], dist: Sequence[int], depth: int) -> list[int]:
+    """``out[i]``: how many of ``modules`` have d <= i, for i in 0 .. depth."""
+    out = [0] * (depth + 1)
+    for m in modules:
+        out[dist[m]] += 1
+    for i in range(1, depth + 1):
+        out[i] += out[i - 1]
+    return out
 
 
 def _distances_to_block_border(
