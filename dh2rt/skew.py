@@ -34,7 +34,7 @@ to plain steps otherwise.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 #: Modules per block: a block's state (about 1.5 KB a module) stays in a core's L2 cache.
@@ -73,23 +73,30 @@ class SkewPlan:
     sweeps: tuple[Sweep, ...]
 
 
-def breadth_first_order(neighbours: Sequence[Sequence[int]]) -> list[int]:
-    """Every module once, each connected piece breadth-first from its lowest index."""
+def connected_pieces(neighbours: Sequence[Sequence[int]], keep: Callable[[int], bool] | None = None) -> list[list[int]]:
+    """The connected pieces of the modules ``keep`` accepts (all by default), linked as
+    ``neighbours``: each piece breadth-first from its lowest index, pieces by lowest index."""
     seen = [False] * len(neighbours)
-    order: list[int] = []
+    pieces: list[list[int]] = []
     for start in range(len(neighbours)):
-        if seen[start]:
+        if seen[start] or (keep is not None and not keep(start)):
             continue
         seen[start] = True
-        queue = deque([start])
+        piece, queue = [], deque([start])
         while queue:
             m = queue.popleft()
-            order.append(m)
+            piece.append(m)
             for k in neighbours[m]:
-                if not seen[k]:
+                if not seen[k] and (keep is None or keep(k)):
                     seen[k] = True
                     queue.append(k)
-    return order
+        pieces.append(piece)
+    return pieces
+
+
+def breadth_first_order(neighbours: Sequence[Sequence[int]]) -> list[int]:
+    """Every module once, each connected piece breadth-first from its lowest index."""
+    return [m for piece in connected_pieces(neighbours) for m in piece]
 
 
 def make_plan(
@@ -128,7 +135,7 @@ def make_plan(
         sweeps.append(Sweep(0, inner, tuple(len(inner) - at_most[i] for i in range(depth))))
         for piece in after.get(b, ()):
             # phase 2, round i: d <= i; nearest to the border first
-            outer = tuple(sorted(piece, key=lambda m: dist[m]))
+            outer = tuple(sorted(piece, key=lambda m: (dist[m], m)))
             at_most = _at_most(outer, dist, depth)
             sweeps.append(Sweep(1, outer, tuple(at_most[i] for i in range(1, depth))))
     return SkewPlan(block, requested, depth, tuple(sweeps))
@@ -173,25 +180,10 @@ def _distances_to_block_border(
 
 
 def _band_pieces(neighbours: Sequence[Sequence[int]], dist: Sequence[int], depth: int) -> list[list[int]]:
-    """The connected pieces of the band (modules with d < depth), each in index order.
+    """The connected pieces of the band (modules with d < depth).
 
     Phase 2 steps a band module at round i only after its band neighbours' round i-1, and
     its neighbours outside the band are done with the whole window already, so pieces with
     no link between them can be run one after the other.
     """
-    seen = [False] * len(neighbours)
-    pieces: list[list[int]] = []
-    for start in range(len(neighbours)):
-        if seen[start] or dist[start] >= depth:
-            continue
-        seen[start] = True
-        piece, queue = [], deque([start])
-        while queue:
-            m = queue.popleft()
-            piece.append(m)
-            for k in neighbours[m]:
-                if not seen[k] and dist[k] < depth:
-                    seen[k] = True
-                    queue.append(k)
-        pieces.append(sorted(piece))
-    return pieces
+    return connected_pieces(neighbours, lambda m: dist[m] < depth)
