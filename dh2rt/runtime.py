@@ -7,17 +7,17 @@ clock and no lockstep: LocalTimer is the engine's, advanced once per cycle.
 
 One cycle (:meth:`ModuleRuntime.step`)::
 
-    receive   frames polled since the last cycle; a Hello verifies the connector's peer
-              (same program digest) or refuses it; frames through an unverified or refused
-              connector are ignored and counted; any frame heard through a verified
-              connector sets ConnectorStatus (engine.link_up) and resets its silence count
+    receive   frames polled since the last cycle go through the liveness machine
+              (:mod:`dh2rt.liveness`): a Hello verifies the connector's peer (same program
+              digest) or refuses it; frames through an unverified or refused connector are
+              ignored and counted; any frame heard through a verified connector sets
+              ConnectorStatus (engine.link_up)
     liveness  a linked connector that heard nothing for SILENCE_CYCLES consecutive cycles
               falls to 0 (engine.link_down) before the engine runs this cycle
     engine    engine.step(hormones received); each emission is sent; a refused send sets
               ConnectorStatus 0 (engine.send_failed)
-    beacons   every attached connector that carried no hormone this cycle sends a KeepAlive
-              (a Hello instead while its peer is not yet verified, or in answer to a peer's
-              Hello when none went out through it in the last SILENCE_CYCLES cycles)
+    beacons   every attached connector that carried no hormone this cycle sends what the
+              liveness machine says: a KeepAlive, or a Hello
     driver    set_targets when DOF1/DOF2 changed; every HEALTH_EVERY cycles the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
@@ -27,11 +27,8 @@ One cycle (:meth:`ModuleRuntime.step`)::
 Liveness bound: a neighbour that stops sending is noticed in the SILENCE_CYCLES-th
 consecutive cycle without a frame from it, and the engine runs that cycle with the
 connector at 0; in wall time, at most (SILENCE_CYCLES + 1) cycle periods plus the link's
-latency after its last frame.
-
-Hello: sent through a connector when it is attached and until the peer's Hello has been
-heard. A neighbour announcing another program digest is refused (counted in ``refused``,
-logged) rather than fed hormones whose indices it would misread.
+latency after its last frame. The rules (Hello, refusal, re-verification) are the liveness
+machine's; this module only does the I/O they call for.
 """
 
 from __future__ import annotations
@@ -46,13 +43,13 @@ from dh2rt.compiler import CompiledProgram
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import DriverError
 from dh2rt.hormone import Arrival, Emission, Hormone
+from dh2rt.liveness import SILENCE_CYCLES, Beacon, Liveness, Verdict
 from dh2rt.natives import STANDARD_NATIVES
-from dh2rt.trace import cycle_json
+from dh2rt.records import cycle_json
 from dh2rt.transport.base import LinkEnd, Received, Transport
-from dh2rt.wire.frame import Hello, KeepAlive, program_digest
+from dh2rt.wire.frame import Hello, program_digest
 
-#: Consecutive silent cycles after which a linked connector falls to 0.
-SILENCE_CYCLES = 3
+__all__ = ["SILENCE_CYCLES", "Driver", "ModuleRuntime", "RuntimeCounters"]
 #: A cycle that starts later than this fraction of a period after its deadline is late.
 LATE_TOLERANCE = 0.5
 #: Cycles between two reads of the driver's health (servo faults show on reads).
@@ -72,29 +69,12 @@ class _Recoverable(Protocol):
 
 
 @dataclass(slots=True)
-class _Link:
-    """What the runtime knows of one attached connector."""
-
-    verified: bool = False
-    refused: bool = False
-    silent: int = 0
-    last_hello: int = -(10**9)  # cycle a Hello last went out
-    hello_due: bool = True
-    seq_out: int = 0
-    seq_in: int | None = None  # last KeepAlive sequence number heard
-
-
-@dataclass(slots=True)
 class RuntimeCounters:
-    """The runtime's own counts (the transport and the engine keep theirs)."""
+    """The runtime's own counts (the transport, the engine and the liveness machine keep theirs)."""
 
     cycles: int = 0
     keepalives_sent: int = 0
     hellos_sent: int = 0
-    refused: int = 0
-    ignored: int = 0
-    links_lost: int = 0
-    beacons_missed: int = 0
     late_cycles: int = 0
     hormones_sent: int = 0
     hormones_received: int = 0
@@ -122,8 +102,6 @@ class ModuleRuntime:
     ) -> None:
         if cycle_period <= 0:
             raise ValueError(f"cycle_period {cycle_period!r} must be positive")
-        if silence_cycles < 1:
-            raise ValueError(f"silence_cycles {silence_cycles!r} must be at least 1")
         self.program = program
         self.transport = transport
         available = dict(STANDARD_NATIVES)
@@ -134,17 +112,16 @@ class ModuleRuntime:
         #: The servo fault in force, as the driver reported it (None when all is well).
         self.actuator_fault: str | None = None
         self.cycle_period = cycle_period
-        self.silence_cycles = silence_cycles
         self.clock = clock
         self.record = record
         self.module = module
         self.name = name or f"m{module}"
         self.digest = program_digest(program.image)
+        self.liveness = Liveness(self.digest, silence_cycles)
         self.cycle = 0
         self.stats = RuntimeCounters()
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[str, tuple[Any, ...]]] = []
-        self._links: dict[int, _Link] = {}
         self._pending: list[Received] = []
         self._heard: set[int] = set()  # connectors heard between cycles (Hellos)
         self._started = 0.0
@@ -159,14 +136,12 @@ class ModuleRuntime:
             self.transport.attach(connector, end)  # type: ignore[arg-type]  # serial takes a URL
         else:
             self.transport.attach(connector, end)
-        self._links[connector] = _Link()
-        # not counted against the reply limit: the peer may not be listening yet
-        self._send_hello(connector, counted=False)
+        self._send(self.liveness.attach(connector))
 
     def detach(self, connector: int) -> None:
         """Detach ``connector``; the engine senses the link gone at once."""
         self.transport.detach(connector)
-        self._links.pop(connector, None)
+        self.liveness.detach(connector)
         if self.engine.status[connector - 1]:
             self.engine.link_down(connector)
 
@@ -175,9 +150,12 @@ class ModuleRuntime:
         self.program.vocabulary.check(hormone)
         self._injected.append(hormone)
 
+    @property
+    def silence_cycles(self) -> int:
+        return self.liveness.silence_cycles
+
     def verified(self, connector: int) -> bool:
-        link = self._links.get(connector)
-        return link is not None and link.verified
+        return self.liveness.verified(connector)
 
     def handshake(self, timeout: float, *, until: float | None = None) -> bool:
         """Before cycle 0: beacon every period until every attached connector heard its
@@ -190,7 +168,7 @@ class ModuleRuntime:
         next_beacon = start
         while True:
             self._absorb(self.transport.poll(0.0))
-            settled = all(link.verified or link.refused for link in self._links.values())
+            settled = self.liveness.settled
             now = self.clock()
             if (settled and until is None) or now >= deadline:
                 return settled
@@ -227,19 +205,10 @@ class ModuleRuntime:
                 heard.add(r.at)
                 if isinstance(r.frame, Hormone):
                     arrivals.append(Arrival(r.at, r.remote, r.frame))
-        # liveness
-        for c, link in self._links.items():
-            if c in heard:
-                link.silent = 0
-                continue
-            link.silent += 1
-            if link.silent >= self.silence_cycles and engine.status[c - 1]:
-                engine.link_down(c)
-                self.stats.links_lost += 1
-                link.verified = False  # a peer that comes back must announce itself again
-                link.seq_in = None
-                link.hello_due = True
-                self._log(f"connector {self._cname(c)} silent for {link.silent} cycles: status 0")
+        linked = {c for c, s in enumerate(engine.status, 1) if s}
+        for c, silent in self.liveness.tick(heard, linked):
+            engine.link_down(c)
+            self._log(f"connector {self._cname(c)} silent for {silent} cycles: status 0")
         arrivals.sort(key=_by_connector)  # as the in-process robot orders a mailbox
         if self._injected:
             arrivals.extend(Arrival(0, 0, h) for h in self._injected)
@@ -305,62 +274,36 @@ class ModuleRuntime:
         self.actuator_fault = message
 
     def _beacon(self, carried: set[int]) -> None:
-        """A KeepAlive (or a Hello, see the module docs) through every attached connector
-        that carried no hormone this cycle."""
-        for c, link in self._links.items():
-            if c in carried:
-                continue
-            if not link.verified or link.hello_due:
-                self._send_hello(c)
+        """Send the beacons the liveness machine asks for this cycle."""
+        for beacon in self.liveness.beacons(carried, self.cycle):
+            self._send(beacon)
+
+    def _send(self, beacon: Beacon) -> None:
+        if self.transport.send(beacon.connector, beacon.frame):
+            if isinstance(beacon.frame, Hello):
+                self.stats.hellos_sent += 1
             else:
-                link.seq_out = (link.seq_out + 1) & 0xFF
-                if self.transport.send(c, KeepAlive(link.seq_out)):
-                    self.stats.keepalives_sent += 1
+                self.stats.keepalives_sent += 1
 
     def _on_frame(self, r: Received) -> bool:
         """Account for one frame; True if it counts as heard from a verified peer."""
-        link = self._links.get(r.at)
-        if link is None:
-            return False
         frame = r.frame
-        if isinstance(frame, Hello):
-            if frame.digest != self.digest:
-                if not link.refused:
-                    self._log(
-                        f"connector {self._cname(r.at)}: neighbour runs another program "
-                        f"(digest {frame.digest.hex()}, mine {self.digest.hex()}): refused"
-                    )
-                link.refused = True
-                link.verified = False
-                self.stats.refused += 1
-                if self.engine.status[r.at - 1]:
-                    self.engine.link_down(r.at)
-                return False
-            link.refused = False
-            link.seq_in = None  # a (re)started peer numbers its beacons afresh
-            if self.cycle - link.last_hello >= self.silence_cycles:
-                # the peer may not have heard us (it (re)started, or our Hello was lost):
-                # answer, at most once per SILENCE_CYCLES cycles so two peers never ping-pong
-                link.hello_due = True
-            link.verified = True
-        elif not link.verified:
-            self.stats.ignored += 1
+        was_refused = self.liveness.refused(r.at)
+        verdict = self.liveness.receive(r.at, frame, self.cycle)
+        if verdict is Verdict.REFUSED:
+            assert isinstance(frame, Hello)
+            if not was_refused:
+                self._log(
+                    f"connector {self._cname(r.at)}: neighbour runs another program "
+                    f"(digest {frame.digest.hex()}, mine {self.digest.hex()}): refused"
+                )
+            if self.engine.status[r.at - 1]:
+                self.engine.link_down(r.at)
             return False
-        elif isinstance(frame, KeepAlive):
-            # beacons are numbered per connector: a gap is a beacon the link lost
-            if link.seq_in is not None:
-                self.stats.beacons_missed += (frame.seq - link.seq_in - 1) & 0xFF
-            link.seq_in = frame.seq
+        if verdict is not Verdict.HEARD:
+            return False
         self.engine.link_up(r.at, r.remote)
         return True
-
-    def _send_hello(self, connector: int, counted: bool = True) -> None:
-        link = self._links[connector]
-        if counted:
-            link.last_hello = self.cycle
-        link.hello_due = False
-        if self.transport.send(connector, Hello(self.digest)):
-            self.stats.hellos_sent += 1
 
     def _record(self, arrivals: list[Arrival], sent: list[Emission]) -> dict[str, Any]:
         """This cycle in the trace format of :mod:`dh2rt.trace`, plus ``t``: the clock when
@@ -418,6 +361,7 @@ class ModuleRuntime:
         """Transport frame counts, the engine's hormone counts and the runtime's own."""
         link = self.transport.counters
         s = self.stats
+        lv = self.liveness.counters
         return {
             "cycles": s.cycles,
             "frames_sent": link.sent,
@@ -427,10 +371,10 @@ class ModuleRuntime:
             "frames_send_failed": link.send_failed,
             "keepalives_sent": s.keepalives_sent,
             "hellos_sent": s.hellos_sent,
-            "refused": s.refused,
-            "ignored": s.ignored,
-            "links_lost": s.links_lost,
-            "beacons_missed": s.beacons_missed,
+            "refused": lv.refused,
+            "ignored": lv.ignored,
+            "links_lost": lv.links_lost,
+            "beacons_missed": lv.beacons_missed,
             "late_cycles": s.late_cycles,
             "hormones_sent": s.hormones_sent,
             "hormones_received": s.hormones_received,

@@ -1,62 +1,15 @@
-"""JSON Lines traces: one object per module per cycle.
-
-Fields: ``cycle`` (int), ``module`` (the observer's index; for ``snake:N`` 0 is the end whose
-front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer``,
-``actuators`` (``{"DOF1": deg, "DOF2": deg}``), ``status`` (connector -> remote connector or
-"0"), ``received`` (hormone, connector it arrived at, connector it was sent through, path) and
-``sent`` (hormone, connector, and for replies the route still to go). Physics runs add
-``pos`` ([x, y, z] metres).
-"""
+"""JSON Lines traces of the in-process robot: one object per module per cycle, in the
+format of :mod:`dh2rt.records`."""
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from dh2rt.engine import Engine
-from dh2rt.hormone import Arrival, Emission
-from dh2rt.profile import Profile
+from dh2rt.records import cycle_json
 from dh2rt.robot import CycleRecord, Robot
-
-
-def arrival_json(a: Arrival, profile: Profile) -> dict[str, Any]:
-    name = profile.connector_name
-    return {
-        "hormone": a.hormone.content(),
-        "at": name(a.at) if a.at else None,
-        "from": name(a.remote) if a.at else None,
-        "path": [[name(x), name(y)] for x, y in a.hormone.path],
-    }
-
-
-def emission_json(e: Emission, profile: Profile) -> dict[str, Any]:
-    d: dict[str, Any] = {"hormone": e.hormone.content(), "through": profile.connector_name(e.through)}
-    if e.hormone.route is not None:
-        d["route"] = [profile.connector_name(c) for c in e.hormone.route]
-    return d
-
-
-def cycle_json(
-    engine: Engine, cycle: int, module: int, name: str, received: Sequence[Arrival], sent: Sequence[Emission]
-) -> dict[str, Any]:
-    """One module's cycle in the trace format, read from its engine just after the cycle ran
-    (the in-process robot and the module runtime both write these)."""
-    p = engine.profile
-    t = engine.topo_type
-    return {
-        "cycle": cycle,
-        "module": module,
-        "name": name,
-        "type": t.name,
-        "T": t.alias,
-        "timer": (engine.timer - 1) % engine.clock,
-        "actuators": {"DOF1": engine.dof[0], "DOF2": engine.dof[1]},
-        "status": {c: p.connector_name(s) for c, s in zip(p.connectors, engine.status, strict=True)},
-        "received": [arrival_json(a, p) for a in received],
-        "sent": [emission_json(x, p) for x in sent],
-    }
 
 
 def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:

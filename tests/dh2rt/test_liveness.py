@@ -1,0 +1,161 @@
+"""The liveness state machine on its own: no transport, no engine, no clock.
+
+Each case is a script of cycles: frames heard through connector 1 during a cycle, then the
+tick; the expected outcome is checked after every cycle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import pytest
+
+from dh2rt.liveness import SILENCE_CYCLES, Beacon, Liveness, Verdict
+from dh2rt.wire.frame import Frame, Hello, KeepAlive
+
+MINE = b"\x01" * 8
+OTHER = b"\x02" * 8
+
+
+@dataclass
+class Cycle:
+    """One cycle: what arrives through connector 1, whether it is linked at the tick, and
+    what must follow."""
+
+    frames: list[Frame] = field(default_factory=list)
+    linked: bool = True
+    verdicts: list[Verdict] | None = None
+    lost: bool = False
+    beacon: type | None = None  # the kind of beacon connector 1 sends at the end of the cycle
+
+
+def run_script(script: list[Cycle], silence: int = SILENCE_CYCLES) -> Liveness:
+    lv = Liveness(MINE, silence)
+    first = lv.attach(1)
+    assert first == Beacon(1, Hello(MINE))
+    for n, cyc in enumerate(script):
+        verdicts = [lv.receive(1, f, n) for f in cyc.frames]
+        if cyc.verdicts is not None:
+            assert verdicts == cyc.verdicts, f"cycle {n}"
+        heard = {1} if Verdict.HEARD in verdicts else set()
+        lost = lv.tick(heard, {1} if cyc.linked else set())
+        assert bool(lost) == cyc.lost, f"cycle {n}: lost {lost}"
+        beacons = lv.beacons(set(), n)
+        if cyc.beacon is not None:
+            assert [type(b.frame) for b in beacons] == [cyc.beacon], f"cycle {n}"
+    return lv
+
+
+HELLO, KEEP = Hello(MINE), KeepAlive(1)
+
+
+@pytest.mark.parametrize("silence", [1, 2, 3, 5])
+def test_silence_bound_is_exact(silence: int) -> None:
+    """A verified, linked connector falls exactly in the silence-th silent cycle, never before."""
+    script = [Cycle([HELLO], verdicts=[Verdict.HEARD])]
+    script += [Cycle() for _ in range(silence - 1)]
+    script += [Cycle(lost=True, beacon=Hello)]  # lost, and must announce itself again
+    script += [Cycle(linked=False) for _ in range(3)]  # nothing more to lose
+    lv = run_script(script, silence)
+    assert not lv.verified(1)
+    assert lv.counters.links_lost == 1
+
+
+@pytest.mark.parametrize("gap", [1, 2, 3])
+def test_any_frame_resets_silence(gap: int) -> None:
+    """Frames closer together than the bound keep the link, whatever their kind."""
+    script = [Cycle([HELLO])]
+    for k in range(6):
+        script += [Cycle() for _ in range(gap - 1)]
+        script += [Cycle([KeepAlive(k + 1)], verdicts=[Verdict.HEARD])]
+    lv = run_script(script, silence=3)
+    assert lv.verified(1) and lv.counters.links_lost == 0
+
+
+def test_unlinked_connector_is_never_lost() -> None:
+    """Silence on a connector whose status is already 0 loses nothing (and counts nothing)."""
+    lv = run_script([Cycle([HELLO])] + [Cycle(linked=False) for _ in range(10)])
+    assert lv.counters.links_lost == 0
+
+
+@pytest.mark.parametrize(
+    ("frames", "verdicts", "verified", "refused", "ignored"),
+    [
+        ([KEEP], [Verdict.IGNORED], False, False, 1),  # a KeepAlive before any Hello
+        ([HELLO, KEEP], [Verdict.HEARD, Verdict.HEARD], True, False, 0),
+        ([Hello(OTHER)], [Verdict.REFUSED], False, True, 0),
+        ([Hello(OTHER), KEEP], [Verdict.REFUSED, Verdict.IGNORED], False, True, 1),
+        ([Hello(OTHER), HELLO], [Verdict.REFUSED, Verdict.HEARD], True, False, 0),  # peer reflashed
+        ([HELLO, Hello(OTHER)], [Verdict.HEARD, Verdict.REFUSED], False, True, 0),
+    ],
+)
+def test_hello_verifies_or_refuses(
+    frames: list[Frame], verdicts: list[Verdict], verified: bool, refused: bool, ignored: int
+) -> None:
+    lv = Liveness(MINE)
+    lv.attach(1)
+    assert [lv.receive(1, f, 0) for f in frames] == verdicts
+    assert lv.verified(1) is verified
+    assert lv.refused(1) is refused
+    assert lv.settled is (verified or refused)
+    assert lv.counters.ignored == ignored
+    assert lv.counters.refused == sum(v is Verdict.REFUSED for v in verdicts)
+
+
+def test_unattached_connector() -> None:
+    lv = Liveness(MINE)
+    assert lv.receive(2, HELLO, 0) is Verdict.UNATTACHED
+    assert lv.counters.ignored == 0
+
+
+def test_reverification_after_redock() -> None:
+    """Detached and attached again (a re-dock): the new peer must say Hello before its frames
+    count, and it is greeted with a fresh Hello."""
+    lv = Liveness(MINE)
+    lv.attach(1)
+    assert lv.receive(1, HELLO, 0) is Verdict.HEARD
+    lv.detach(1)
+    assert lv.receive(1, KEEP, 1) is Verdict.UNATTACHED
+    assert lv.attach(1) == Beacon(1, Hello(MINE))
+    assert lv.receive(1, KEEP, 2) is Verdict.IGNORED
+    assert lv.beacons(set(), 2) == [Beacon(1, Hello(MINE))]
+    assert lv.receive(1, HELLO, 3) is Verdict.HEARD
+    # our Hello of cycle 2 is recent: the peer heard it, no answer is due
+    assert [type(b.frame) for b in lv.beacons(set(), 3)] == [KeepAlive]
+
+
+def test_hello_answered_at_most_once_per_bound() -> None:
+    """Two peers answering each other's Hellos must not ping-pong: an answer is due only when
+    no Hello went out in the last silence_cycles cycles."""
+    lv = Liveness(MINE, 3)
+    lv.attach(1)
+    lv.receive(1, HELLO, 0)
+    kinds = []
+    for cycle in range(12):
+        lv.receive(1, HELLO, cycle)  # the peer says Hello every cycle
+        kinds.append(type(lv.beacons(set(), cycle)[0].frame))
+    assert kinds.count(Hello) == 4  # cycles 0, 3, 6, 9
+    assert [c for c, k in enumerate(kinds) if k is Hello] == [0, 3, 6, 9]
+
+
+def test_carried_connectors_send_no_beacon_and_gaps_count_missed() -> None:
+    lv = Liveness(MINE)
+    lv.attach(1)
+    lv.attach(2)
+    lv.receive(1, HELLO, 0)
+    lv.receive(2, HELLO, 0)
+    lv.beacons(set(), 0)  # the answers
+    assert [b.connector for b in lv.beacons({1}, 1)] == [2]
+    seqs = [b.frame.seq for b in lv.beacons(set(), 2) if isinstance(b.frame, KeepAlive)]
+    assert seqs == [1, 2]  # numbered per connector
+    for seq in (1, 2, 5, 6):  # 3 and 4 lost on the link
+        assert lv.receive(1, KeepAlive(seq), 3) is Verdict.HEARD
+    assert lv.counters.beacons_missed == 2
+    assert lv.receive(1, HELLO, 4) is Verdict.HEARD  # a restarted peer numbers afresh
+    assert lv.receive(1, KeepAlive(1), 4) is Verdict.HEARD
+    assert lv.counters.beacons_missed == 2
+
+
+def test_silence_cycles_must_be_positive() -> None:
+    with pytest.raises(ValueError, match="silence_cycles"):
+        Liveness(MINE, 0)
