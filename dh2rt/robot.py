@@ -18,7 +18,9 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from dh2rt import docking
 from dh2rt.compiler import CompiledProgram
+from dh2rt.docking import End
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import TopologyError
 from dh2rt.events import Event
@@ -26,9 +28,6 @@ from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
 from dh2rt.topology import Link, Topology
-
-#: Cycles the in-process world takes to carry out a "reach_and_dock" (bend, align, latch).
-DOCK_DELAY = 10
 
 EffectHandler = Callable[["Robot", int, tuple[Any, ...]], None]
 
@@ -96,7 +95,7 @@ class Robot:
         self.records: list[CycleRecord] = []
         self.pending: list[tuple[int, Callable[[], None]]] = []
         self.effect_handlers: dict[str, EffectHandler] = {
-            "reach_and_dock": reach_and_dock,
+            "reach_and_dock": _reach_and_dock,
             "assist": lambda _r, _m, _a: None,
         }
         self.log: list[str] = []
@@ -136,18 +135,23 @@ class Robot:
     def alive(self, module: int) -> bool:
         return self.engines[module] is not None
 
+    # the docking world (dh2rt.docking.DockingWorld): nothing to align in one process
+
+    def peer_of(self, end: End) -> End | None:
+        return self.peer.get(end)
+
+    def running(self, module: int) -> bool:
+        return self.alive(module)
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        return True
+
+    def note(self, message: str) -> None:
+        self.log.append(f"cycle {self.cycle}: {message}")
+
     def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
         """Dock two free connectors of different gender; both modules sense it."""
-        if not self.profile.can_link(a_conn, b_conn):
-            raise TopologyError(
-                f"cannot dock {self.where(a, a_conn)} to {self.where(b, b_conn)}: both are "
-                f"{self.profile.gender(a_conn)}"
-            )
-        for m, c in ((a, a_conn), (b, b_conn)):
-            if (m, c) in self.peer:
-                raise TopologyError(f"cannot dock {self.where(m, c)}: it is already docked")
-        if a == b:
-            raise TopologyError("cannot dock a module to itself")
+        docking.check_dock(self.profile, self.peer.__contains__, self.where, a, a_conn, b, b_conn)
         self._wake(a)
         self._wake(b)
         self.peer[(a, a_conn)] = (b, b_conn)
@@ -163,9 +167,8 @@ class Robot:
 
     def cut(self, module: int, connector: int) -> None:
         """Break the link at a connector (live surgery); both modules sense it."""
-        other = self.peer.pop((module, connector), None)
-        if other is None:
-            raise TopologyError(f"cannot cut {self.where(module, connector)}: nothing is docked there")
+        other = docking.check_cut(self.peer.get((module, connector)), self.where(module, connector))
+        del self.peer[(module, connector)]
         del self.peer[other]
         self._adjacent[module][connector] = None
         self._adjacent[other[0]][other[1]] = None
@@ -427,53 +430,6 @@ def _by_connector(a: Arrival) -> int:
     return a.at
 
 
-def route_end(
-    peer_of: Callable[[tuple[int, int]], tuple[int, int] | None], module: int, route: Sequence[int]
-) -> tuple[int, int] | None:
-    """Where ``route`` (the connector to leave through at each hop, as ``path``-1 gives it)
-    leads from ``module``: the module reached and the connector it is reached at; None if
-    some hop has no link. ``peer_of((m, c))`` is what is docked at module m's connector c."""
-    here, at = module, 0
-    for c in route:
-        nxt = peer_of((here, c))
-        if nxt is None:
-            return None
-        here, at = nxt
-    return here, at
-
-
-def reach_target(robot: Robot, module: int, connector: int, route: tuple[int, ...]) -> tuple[int, int] | None:
-    """Where ``reach_and_dock(connector, route)`` from ``module`` would dock now: the module at
-    the end of the route and the connector the route arrives at; None (logged) if the route
-    is broken, leads back, or either end is not free to act."""
-    end = route_end(robot.peer.get, module, route)
-    if end is None:
-        robot.log.append(f"cycle {robot.cycle}: reach_and_dock from {robot.where(module, connector)}: route broken")
-        return None
-    here, at = end
-    if here == module or not robot.alive(here) or not robot.alive(module):
-        return None
-    if (module, connector) in robot.peer:
-        robot.log.append(f"cycle {robot.cycle}: reach_and_dock: {robot.where(module, connector)} is not free")
-        return None
-    return here, at
-
-
-def reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
-    """Carry out ``reach_and_dock(connector, route)`` in the in-process world: DOCK_DELAY
-    cycles later (bending, aligning and latching take time), the module at the end of the
-    route releases its link at the connector the route arrives at, and ``module``'s
-    connector docks there. Nothing happens if the route no longer leads anywhere by then.
-    """
+def _reach_and_dock(robot: Robot, module: int, args: tuple[Any, ...]) -> None:
     connector, route = args
-
-    def carry_out() -> None:
-        target = reach_target(robot, module, connector, route)
-        if target is None:
-            return
-        here, at = target
-        robot.cut(here, at)
-        robot.dock(module, connector, here, at)
-        robot.log.append(f"cycle {robot.cycle}: {robot.where(module, connector)} docked to {robot.where(here, at)}")
-
-    robot.schedule(DOCK_DELAY, carry_out)
+    docking.reach_and_dock(robot, module, connector, route)

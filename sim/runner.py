@@ -21,9 +21,11 @@ import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
+from dh2rt import docking
 from dh2rt.cli import EXIT_INTERRUPTED, EXIT_OK, print_summary, timed_run
+from dh2rt.docking import End
 from dh2rt.events import Event
-from dh2rt.robot import DOCK_DELAY, Robot, reach_target
+from dh2rt.robot import Robot
 from dh2rt.trace import TraceWriter
 from drivers.base import ModuleDriver
 from sim.record import Recorder, Sample, plot_run
@@ -62,54 +64,55 @@ class PhysicsRun:
         self.start = self.world.centroid()
         self.samples: list[Sample] = []
         self.log = robot.log
-        robot.effect_handlers["reach_and_dock"] = self._reach_and_dock
+        # reach_and_dock follows dh2rt.docking with this run as the world: the link changes
+        # only if the two connectors are physically aligned by then. The bending and aligning
+        # motions of the paper's [17] are not modelled, so far-apart connectors are refused
+        # (logged) and nothing is released.
+        robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: docking.reach_and_dock(self, m, *args)
 
-    # ------------------------------------------------------------ events and docking
+    # ------------------------------------------------------------ the docking world
+
+    def peer_of(self, end: End) -> End | None:
+        return self.robot.peer_of(end)
+
+    def running(self, module: int) -> bool:
+        return self.robot.alive(module)
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        return self.world.aligned(a, a_conn, b, b_conn, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
+
+    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
+        self.robot.schedule(cycles_from_now, action)
+
+    def where(self, module: int, connector: int) -> str:
+        return self.robot.where(module, connector)
+
+    def note(self, message: str) -> None:
+        self.robot.note(message)
+
+    def cut(self, module: int, connector: int) -> None:
+        """Undock the latch and the logical link."""
+        self.robot.cut(module, connector)
+        self.world.undock(module, connector)
+
+    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
+        """Dock logically, then latch; a latch physics refuses (not aligned) undoes the link."""
+        self.robot.dock(a, a_conn, b, b_conn)
+        if not self.world.dock(a, a_conn, b, b_conn, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG):
+            self.robot.cut(a, a_conn)
+            self.note("dock refused by physics: connectors not aligned")
+
+    # ------------------------------------------------------------ events
 
     def apply(self, event: Event) -> None:
         if event.kind == "cut":
-            other = self.robot.peer.get((event.module, event.connector))
-            self.robot.apply(event)
-            if other is not None:
-                self.world.undock(event.module, event.connector)
+            self.cut(event.module, event.connector)
         elif event.kind == "dock":
-            self.robot.apply(event)
-            self._physical_dock(event.module, event.connector, event.other, event.other_connector)
+            self.dock(event.module, event.connector, event.other, event.other_connector)
         else:
             self.robot.apply(event)
-
-    def _physical_dock(self, a: int, ac: int, b: int, bc: int) -> None:
-        if self.world.dock(a, ac, b, bc, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG):
             return
-        self.robot.cut(a, ac)
-        self.log.append(f"cycle {self.robot.cycle}: dock refused by physics: connectors not aligned")
-
-    def _reach_and_dock(self, robot: Robot, module: int, args: tuple[object, ...]) -> None:
-        # As the in-process world does, DOCK_DELAY cycles later; but the link changes only if
-        # the two connectors are physically aligned by then. The bending and aligning motions
-        # of the paper's [17] are not modelled, so far-apart connectors are refused (logged)
-        # and nothing is released.
-        connector, route = args
-        assert isinstance(connector, int) and isinstance(route, tuple)
-
-        def carry_out() -> None:
-            target = reach_target(robot, module, connector, route)
-            if target is None:
-                return
-            here, at = target
-            if not self.world.aligned(module, connector, here, at, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG):
-                robot.log.append(
-                    f"cycle {robot.cycle}: {robot.where(module, connector)} cannot reach {robot.where(here, at)}: "
-                    "not aligned in the world"
-                )
-                return
-            self.world.undock(here, at)
-            robot.cut(here, at)
-            robot.dock(module, connector, here, at)
-            self.world.dock(module, connector, here, at, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG)
-            robot.log.append(f"cycle {robot.cycle}: {robot.where(module, connector)} docked to {robot.where(here, at)}")
-
-        robot.schedule(DOCK_DELAY, carry_out)
+        self.note(event.text or event.kind)
 
     # ------------------------------------------------------------ running
 

@@ -1,0 +1,138 @@
+"""Docking, undocking and routes: the rules every world follows, written once.
+
+Three worlds play the physical robot: the in-process :class:`~dh2rt.robot.Robot`, the
+physics runner (``sim.runner``) and the hardware-in-the-loop world (``hil.world``). Each
+implements :class:`DockingWorld` (what is docked where, who runs, how to cut and dock, whether
+two connectors are aligned) and leaves the rules to this module:
+
+- :func:`check_dock` and :func:`check_cut`: which docks and cuts are possible (male to female
+  only, both connectors free, never a module to itself; a cut needs a link);
+- :func:`route_end`: where a route (``path``-1, the connector to leave through at each hop)
+  leads;
+- :func:`reach_and_dock`: the native action's effect, carried out :data:`DOCK_DELAY` cycles
+  after it is asked for (bending, aligning and latching take time): the module at the end of
+  the route releases its link at the connector the route arrives at, and the asking
+  connector docks there, if the world says the two are aligned by then.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+from dh2rt.errors import TopologyError
+from dh2rt.profile import Profile
+
+#: Cycles a world takes to carry out a ``reach_and_dock`` (bend, align, latch).
+DOCK_DELAY = 10
+
+End = tuple[int, int]  # (module, connector)
+
+
+class DockingWorld(Protocol):
+    """What a world offers the docking rules."""
+
+    def peer_of(self, end: End) -> End | None:
+        """What is docked at module m's connector c, if anything."""
+        ...
+
+    def running(self, module: int) -> bool: ...
+
+    def cut(self, module: int, connector: int) -> None: ...
+
+    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None: ...
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        """Whether the two connectors are close and aligned enough to latch now."""
+        ...
+
+    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None: ...
+
+    def where(self, module: int, connector: int) -> str:
+        """``name.connector``, for messages."""
+        ...
+
+    def note(self, message: str) -> None:
+        """Log a line (the world adds its cycle)."""
+        ...
+
+
+def check_dock(
+    profile: Profile,
+    docked: Callable[[End], bool],
+    where: Callable[[int, int], str],
+    a: int,
+    a_conn: int,
+    b: int,
+    b_conn: int,
+) -> None:
+    """Raise TopologyError unless ``a.a_conn`` may dock to ``b.b_conn`` now."""
+    if not profile.can_link(a_conn, b_conn):
+        raise TopologyError(
+            f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: both are {profile.gender(a_conn)}"
+        )
+    for m, c in ((a, a_conn), (b, b_conn)):
+        if docked((m, c)):
+            raise TopologyError(f"cannot dock {where(m, c)}: it is already docked")
+    if a == b:
+        raise TopologyError("cannot dock a module to itself")
+
+
+def check_cut(peer: End | None, where: str) -> End:
+    """The end docked at the connector being cut; TopologyError if there is none."""
+    if peer is None:
+        raise TopologyError(f"cannot cut {where}: nothing is docked there")
+    return peer
+
+
+def route_end(peer_of: Callable[[End], End | None], module: int, route: Sequence[int]) -> End | None:
+    """Where ``route`` (the connector to leave through at each hop, as ``path``-1 gives it)
+    leads from ``module``: the module reached and the connector it is reached at; None if
+    some hop has no link. ``peer_of((m, c))`` is what is docked at module m's connector c."""
+    here, at = module, 0
+    for c in route:
+        nxt = peer_of((here, c))
+        if nxt is None:
+            return None
+        here, at = nxt
+    return here, at
+
+
+def reach_target(world: DockingWorld, module: int, connector: int, route: Sequence[int]) -> End | None:
+    """Where ``reach_and_dock(connector, route)`` from ``module`` would dock now: the module at
+    the end of the route and the connector the route arrives at; None (logged) if the route
+    is broken, leads back, or either end is not free to act."""
+    end = route_end(world.peer_of, module, route)
+    if end is None:
+        world.note(f"reach_and_dock from {world.where(module, connector)}: route broken")
+        return None
+    here, at = end
+    if here == module or not world.running(here) or not world.running(module):
+        return None
+    if world.peer_of((module, connector)) is not None:
+        world.note(f"reach_and_dock: {world.where(module, connector)} is not free")
+        return None
+    return here, at
+
+
+def reach_and_dock(world: DockingWorld, module: int, connector: int, route: Sequence[int]) -> None:
+    """Carry out ``reach_and_dock(connector, route)``: :data:`DOCK_DELAY` cycles later the
+    module at the end of the route releases its link at the connector the route arrives at,
+    and ``module``'s connector docks there. Nothing happens if by then the route leads
+    nowhere or the two connectors are not aligned in the world (logged)."""
+    route = tuple(route)
+
+    def carry_out() -> None:
+        target = reach_target(world, module, connector, route)
+        if target is None:
+            return
+        here, at = target
+        if not world.aligned(module, connector, here, at):
+            asking, target_end = world.where(module, connector), world.where(here, at)
+            world.note(f"{asking} cannot reach {target_end}: not aligned in the world")
+            return
+        world.cut(here, at)
+        world.dock(module, connector, here, at)
+        world.note(f"{world.where(module, connector)} docked to {world.where(here, at)}")
+
+    world.schedule(DOCK_DELAY, carry_out)
