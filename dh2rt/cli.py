@@ -1,11 +1,18 @@
-"""The ``dh2rt`` command.
+"""The ``dh2rt`` command: the core's subcommands, and those that upper layers register.
 
 ``dh2rt check PROGRAM``          exit 0 if valid, else 2 with FILE:LINE:COL, the line and a caret
 ``dh2rt run PROGRAM ...``        run a robot headless in one process; per-module summary
 ``dh2rt image PROGRAM -o FILE``  write the program's image (what is flashed) and print its hash
 ``dh2rt types``                  the topology profile's types and their status tuples
 ``dh2rt demo``                   the embedded default demo (no hardware, no SocketCAN)
-``dh2rt [--transport ...]``      the hardware-in-the-loop launcher (hil.launcher), when installed
+``dh2rt COMMAND ...``            a command registered by an upper layer (``launch``: the
+                                 hardware-in-the-loop launcher); ``dh2rt --transport ...``
+                                 with no command is ``dh2rt launch --transport ...``
+
+Upper layers register through entry points in ``pyproject.toml``, so the core never imports
+them (python-can finds its interfaces the same way): the group ``dh2rt.commands`` maps a
+command name to ``module:main`` (``main(argv) -> exit code``), and ``dh2rt.simulators`` maps
+a ``run --sim`` name to ``module:function(robot, options, events) -> exit code``.
 
 Exit codes: 0 success, 1 a run failed, 2 bad input (program, topology, event, option),
 130 interrupted (Ctrl-C; the summary so far is still printed).
@@ -16,48 +23,62 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
-import json
-import signal
 import sys
-import time
 from collections.abc import Callable, Sequence
+from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import IO, Any
 
 from dh2rt import __version__
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.cmdline import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    Progress,
+    StopAtCycleEnd,
+    add_run_options,
+    err,
+    load_program,
+    prepare_run,
+    print_summary,
+    timed_run,
+)
 from dh2rt.errors import DH2Error, ProgramError
-from dh2rt.events import Event, parse_event
 from dh2rt.profile import CONRO
-from dh2rt.robot import Robot
-from dh2rt.topology import BUILTIN_NAMES, parse_spec
 from dh2rt.trace import TraceWriter
 
-EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
-
-#: Lazily imported extensions (python-can style registry: nothing is imported until chosen).
-#: They live in higher layers, so the core names them but never imports them statically.
-PHYSICS_RUNNERS = {"pybullet": "sim.runner:run_physics"}
-LAUNCHER = "hil.launcher:main"
-SUBCOMMANDS = ("check", "run", "image", "types", "demo")
+COMMAND_GROUP = "dh2rt.commands"
+SIMULATOR_GROUP = "dh2rt.simulators"
+#: What ``dh2rt`` runs when its first argument is an option (``dh2rt --transport vcan0``).
+DEFAULT_COMMAND = "launch"
+CORE_COMMANDS = ("check", "run", "image", "types", "demo")
 
 
-def _load(ref: str) -> Callable[..., Any]:
-    module, _, attr = ref.partition(":")
-    fn: Callable[..., Any] = getattr(importlib.import_module(module), attr)
-    return fn
+def registered(group: str) -> dict[str, EntryPoint]:
+    """The entry points of ``group`` by name (nothing is imported until one is chosen)."""
+    return {ep.name: ep for ep in entry_points(group=group)}
 
 
-def _err(message: str) -> None:
-    print(f"dh2rt: {message}", file=sys.stderr)
+def _summary_line(ep: EntryPoint) -> str:
+    """The first line of a registered command's module docstring, for ``--help``."""
+    try:
+        module = importlib.import_module(ep.module)
+    except ImportError as exc:
+        return f"(not available: {exc})"
+    doc = (module.__doc__ or "").strip()
+    return doc.splitlines()[0] if doc else ep.value
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.ArgumentParser:
+    commands = registered(COMMAND_GROUP) if commands is None else commands
+    listed = "\n".join(f"  {name:<10} {_summary_line(ep)}" for name, ep in sorted(commands.items()))
     parser = argparse.ArgumentParser(
         prog="dh2rt",
         description="Run DH2 hormone programs on modular self-reconfigurable robots.",
-        epilog="With no subcommand, dh2rt starts the hardware-in-the-loop launcher "
-        "(see `dh2rt --transport inproc --help`).",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(f"registered commands (dh2rt COMMAND --help):\n{listed}\n\n" if listed else "")
+        + f"With no command, or an option first, dh2rt runs `dh2rt {DEFAULT_COMMAND}` "
+        f"(see `dh2rt {DEFAULT_COMMAND} --help`).",
     )
     parser.add_argument("--version", action="version", version=f"dh2rt {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -67,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run a robot in one process and print a per-module summary")
     add_run_options(run)
-    run.add_argument("--sim", choices=sorted(PHYSICS_RUNNERS), help="run the modules' joints in physics")
+    run.add_argument("--sim", choices=sorted(registered(SIMULATOR_GROUP)), help="run the modules' joints in physics")
     run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation")
     run.add_argument("--plot", type=Path, metavar="PNG", help="with --sim: plot joint angles and displacement")
     run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
@@ -84,37 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -> None:
-    """Options shared by ``dh2rt run`` and the hardware-in-the-loop launcher."""
-    if program_required:
-        p.add_argument("program", type=Path, help="a .dh2 file")
-    p.add_argument(
-        "--topology",
-        default="snake:8",
-        help=f"built-in ({', '.join(BUILTIN_NAMES)}) or a .toml file (default: snake:8)",
-    )
-    p.add_argument("--cycles", type=int, default=200, help="cycles to run (default: 200)")
-    p.add_argument("--seed", type=int, default=0, help="seed for LocalTimer phases (default: 0)")
-    p.add_argument(
-        "--event",
-        action="append",
-        default=[],
-        metavar="EV",
-        help="CYCLE:cut:M.CONN | CYCLE:dock:M.CONN-M2.CONN2 | CYCLE:inject:M:HORMONE | "
-        "CYCLE:kill:M | CYCLE:restart:M (repeatable)",
-    )
-    p.add_argument(
-        "--trace", type=Path, metavar="FILE", help="write a JSON Lines trace, one object per module per cycle"
-    )
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
-    if args_list and args_list[0] not in SUBCOMMANDS and args_list[0] not in ("-h", "--help", "--version"):
-        return _launcher(args_list)
-    if not args_list:
-        return _launcher(args_list)
-    parser = build_parser()
+    commands = registered(COMMAND_GROUP)
+    first = args_list[0] if args_list else None
+    if first in commands and first not in CORE_COMMANDS:
+        return _registered_command(commands, first, args_list[1:])
+    if first is None or (first.startswith("-") and first not in ("-h", "--help", "--version")):
+        return _registered_command(commands, DEFAULT_COMMAND, args_list)
+    parser = build_parser(commands)
     ns = parser.parse_args(args_list)
     try:
         if ns.command == "check":
@@ -128,24 +127,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         if ns.command == "demo":
             return cmd_demo(ns.cycles)
     except KeyboardInterrupt:
-        _err("interrupted")
+        err("interrupted")
         return EXIT_INTERRUPTED
     parser.print_help()
     return EXIT_USAGE
 
 
-def _launcher(argv: list[str]) -> int:
+def _load(ep: EntryPoint, what: str) -> Callable[..., Any] | None:
     try:
-        launch = _load(LAUNCHER)
+        fn: Callable[..., Any] = ep.load()
     except ImportError as exc:
-        _err(f"the hardware-in-the-loop launcher is not available ({exc}); try `dh2rt run --help`")
+        err(f"{what} is installed but cannot be loaded ({exc})")
+        return None
+    return fn
+
+
+def _registered_command(commands: dict[str, EntryPoint], name: str, argv: list[str]) -> int:
+    ep = commands.get(name)
+    if ep is None:
+        err(f"no command {name!r} is installed (see `dh2rt --help`); try `dh2rt run --help`")
         return EXIT_USAGE
-    code: int = launch(argv)
+    command = _load(ep, f"the command {name!r}")
+    if command is None:
+        return EXIT_USAGE
+    code: int = command(argv)
     return code
-
-
-def load_program(path: Path) -> CompiledProgram:
-    return compile_file(str(path))
 
 
 def cmd_check(path: Path) -> int:
@@ -186,17 +192,6 @@ def cmd_types(out: IO[str]) -> int:
     return EXIT_OK
 
 
-def prepare_run(ns: argparse.Namespace) -> tuple[CompiledProgram, Robot, list[Event]]:
-    """Load program, topology and events for ``run`` (and the launcher); raises DH2Error."""
-    cp = load_program(ns.program)
-    topo = parse_spec(ns.topology, cp.profile)
-    robot = Robot(cp, topo, seed=ns.seed)
-    events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
-    if ns.cycles < 0:
-        raise DH2Error("--cycles must be 0 or more")
-    return cp, robot, events
-
-
 def cmd_run(ns: argparse.Namespace) -> int:
     try:
         _cp, robot, events = prepare_run(ns)
@@ -204,14 +199,16 @@ def cmd_run(ns: argparse.Namespace) -> int:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
     except (DH2Error, OSError) as exc:
-        _err(str(exc))
+        err(str(exc))
         return EXIT_USAGE
     if ns.sim:
-        runner = _load(PHYSICS_RUNNERS[ns.sim])
+        runner = _load(registered(SIMULATOR_GROUP)[ns.sim], f"the simulator {ns.sim!r}")
+        if runner is None:
+            return EXIT_USAGE
         code: int = runner(robot, ns, events)
         return code
     if ns.record or ns.plot or ns.gui:
-        _err("--record, --plot and --gui need --sim pybullet")
+        err("--record, --plot and --gui need --sim pybullet")
         return EXIT_USAGE
     trace = TraceWriter.open(ns.trace, robot) if ns.trace else None
     robot.record = trace is not None
@@ -226,7 +223,7 @@ def cmd_run(ns: argparse.Namespace) -> int:
     def body() -> None:
         with stop:
             # without a trace nobody looks at single cycles: let the robot run in skewed windows
-            for cycle in robot.run(ns.cycles, events, every_cycle=trace is not None):
+            for cycle in robot.iter_cycles(ns.cycles, events, every_cycle=trace is not None):
                 if trace is not None:
                     trace.write_cycle()
                 progress.update(cycle + 1)
@@ -237,123 +234,11 @@ def cmd_run(ns: argparse.Namespace) -> int:
     print_summary(robot, elapsed, as_json=ns.json)
     if interrupted:
         if stop.forced:
-            _err(f"interrupted during cycle {robot.cycle}: modules may be at different cycles")
+            err(f"interrupted during cycle {robot.cycle}: modules may be at different cycles")
         else:
-            _err(f"interrupted at cycle {robot.cycle}")
+            err(f"interrupted at cycle {robot.cycle}")
         return EXIT_INTERRUPTED
     return EXIT_OK
-
-
-class Progress:
-    """A one-line progress report on stderr, redrawn at most twice a second; silent unless
-    stderr is a terminal (pipes and logs get only the summary)."""
-
-    def __init__(self, total: int, modules: int, stream: IO[str] | None = None) -> None:
-        self.stream = stream or sys.stderr
-        self.enabled = self.stream.isatty() and total > 0
-        self.total = total
-        self.modules = modules
-        self.started = self.last = time.perf_counter()
-        self.last_cycle = 0
-        self.shown = False
-
-    def update(self, cycle: int) -> None:
-        if not self.enabled or cycle - self.last_cycle < 64:
-            return
-        self.last_cycle = cycle
-        now = time.perf_counter()
-        if now - self.last < 0.5:
-            return
-        self.last = now
-        rate = cycle * self.modules / (now - self.started)
-        self.stream.write(f"\rcycle {cycle}/{self.total} ({cycle * 100 // self.total}%), {rate:,.0f} module-cycles/s ")
-        self.stream.flush()
-        self.shown = True
-
-    def done(self) -> None:
-        if self.shown:
-            self.stream.write("\r" + " " * 72 + "\r")
-            self.stream.flush()
-
-
-class StopAtCycleEnd:
-    """Ctrl-C stops the run at the end of the cycle (or skewed window) being computed, so the
-    summary shows every module at the same cycle; a second Ctrl-C stops at once."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self.forced = False  # the second Ctrl-C: stopped wherever the run was
-        self._old: Any = None
-
-    def __enter__(self) -> StopAtCycleEnd:
-        try:
-            self._old = signal.signal(signal.SIGINT, self._on_sigint)
-        except ValueError:  # not the main thread: Ctrl-C is not ours to handle
-            self._old = None
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
-
-    def _on_sigint(self, _signum: int, _frame: object) -> None:
-        if self.requested:
-            self.forced = True
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def check(self) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-
-
-def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tuple[float, bool]:
-    """Run ``body`` until it ends or Ctrl-C; close the trace either way.
-
-    Returns (seconds, interrupted): an interrupted run still gets its summary printed.
-    """
-    interrupted = False
-    started = time.perf_counter()
-    try:
-        body()
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        if trace is not None:
-            trace.close()
-    return time.perf_counter() - started, interrupted
-
-
-def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[str] | None = None) -> None:
-    out = out or sys.stdout
-    rows = robot.summary()
-    if as_json:
-        json.dump({"cycles": robot.cycle, "seconds": elapsed, "modules": rows}, out)
-        out.write("\n")
-        return
-    rate = robot.cycle * robot.size / elapsed if elapsed > 0 else 0.0
-    print(
-        f"{robot.program.name} on {robot.topology.spec}: {robot.size} modules, {robot.cycle} cycles "
-        f"in {elapsed:.3f} s ({rate:,.0f} module-cycles/s), seed {robot.seed}",
-        file=out,
-    )
-    print(
-        f"{'module':<12} {'type':<12} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
-        f"{'recv':>6} {'sent':>6} {'fwd':>5} {'faults':>6}",
-        file=out,
-    )
-    for r in rows:
-        if not r["alive"]:
-            print(f"{r['name']:<12} {'(stopped)':<12}", file=out)
-            continue
-        alias = "" if r["T"] is None else str(r["T"])
-        print(
-            f"{r['name']:<12} {r['type']:<12} {alias:>3} {r['DOF1']:>6.0f} {r['DOF2']:>6.0f} {r['received']:>6} "
-            f"{r['sent']:>6} {r['forwarded']:>5} {r['faults']:>6}",
-            file=out,
-        )
-    for line in robot.log[-20:]:
-        print(f"  {line}", file=out)
 
 
 def cmd_demo(cycles: int) -> int:

@@ -38,7 +38,7 @@ def run_demo(cycles: int, out: IO[str]) -> int:
     robot = Robot(caterpillar, topo, seed=7)
     print("1. Caterpillar (Table I) on snake:8 -- DOF1 per module (^ +45, v -45), H = head", file=out)
     first_wave = 0
-    for c in robot.run(min(cycles, 120)):
+    for c in robot.iter_cycles(min(cycles, 120)):
         if robot.engine(0).dof[0] != 0 and not first_wave:
             first_wave = c
         if first_wave and c - first_wave < 14:
@@ -48,7 +48,7 @@ def run_demo(cycles: int, out: IO[str]) -> int:
     events = [
         parse_event(e, topo, caterpillar.vocabulary) for e in ("130:cut:m3.back", "170:cut:m1.back", "170:cut:m5.back")
     ]
-    for c in robot.run(max(cycles - robot.cycle, 100), events):
+    for c in robot.iter_cycles(max(cycles - robot.cycle, 100), events):
         if c in (129, 131, 171, 200):
             names = [topo.names[i] for i, e in enumerate(robot.engines) if e and e.topo_type.name == "head"]
             print(f"   cycle {c:4d}  {_wave_row(robot)}  heads: {', '.join(names)}", file=out)
@@ -60,8 +60,7 @@ def run_demo(cycles: int, out: IO[str]) -> int:
     l2s = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
     dragon = parse_spec("dragon")
     robot = Robot(l2s, dragon, seed=1)
-    for _ in robot.run(300, [parse_event("5:inject:spine0:LTS", dragon, l2s.vocabulary)]):
-        pass
+    robot.run(300, [parse_event("5:inject:spine0:LTS", dragon, l2s.vocabulary)])
     for line in robot.log:
         print(f"   {line}", file=out)
     types = [e.topo_type.name for e in robot.engines if e]

@@ -382,8 +382,15 @@ class Robot:
             if handler is not None:
                 handler(self, m, args)
 
-    def run(self, cycles: int, events: Iterable[Event] = (), *, every_cycle: bool = True) -> Iterator[int]:
-        """Run ``cycles`` cycles applying events at their cycles; yields each finished cycle.
+    def run(self, cycles: int, events: Iterable[Event] = ()) -> None:
+        """Run ``cycles`` cycles, applying events at their cycles (the quiet stretches between
+        them in time-skewed windows, :meth:`advance`)."""
+        for _ in self.iter_cycles(cycles, events, every_cycle=False):
+            pass
+
+    def iter_cycles(self, cycles: int, events: Iterable[Event] = (), *, every_cycle: bool = True) -> Iterator[int]:
+        """Run ``cycles`` cycles applying events at their cycles; yields each finished cycle,
+        so that the caller can look at the robot between cycles (traces, progress, Ctrl-C).
 
         With ``every_cycle=False`` the cycles between events go through :meth:`advance`
         (time-skewed windows) and only the last cycle of each window is yielded: the same

@@ -29,7 +29,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
-from dh2rt.cli import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
+from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, ProgramError
 from dh2rt.events import Event, parse_event

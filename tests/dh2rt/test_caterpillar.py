@@ -15,8 +15,7 @@ TABLE_HEAD = {0: (45.0, "A"), 10: (-45.0, "B"), 20: (-45.0, "C"), 30: (45.0, "D"
 
 def run_and_record(program: CompiledProgram, n: int, cycles: int, seed: int) -> Robot:
     robot = Robot(program, snake(n), seed=seed, record=True)
-    for _ in robot.run(cycles):
-        pass
+    robot.run(cycles)
     return robot
 
 
@@ -60,8 +59,7 @@ def test_wave_runs_thousands_of_cycles_without_drift_or_loss(caterpillar: Compil
     n, cycles = 20, 6000
     robot = run_and_record(caterpillar, n, 0, seed=3)
     counts = [0] * n
-    for _ in robot.run(cycles):
-        pass
+    robot.run(cycles)
     for m in range(n):
         counts[m] = robot.engine(m).counters["sent"]
     # the head sends 4 per ClockCycle; every module downstream sends exactly what it received

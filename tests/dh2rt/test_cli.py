@@ -126,13 +126,13 @@ class _Tty(io.StringIO):
 
 
 def test_progress_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
-    from dh2rt import cli
+    from dh2rt import cmdline
 
     clock = iter(float(x) for x in range(1000))
-    monkeypatch.setattr(cli.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(cmdline.time, "perf_counter", lambda: next(clock))
     tty, pipe = _Tty(), io.StringIO()
     for stream in (tty, pipe):
-        p = cli.Progress(1280, 10, stream)
+        p = cmdline.Progress(1280, 10, stream)
         for cycle in range(1, 1281):
             p.update(cycle)
         p.done()
@@ -175,7 +175,7 @@ def test_ctrl_c_stops_at_a_whole_cycle(examples: Path, caterpillar: object) -> N
 def test_second_ctrl_c_stops_at_once() -> None:
     import signal
 
-    from dh2rt.cli import StopAtCycleEnd
+    from dh2rt.cmdline import StopAtCycleEnd
 
     before = signal.getsignal(signal.SIGINT)
     with StopAtCycleEnd() as stop:

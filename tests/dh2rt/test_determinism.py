@@ -15,7 +15,7 @@ def behaviour(robot: Robot, cycles: int, events: list[str] = ()) -> list[list[tu
     evs = [parse_event(e, robot.topology, robot.program.vocabulary) for e in events]
     out: list[list[tuple]] = [[] for _ in range(robot.size)]
     robot.record = True
-    for _ in robot.run(cycles, evs):
+    for _ in robot.iter_cycles(cycles, evs):
         for rec in sorted(robot.records, key=lambda r: r.module):
             e = robot.engine(rec.module)
             out[rec.module].append(
@@ -102,7 +102,7 @@ def test_skipping_quiet_cycles_changes_nothing(legs_to_snake: CompiledProgram, l
         evs = [parse_event(e, topo, program.vocabulary) for e in events]
         for robot in (fast, slow):
             robot.pending_events = list(evs)  # type: ignore[attr-defined]
-        fast_iter, slow_iter = fast.run(300, evs), slow.run(300, evs)
+        fast_iter, slow_iter = fast.iter_cycles(300, evs), slow.iter_cycles(300, evs)
         for _ in range(300):
             next(fast_iter)
             next(slow_iter)

@@ -16,7 +16,7 @@ def run_logged(robot: Robot, cycles: int, on_cycle=None) -> list[tuple[int, int,
     """(cycle, module, type, 'recv'|'sent', hormone name) for the reconfiguration hormones."""
     log = []
     robot.record = True
-    for c in robot.run(cycles):
+    for c in robot.iter_cycles(cycles):
         for rec in robot.records:
             e = robot.engines[rec.module]
             t = e.topo_type.name if e else "dead"

@@ -19,7 +19,7 @@ def test_unbound_hormone_dies_out_on_a_ring_of_6(max_hops: int | None) -> None:
     assert all(robot.engine(m).topo_type.name == "body" for m in range(6))
     robot.inject(0, Hormone("Z"))
     in_flight = []
-    for _ in robot.run(bound + 5):
+    for _ in robot.iter_cycles(bound + 5):
         in_flight.append(sum(len(box) for box in robot.inbox.values()))
     # two copies circle the ring (one each way) until their paths reach the bound
     assert in_flight[0] == 2

@@ -101,7 +101,7 @@ def test_advance_after_surgery_docking_deaths(locomotion: CompiledProgram) -> No
     skewed.skew_block, skewed.skew_depth = 4, 6
     yielded = [-1]
     for robot, every in ((stepped, True), (skewed, False)):
-        for cycle in robot.run(250, evs, every_cycle=every):
+        for cycle in robot.iter_cycles(250, evs, every_cycle=every):
             if not every:
                 start = yielded[-1] + 1  # the window ran cycles start .. cycle
                 assert not any(start < c <= cycle for c in (40, 90, 130, 170)), "a window crossed an event"

@@ -66,8 +66,7 @@ def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[di
 def robot_receptions(cycles: int, seed: int = 0) -> dict[int, list[str]]:
     program = compile_file(str(PROGRAM))
     robot = Robot(program, parse_spec(f"snake:{N}"), seed=seed, record=True)
-    for _ in robot.run(cycles):
-        pass
+    robot.run(cycles)
     got: dict[int, list[str]] = {m: [] for m in range(N)}
     for rec in robot.records:
         got[rec.module].extend(a.hormone.content() for a in rec.received)

@@ -1,0 +1,186 @@
+"""What every dh2rt command shares: exit codes, error output, the run options, progress,
+Ctrl-C handling and the run summary (as python-can's ``can/cli.py`` serves its tools).
+
+The umbrella command (:mod:`dh2rt.cli`) and the commands that live in upper layers (the
+launcher in ``hil``, the physics runner in ``sim``, the tools in ``tools``) all build on this
+module; none of them imports another's command module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.errors import DH2Error
+from dh2rt.events import Event, parse_event
+from dh2rt.robot import Robot
+from dh2rt.topology import BUILTIN_NAMES, parse_spec
+from dh2rt.trace import TraceWriter
+
+#: Exit codes of every dh2rt command.
+EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def err(message: str) -> None:
+    """An error or notice for the user, on stderr, prefixed with the command's name."""
+    print(f"dh2rt: {message}", file=sys.stderr)
+
+
+def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -> None:
+    """Options shared by ``dh2rt run`` and the hardware-in-the-loop launcher."""
+    if program_required:
+        p.add_argument("program", type=Path, help="a .dh2 file")
+    p.add_argument(
+        "--topology",
+        default="snake:8",
+        help=f"built-in ({', '.join(BUILTIN_NAMES)}) or a .toml file (default: snake:8)",
+    )
+    p.add_argument("--cycles", type=int, default=200, help="cycles to run (default: 200)")
+    p.add_argument("--seed", type=int, default=0, help="seed for LocalTimer phases (default: 0)")
+    p.add_argument(
+        "--event",
+        action="append",
+        default=[],
+        metavar="EV",
+        help="CYCLE:cut:M.CONN | CYCLE:dock:M.CONN-M2.CONN2 | CYCLE:inject:M:HORMONE | "
+        "CYCLE:kill:M | CYCLE:restart:M (repeatable)",
+    )
+    p.add_argument(
+        "--trace", type=Path, metavar="FILE", help="write a JSON Lines trace, one object per module per cycle"
+    )
+
+
+def load_program(path: Path) -> CompiledProgram:
+    return compile_file(str(path))
+
+
+def prepare_run(ns: argparse.Namespace) -> tuple[CompiledProgram, Robot, list[Event]]:
+    """Load program, topology and events for ``run`` (and the launcher); raises DH2Error."""
+    cp = load_program(ns.program)
+    topo = parse_spec(ns.topology, cp.profile)
+    robot = Robot(cp, topo, seed=ns.seed)
+    events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
+    if ns.cycles < 0:
+        raise DH2Error("--cycles must be 0 or more")
+    return cp, robot, events
+
+
+class Progress:
+    """A one-line progress report on stderr, redrawn at most twice a second; silent unless
+    stderr is a terminal (pipes and logs get only the summary)."""
+
+    def __init__(self, total: int, modules: int, stream: IO[str] | None = None) -> None:
+        self.stream = stream or sys.stderr
+        self.enabled = self.stream.isatty() and total > 0
+        self.total = total
+        self.modules = modules
+        self.started = self.last = time.perf_counter()
+        self.last_cycle = 0
+        self.shown = False
+
+    def update(self, cycle: int) -> None:
+        if not self.enabled or cycle - self.last_cycle < 64:
+            return
+        self.last_cycle = cycle
+        now = time.perf_counter()
+        if now - self.last < 0.5:
+            return
+        self.last = now
+        rate = cycle * self.modules / (now - self.started)
+        self.stream.write(f"\rcycle {cycle}/{self.total} ({cycle * 100 // self.total}%), {rate:,.0f} module-cycles/s ")
+        self.stream.flush()
+        self.shown = True
+
+    def done(self) -> None:
+        if self.shown:
+            self.stream.write("\r" + " " * 72 + "\r")
+            self.stream.flush()
+
+
+class StopAtCycleEnd:
+    """Ctrl-C stops the run at the end of the cycle (or skewed window) being computed, so the
+    summary shows every module at the same cycle; a second Ctrl-C stops at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.forced = False  # the second Ctrl-C: stopped wherever the run was
+        self._old: Any = None
+
+    def __enter__(self) -> StopAtCycleEnd:
+        try:
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        except ValueError:  # not the main thread: Ctrl-C is not ours to handle
+            self._old = None
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def _on_sigint(self, _signum: int, _frame: object) -> None:
+        if self.requested:
+            self.forced = True
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+
+def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tuple[float, bool]:
+    """Run ``body`` until it ends or Ctrl-C; close the trace either way.
+
+    Returns (seconds, interrupted): an interrupted run still gets its summary printed.
+    """
+    interrupted = False
+    started = time.perf_counter()
+    try:
+        body()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if trace is not None:
+            trace.close()
+    return time.perf_counter() - started, interrupted
+
+
+def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[str] | None = None) -> None:
+    out = out or sys.stdout
+    rows = robot.summary()
+    if as_json:
+        json.dump({"cycles": robot.cycle, "seconds": elapsed, "modules": rows}, out)
+        out.write("\n")
+        return
+    rate = robot.cycle * robot.size / elapsed if elapsed > 0 else 0.0
+    print(
+        f"{robot.program.name} on {robot.topology.spec}: {robot.size} modules, {robot.cycle} cycles "
+        f"in {elapsed:.3f} s ({rate:,.0f} module-cycles/s), seed {robot.seed}",
+        file=out,
+    )
+    print(
+        f"{'module':<12} {'type':<12} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
+        f"{'recv':>6} {'sent':>6} {'fwd':>5} {'faults':>6}",
+        file=out,
+    )
+    for r in rows:
+        if not r["alive"]:
+            print(f"{r['name']:<12} {'(stopped)':<12}", file=out)
+            continue
+        alias = "" if r["T"] is None else str(r["T"])
+        print(
+            f"{r['name']:<12} {r['type']:<12} {alias:>3} {r['DOF1']:>6.0f} {r['DOF2']:>6.0f} {r['received']:>6} "
+            f"{r['sent']:>6} {r['forwarded']:>5} {r['faults']:>6}",
+            file=out,
+        )
+    for line in robot.log[-20:]:
+        print(f"  {line}", file=out)
+
+
