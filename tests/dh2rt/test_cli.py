@@ -189,3 +189,29 @@ def test_second_ctrl_c_stops_at_once() -> None:
             signal.raise_signal(signal.SIGINT)
         assert stop.forced
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_registered_commands_are_listed_and_dispatched(capsys: pytest.CaptureFixture[str]) -> None:
+    """Upper layers' commands come through the entry-point groups, not imports in the core."""
+    from dh2rt import cli
+
+    assert "launch" in cli.registered(cli.COMMAND_GROUP)
+    assert "pybullet" in cli.registered(cli.SIMULATOR_GROUP)
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "registered commands" in out and "launch" in out and "hardware-in-the-loop" in out
+    assert main(["launch", "--help"]) == 0  # the launcher turns argparse's exit into its code
+    assert "--transport" in capsys.readouterr().out
+
+
+def test_missing_registered_command_is_a_usage_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dh2rt import cli
+
+    monkeypatch.setattr(cli, "registered", lambda group: {})
+    assert main(["--transport", "serial"]) == 2
+    assert "no command 'launch' is installed" in capsys.readouterr().err
+    assert main(["run", "examples/caterpillar.dh2", "--cycles", "1"]) == 0  # the core still runs
