@@ -1,4 +1,5 @@
-"""Public testing helpers: the transport contract suite and the harnesses that run it.
+"""Public testing helpers: the transport contract suite and the harnesses that run it, a fake
+clock, chains of module runtimes on the in-process bus, and a watch on receptor faults.
 
 Every transport must pass the same behaviours (:data:`CONTRACT_CHECKS`). A
 :class:`TransportHarness` knows how to make endpoints (one per module), dock two of them by
@@ -14,6 +15,10 @@ or without pytest: ``run_contract(MyHarness)`` returns ``{check name: "ok" | err
 
 Harnesses for ``inproc`` and the python-can transports live here; the serial harness needs
 the link emulator from ``hil`` and so lives with the tests (``dh2rt`` never imports ``hil``).
+
+:class:`FaultWatch` sees every receptor fault of every engine while it is active; the
+project's test suite runs every test under it (``tests/conftest.py``) and fails a test that
+faulted unless the test is marked ``expect_faults``.
 """
 
 from __future__ import annotations
@@ -23,10 +28,16 @@ import time
 import traceback
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from types import TracebackType
 from typing import Any
 
+from dh2rt.compiler import CompiledProgram
+from dh2rt.engine import Engine
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
+from dh2rt.robot import Robot
+from dh2rt.runtime import Driver, ModuleRuntime
 from dh2rt.transport.base import BusEnd, Received, Transport
+from dh2rt.transport.inproc import InprocBus, InprocTransport
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
 from dh2rt.wire.frame import Frame, FrameCodec, Hello, KeepAlive, program_digest
 
@@ -437,3 +448,129 @@ class TransportContract:
 
     def test_garbage_counted_never_delivered(self) -> None:
         run_check(self.make_harness, "garbage_counted_never_delivered")
+
+
+# ---------------------------------------------------------------- clocks, runtimes, faults
+
+
+class FakeClock:
+    """An injectable clock (``clock=`` of the runtime, the servo emulator's joints...).
+
+    Each reading advances it by ``step`` seconds (0: it moves only when told), so that loops
+    waiting on it never stall; :meth:`sleep` is a ``sleep=`` that takes no real time.
+    """
+
+    def __init__(self, step: float = 0.0, start: float = 0.0) -> None:
+        self.now = start
+        self.step = step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += max(0.0, seconds)
+
+
+def runtime_chain(
+    program: CompiledProgram,
+    n: int,
+    *,
+    phases: list[int] | None = None,
+    bus: InprocBus | None = None,
+    driver: Callable[[int], Driver] | None = None,
+    clock_step: float = 0.001,
+    **options: Any,
+) -> list[ModuleRuntime]:
+    """``n`` module runtimes on one in-process bus, each one's ``back`` docked to the next
+    one's ``front`` (a pair for n=2), links attached (the Hellos are on their way).
+
+    Each runtime gets its own :class:`FakeClock` (``clock_step`` per reading), ``phases[i]``
+    as its LocalTimer phase, ``driver(i)`` as its driver and ``options`` as further
+    :class:`ModuleRuntime` arguments. Step them with :func:`step_all`; close each when done.
+    """
+    if phases is not None and len(phases) != n:
+        raise ValueError(f"phases has {len(phases)} entries for {n} modules")
+    bus = bus or InprocBus()
+    codec_profile = program.profile
+    front, back = codec_profile.connector_index("front"), codec_profile.connector_index("back")
+    mods: list[ModuleRuntime] = []
+    for i in range(n):
+        codec = FrameCodec(program.vocabulary, codec_profile.connector_count)
+        mods.append(
+            ModuleRuntime(
+                program,
+                InprocTransport(codec, bus=bus),
+                timer_phase=phases[i] if phases is not None else 0,
+                clock=FakeClock(clock_step),
+                module=i,
+                driver=driver(i) if driver is not None else None,
+                **options,
+            )
+        )
+    for i in range(n - 1):
+        mods[i].attach(back, BusEnd(i, 0))
+        mods[i + 1].attach(front, BusEnd(i, 1))
+    return mods
+
+
+def robot_snapshot(robot: Robot) -> list[tuple[object, ...]]:
+    """Every module's state (type, timer, DOF1/DOF2, ConnectorStatus, V, R, counters) in a
+    form that compares equal exactly when two robots are in the same state."""
+    out: list[tuple[object, ...]] = []
+    for m in range(robot.size):
+        if not robot.alive(m):
+            out.append(("dead",))
+            continue
+        e = robot.engine(m)
+        out.append(
+            (
+                e.topo_type.name,
+                e.timer,
+                tuple(e.dof),
+                tuple(e.status),
+                tuple(e.vars),
+                tuple(e.rstatus),
+                dict(e.counters),
+            )
+        )
+    return out
+
+
+def step_all(mods: list[ModuleRuntime], cycles: int = 1) -> None:
+    """Step every runtime once per cycle, in list order (on the in-process bus a frame sent in
+    one module's cycle n is in the next module's mailbox for its cycle n)."""
+    for _ in range(cycles):
+        for m in mods:
+            m.step()
+
+
+class FaultWatch:
+    """While active, records every receptor fault of every engine (in this process) as
+    ``(engine, message)``, as well as counting it in the engine as usual."""
+
+    def __init__(self) -> None:
+        self.faults: list[tuple[Engine, str]] = []
+        self._original: Callable[[Engine, str], None] | None = None
+
+    @property
+    def messages(self) -> list[str]:
+        return [message for _engine, message in self.faults]
+
+    def __enter__(self) -> FaultWatch:
+        original = self._original = Engine._fault
+        faults = self.faults
+
+        def watched(engine: Engine, message: str) -> None:
+            faults.append((engine, message))
+            original(engine, message)
+
+        setattr(Engine, "_fault", watched)  # noqa: B010  (every engine, including ones made later)
+        return self
+
+    def __exit__(
+        self, _type: type[BaseException] | None, _exc: BaseException | None, _tb: TracebackType | None
+    ) -> None:
+        if self._original is not None:
+            setattr(Engine, "_fault", self._original)  # noqa: B010
+            self._original = None

@@ -1,14 +1,31 @@
-"""Shared fixtures: the examples folder and compiled example programs."""
+"""Shared fixtures: the examples folder, compiled example programs, and the strict watch on
+receptor faults that every test runs under."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.testing import FaultWatch
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+@pytest.fixture(autouse=True)
+def strict_faults(request: pytest.FixtureRequest) -> Iterator[FaultWatch]:
+    """Fail any test during which a receptor faulted (in this process), unless it is marked
+    ``@pytest.mark.expect_faults``; such a test fails if no fault happened."""
+    expected = request.node.get_closest_marker("expect_faults") is not None
+    with FaultWatch() as watch:
+        yield watch
+    if watch.faults and not expected:
+        shown = "; ".join(watch.messages[:5])
+        pytest.fail(f"{len(watch.faults)} receptor fault(s) (mark the test expect_faults if intended): {shown}")
+    if expected and not watch.faults:
+        pytest.fail("the test is marked expect_faults but no receptor faulted")
 
 
 @pytest.fixture(scope="session")

@@ -129,7 +129,7 @@ def test_progress_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     from dh2rt import cmdline
 
     clock = iter(float(x) for x in range(1000))
-    monkeypatch.setattr(cmdline.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(cmdline.time, "perf_counter", lambda: next(clock))  # type: ignore[attr-defined]
     tty, pipe = _Tty(), io.StringIO()
     for stream in (tty, pipe):
         p = cmdline.Progress(1280, 10, stream)

@@ -7,13 +7,16 @@ import random
 from dh2rt.compiler import CompiledProgram
 from dh2rt.events import parse_event
 from dh2rt.robot import Robot
+from dh2rt.testing import robot_snapshot
 from dh2rt.topology import Link, Topology, parse_spec
 
+Behaviour = list[list[tuple[object, ...]]]
 
-def behaviour(robot: Robot, cycles: int, events: list[str] = ()) -> list[list[tuple]]:  # type: ignore[assignment]
+
+def behaviour(robot: Robot, cycles: int, events: tuple[str, ...] | list[str] = ()) -> Behaviour:
     """Per module, per cycle: type, DOF1/DOF2, hormones received and sent (by connector)."""
     evs = [parse_event(e, robot.topology, robot.program.vocabulary) for e in events]
-    out: list[list[tuple]] = [[] for _ in range(robot.size)]
+    out: Behaviour = [[] for _ in range(robot.size)]
     robot.record = True
     for _ in robot.iter_cycles(cycles, evs):
         for rec in sorted(robot.records, key=lambda r: r.module):
@@ -68,27 +71,6 @@ def test_module_numbering_does_not_matter(caterpillar: CompiledProgram) -> None:
     assert [b[perm[i]] for i in range(9)] == a
 
 
-def snapshot(robot: Robot) -> list[tuple]:  # type: ignore[type-arg]
-    out = []
-    for m in range(robot.size):
-        if not robot.alive(m):
-            out.append(("dead",))
-            continue
-        e = robot.engine(m)
-        out.append(
-            (
-                e.topo_type.name,
-                e.timer,
-                tuple(e.dof),
-                tuple(e.status),
-                tuple(e.vars),
-                tuple(e.rstatus),
-                dict(e.counters),
-            )
-        )
-    return out
-
-
 def test_skipping_quiet_cycles_changes_nothing(legs_to_snake: CompiledProgram, locomotion: CompiledProgram) -> None:
     scenarios = [
         (legs_to_snake, "dragon", ["3:inject:tail1:LTS", "90:kill:left_leg1", "200:restart:left_leg1"]),
@@ -107,7 +89,7 @@ def test_skipping_quiet_cycles_changes_nothing(legs_to_snake: CompiledProgram, l
             next(fast_iter)
             next(slow_iter)
             if fast.cycle % 17 == 0:
-                assert snapshot(fast) == snapshot(slow), (spec, fast.cycle)
-        assert snapshot(fast) == snapshot(slow)
+                assert robot_snapshot(fast) == robot_snapshot(slow), (spec, fast.cycle)
+        assert robot_snapshot(fast) == robot_snapshot(slow)
         assert fast.log == slow.log
         assert sum(s >= 0 for s in fast._slept_at) > 0 or spec == "dragon"

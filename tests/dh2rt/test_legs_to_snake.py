@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 
 from dh2rt.compiler import CompiledProgram
 from dh2rt.hormone import Hormone
@@ -12,9 +13,11 @@ from dh2rt.topology import parse_spec
 FEET = ("left_foot", "right_foot")
 
 
-def run_logged(robot: Robot, cycles: int, on_cycle=None) -> list[tuple[int, int, str, str, str]]:  # type: ignore[no-untyped-def]
+def run_logged(
+    robot: Robot, cycles: int, on_cycle: Callable[[int], None] | None = None
+) -> list[tuple[int, int, str, str, str]]:
     """(cycle, module, type, 'recv'|'sent', hormone name) for the reconfiguration hormones."""
-    log = []
+    log: list[tuple[int, int, str, str, str]] = []
     robot.record = True
     for c in robot.iter_cycles(cycles):
         for rec in robot.records:

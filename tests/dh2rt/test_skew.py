@@ -10,9 +10,8 @@ from dh2rt.compiler import CompiledProgram
 from dh2rt.events import parse_event
 from dh2rt.robot import Robot
 from dh2rt.skew import breadth_first_order, make_plan
+from dh2rt.testing import robot_snapshot
 from dh2rt.topology import Link, Topology, parse_spec
-
-from .test_determinism import snapshot
 
 SHAPES = ("snake:1", "snake:7", "snake:61", "ring:6", "ring:40", "t-shape", "hexapod", "octopod", "dragon")
 
@@ -34,7 +33,7 @@ def shuffled(topo: Topology, seed: int) -> Topology:
 
 def state(robot: Robot) -> tuple[object, ...]:
     mail = sorted((m, [(a.at, a.remote, a.hormone) for a in box]) for m, box in robot.inbox.items())
-    return robot.cycle, snapshot(robot), mail
+    return robot.cycle, robot_snapshot(robot), mail
 
 
 def replay(neighbours: list[list[int]], block: int, depth: int) -> int:

@@ -74,7 +74,7 @@ def test_octopod_cut_into_two_quadrupeds_that_keep_walking(locomotion: CompiledP
     legs = [i for i, n in enumerate(topo.names) if "leg" in n]
     robot.record = True
     received = dict.fromkeys(legs, 0)
-    moves = {m: set() for m in legs}
+    moves: dict[int, set[tuple[float, ...]]] = {m: set() for m in legs}
     cycles = 5 * locomotion.clock_cycle
     for _ in robot.iter_cycles(cycles):
         for rec in robot.records:

@@ -14,6 +14,7 @@ import pytest
 from dh2rt.compiler import CompiledProgram, compile_file
 from dh2rt.hormone import Hormone
 from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
+from dh2rt.testing import FakeClock, runtime_chain, step_all
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocBus, InprocTransport
 from dh2rt.wire.frame import FrameCodec
@@ -24,18 +25,6 @@ FRONT, BACK = 1, 2
 TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}  # body receptors: DOF1 per hormone got
 
 
-class FakeClock:
-    """Advances a fixed step on every reading: deterministic, and never stalls a wait."""
-
-    def __init__(self, step: float = 0.001) -> None:
-        self.now = 0.0
-        self.step = step
-
-    def __call__(self) -> float:
-        self.now += self.step
-        return self.now
-
-
 @pytest.fixture(scope="module")
 def caterpillar() -> CompiledProgram:
     return compile_file(str(ROOT / "examples" / "caterpillar.dh2"))
@@ -43,25 +32,12 @@ def caterpillar() -> CompiledProgram:
 
 def make(program: CompiledProgram, bus: InprocBus, phase: int = 0, **kw: object) -> ModuleRuntime:
     codec = FrameCodec(program.vocabulary, program.profile.connector_count)
-    return ModuleRuntime(program, InprocTransport(codec, bus=bus), timer_phase=phase, clock=FakeClock(), **kw)  # type: ignore[arg-type]
+    return ModuleRuntime(program, InprocTransport(codec, bus=bus), timer_phase=phase, clock=FakeClock(0.001), **kw)  # type: ignore[arg-type]
 
 
 def snake(program: CompiledProgram, n: int, phases: list[int] | None = None) -> list[ModuleRuntime]:
     """n runtimes docked back-to-front on a fresh bus, links attached (Hellos exchanged)."""
-    bus = InprocBus()
-    mods = [
-        make(program, bus, (phases or [0] * n)[i], module=i, driver=RecordingDriver(), record=True) for i in range(n)
-    ]
-    for i in range(n - 1):
-        mods[i].attach(BACK, BusEnd(i, 0))
-        mods[i + 1].attach(FRONT, BusEnd(i, 1))
-    return mods
-
-
-def step_all(mods: list[ModuleRuntime], cycles: int = 1) -> None:
-    for _ in range(cycles):
-        for m in mods:
-            m.step()
+    return runtime_chain(program, n, phases=phases, driver=lambda _i: RecordingDriver(), record=True)
 
 
 @pytest.fixture

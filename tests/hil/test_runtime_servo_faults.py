@@ -10,6 +10,7 @@ import pytest
 from dh2rt.compiler import CompiledProgram, compile_file
 from dh2rt.errors import ServoModelMismatch, ServoNotFound
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
+from dh2rt.testing import FakeClock
 from dh2rt.transport.inproc import InprocBus, InprocTransport
 from dh2rt.wire.frame import FrameCodec
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
@@ -26,18 +27,9 @@ def caterpillar() -> CompiledProgram:
     return compile_file(str(ROOT / "examples" / "caterpillar.dh2"))
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        self.now += 0.001
-        return self.now
-
-
 def lone_head(program: CompiledProgram, driver: DynamixelDriver) -> ModuleRuntime:
     codec = FrameCodec(program.vocabulary, program.profile.connector_count)
-    return ModuleRuntime(program, InprocTransport(codec, bus=InprocBus()), driver=driver, clock=Clock())
+    return ModuleRuntime(program, InprocTransport(codec, bus=InprocBus()), driver=driver, clock=FakeClock(0.001))
 
 
 @pytest.mark.parametrize(

@@ -61,7 +61,7 @@ def test_dynamixel_path_moves_like_the_stand_in(caterpillar: CompiledProgram) ->
             drivers.append(stack.enter_context(DynamixelDriver(emulator.port_path, latency_timer_ms=100)))
         # Each cycle's commands go through the SDK and the emulator; a sync read after the
         # writes makes sure the emulator applied them before physics steps on.
-        run.drivers = drivers
+        run.drivers = list(drivers)
 
         def settle() -> None:
             for d in drivers:
@@ -107,7 +107,7 @@ def test_cli_physics_run_writes_animation_plot_and_trace(examples: Path, tmp_pat
     from PIL import Image
 
     with Image.open(gif) as im:
-        assert im.n_frames >= 10 and im.size == (320, 240)
+        assert getattr(im, "n_frames", 1) >= 10 and im.size == (320, 240)
     with Image.open(png) as im:
         assert im.format == "PNG"
     import json
