@@ -156,13 +156,16 @@ def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[s
     out = out or sys.stdout
     rows = robot.summary()
     if as_json:
-        json.dump({"cycles": robot.cycle, "seconds": elapsed, "modules": rows}, out)
+        json.dump(
+            {"cycles": robot.cycle, "seconds": elapsed, "lost_in_flight": robot.lost_in_flight, "modules": rows}, out
+        )
         out.write("\n")
         return
     rate = robot.cycle * robot.size / elapsed if elapsed > 0 else 0.0
     print(
         f"{robot.program.name} on {robot.topology.spec}: {robot.size} modules, {robot.cycle} cycles "
-        f"in {elapsed:.3f} s ({rate:,.0f} module-cycles/s), seed {robot.seed}",
+        f"in {elapsed:.3f} s ({rate:,.0f} module-cycles/s), seed {robot.seed}"
+        + (f", {robot.lost_in_flight} hormone(s) lost in flight across cut links" if robot.lost_in_flight else ""),
         file=out,
     )
     print(

@@ -12,13 +12,17 @@ two connectors are aligned) and leaves the rules to this module:
 - :func:`reach_and_dock`: the native action's effect, carried out :data:`DOCK_DELAY` cycles
   after it is asked for (bending, aligning and latching take time): the module at the end of
   the route releases its link at the connector the route arrives at, and the asking
-  connector docks there, if the world says the two are aligned by then.
+  connector docks there, if the world says the two are aligned by then;
+- :func:`without_in_flight`: mail in flight across a link that is cut, or to or from a
+  module that is killed, is never delivered (it is lost in flight, and counted so). A stale
+  arrival would set the receiver's ConnectorStatus back to the dead link (the hop it came
+  by), and a piece of a cut robot would keep a type it no longer has.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 from dh2rt.errors import TopologyError
 from dh2rt.profile import Profile
@@ -27,6 +31,23 @@ from dh2rt.profile import Profile
 DOCK_DELAY = 10
 
 End = tuple[int, int]  # (module, connector)
+
+
+class Mail(Protocol):
+    """Anything waiting to be delivered to a module at one of its connectors."""
+
+    @property
+    def at(self) -> int: ...
+
+
+M = TypeVar("M", bound=Mail)
+
+
+def without_in_flight(mail: list[M], connector: int) -> tuple[list[M], int]:
+    """``mail`` less what is waiting to arrive at ``connector`` (it crossed a link that is
+    gone), and how much that was: the caller counts it as lost in flight."""
+    kept = [m for m in mail if m.at != connector]
+    return kept, len(mail) - len(kept)
 
 
 class DockingWorld(Protocol):

@@ -99,6 +99,9 @@ class Robot:
             "assist": lambda _r, _m, _a: None,
         }
         self.log: list[str] = []
+        #: Hormones that were on their way across a link when it was cut or its sender or
+        #: receiver was killed: never delivered (dh2rt.docking.without_in_flight).
+        self.lost_in_flight = 0
         for link in topology.links:
             self.dock(link.a, link.a_conn, link.b, link.b_conn)
 
@@ -176,9 +179,19 @@ class Robot:
         self._wake(module)
         self._wake(other[0])
         for m, c in ((module, connector), other):
+            self._drop_in_flight(m, c)
             e = self.engines[m]
             if e is not None:
                 e.link_down(c)
+
+    def _drop_in_flight(self, module: int, connector: int) -> None:
+        """What is waiting in ``module``'s mailbox at ``connector`` crossed a link that is gone."""
+        mail = self.inbox.get(module)
+        if mail:
+            kept, lost = docking.without_in_flight(mail, connector)
+            if lost:
+                self.inbox[module] = kept
+                self.lost_in_flight += lost
 
     def kill(self, module: int) -> None:
         """The module stops; its neighbours sense a silent connector."""
@@ -186,8 +199,9 @@ class Robot:
             return
         self._wake(module)
         self.engines[module] = None
-        self.inbox.pop(module, None)
-        for _c, _other, other_c, e in self._running_neighbours(module):
+        self.lost_in_flight += len(self.inbox.pop(module, ()))
+        for _c, other, other_c, e in self._running_neighbours(module):
+            self._drop_in_flight(other, other_c)  # what it sent in its last cycle dies with it
             e.link_down(other_c)
 
     def restart(self, module: int) -> None:
