@@ -34,16 +34,22 @@ from dh2rt.cmdline import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
+    PLOT_SUFFIXES,
+    STDOUT,
+    TRACE_SUFFIXES,
     Progress,
     StopAtCycleEnd,
     add_run_options,
     err,
     load_program,
+    output_path,
     prepare_run,
     print_summary,
     timed_run,
 )
-from dh2rt.errors import DH2Error, ProgramError
+from dh2rt.errors import DH2Error, OutputError, ProgramError
+from dh2rt.lint import lint
+from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.profile import CONRO
 from dh2rt.trace import TraceWriter
 
@@ -89,14 +95,16 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
     run = sub.add_parser("run", help="run a robot in one process and print a per-module summary")
     add_run_options(run)
     run.add_argument("--sim", choices=sorted(registered(SIMULATOR_GROUP)), help="run the modules' joints in physics")
-    run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation")
-    run.add_argument("--plot", type=Path, metavar="PNG", help="with --sim: plot joint angles and displacement")
+    run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation (.gif)")
+    run.add_argument(
+        "--plot", type=Path, metavar="PNG", help="with --sim: plot joint angles and displacement (.png, .svg, .pdf)"
+    )
     run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     image = sub.add_parser("image", help="write a program's image (what gets flashed) and print its hash")
     image.add_argument("program", type=Path)
-    image.add_argument("-o", "--output", type=Path, required=True, help="image file to write")
+    image.add_argument("-o", "--output", type=Path, required=True, help="image file to write (- for standard output)")
 
     sub.add_parser("types", help="list the CONRO profile's topological types")
 
@@ -160,6 +168,8 @@ def cmd_check(path: Path) -> int:
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
+    for warning in lint(cp.ast, cp.profile, STANDARD_NATIVES):
+        print(warning, file=sys.stderr)
     print(
         f"{path}: ok: program {cp.name}, {len(cp.receptors)} receptors, {len(cp.vocabulary.by_index)} hormones, "
         f"ClockCycle {cp.clock_cycle}, image {len(cp.image)} bytes, sha256 {cp.hash[:16]}"
@@ -173,8 +183,21 @@ def cmd_image(path: Path, output: Path) -> int:
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
-    output.write_bytes(cp.image)
-    print(f"{output}: {len(cp.image)} bytes, sha256 {cp.hash}")
+    try:
+        output = output_path(output, "-o", stdout=True)
+        if output == STDOUT:
+            sys.stdout.buffer.write(cp.image)
+            sys.stdout.flush()
+        else:
+            output.write_bytes(cp.image)
+    except OutputError as exc:
+        err(str(exc))
+        return EXIT_USAGE
+    except OSError as exc:
+        err(f"-o {output}: {exc.strerror or exc}")
+        return EXIT_USAGE
+    # with the image on standard output, its description goes to standard error
+    print(f"{output}: {len(cp.image)} bytes, sha256 {cp.hash}", file=sys.stderr if output == STDOUT else sys.stdout)
     return EXIT_OK
 
 
@@ -192,8 +215,19 @@ def cmd_types(out: IO[str]) -> int:
     return EXIT_OK
 
 
+def check_outputs(ns: argparse.Namespace) -> None:
+    """Apply the output rule to ``run``'s output options before anything runs."""
+    if ns.trace is not None:
+        ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES, stdout=True)
+    if ns.record is not None:
+        ns.record = output_path(ns.record, "--record", (".gif",))
+    if ns.plot is not None:
+        ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
+
+
 def cmd_run(ns: argparse.Namespace) -> int:
     try:
+        check_outputs(ns)
         _cp, robot, events = prepare_run(ns)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
@@ -230,8 +264,13 @@ def cmd_run(ns: argparse.Namespace) -> int:
                 stop.check()
         progress.done()
 
-    elapsed, interrupted = timed_run(body, trace)
-    print_summary(robot, elapsed, as_json=ns.json)
+    try:
+        elapsed, interrupted = timed_run(body, trace)
+    except DH2Error as exc:  # an event that native actions made impossible (EventError)
+        err(str(exc))
+        return EXIT_USAGE
+    # a trace on standard output keeps it to itself: the summary goes to standard error
+    print_summary(robot, elapsed, as_json=ns.json, out=sys.stderr if ns.trace == STDOUT else None)
     if interrupted:
         if stop.forced:
             err(f"interrupted during cycle {robot.cycle}: modules may be at different cycles")

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.compiler import CompiledProgram, compile_file
-from dh2rt.errors import DH2Error
-from dh2rt.events import Event, parse_event
+from dh2rt.errors import DH2Error, OutputError
+from dh2rt.events import Event, check_events, parse_event
 from dh2rt.robot import Robot
 from dh2rt.topology import BUILTIN_NAMES, parse_spec
 from dh2rt.trace import TraceWriter
@@ -53,7 +53,10 @@ def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -
         "CYCLE:kill:M | CYCLE:restart:M (repeatable)",
     )
     p.add_argument(
-        "--trace", type=Path, metavar="FILE", help="write a JSON Lines trace, one object per module per cycle"
+        "--trace",
+        type=Path,
+        metavar="FILE",
+        help="write a JSON Lines trace (.jsonl; - for standard output), one object per module per cycle",
     )
 
 
@@ -65,11 +68,42 @@ def prepare_run(ns: argparse.Namespace) -> tuple[CompiledProgram, Robot, list[Ev
     """Load program, topology and events for ``run`` (and the launcher); raises DH2Error."""
     cp = load_program(ns.program)
     topo = parse_spec(ns.topology, cp.profile)
-    robot = Robot(cp, topo, seed=ns.seed)
-    events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
     if ns.cycles < 0:
         raise DH2Error("--cycles must be 0 or more")
+    robot = Robot(cp, topo, seed=ns.seed)
+    events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
+    check_events(events, topo, ns.cycles)
     return cp, robot, events
+
+
+#: What ``-`` stands for in an output option: standard output.
+STDOUT = Path("-")
+#: Formats of the output options: a JSON Lines trace; a plot as matplotlib writes it.
+TRACE_SUFFIXES = (".jsonl", ".ndjson")
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
+
+
+def output_path(path: Path, option: str, suffixes: tuple[str, ...] = (), *, stdout: bool = False) -> Path:
+    """The one rule for every output file a command writes (``--trace``, ``--record``,
+    ``--plot``, ``-o``): ``-`` means standard output where ``stdout`` allows it; a file's
+    suffix must be one of ``suffixes`` (the format written), when given; missing parent
+    folders are created. Raises OutputError (exit 2) naming the option and the file."""
+    if path == STDOUT:
+        if stdout:
+            return path
+        raise OutputError(f"{option} -: this output cannot go to standard output; name a file")
+    if path.is_dir():
+        raise OutputError(f"{option} {path}: is a folder; name a file")
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise OutputError(
+            f"{option} {path}: the file is written as {suffixes[0][1:].upper()}; "
+            f"give it a name ending in {' or '.join(suffixes)}"
+        )
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{option} {path}: cannot create its folder ({exc.strerror or exc})") from None
+    return path
 
 
 class Progress:

@@ -88,6 +88,8 @@ def check_dock(
     b_conn: int,
 ) -> None:
     """Raise TopologyError unless ``a.a_conn`` may dock to ``b.b_conn`` now."""
+    if a == b:
+        raise TopologyError(f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: a module cannot dock to itself")
     if not profile.can_link(a_conn, b_conn):
         raise TopologyError(
             f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: both are {profile.gender(a_conn)}"
@@ -95,8 +97,6 @@ def check_dock(
     for m, c in ((a, a_conn), (b, b_conn)):
         if docked((m, c)):
             raise TopologyError(f"cannot dock {where(m, c)}: it is already docked")
-    if a == b:
-        raise TopologyError("cannot dock a module to itself")
 
 
 def check_cut(peer: End | None, where: str) -> End:

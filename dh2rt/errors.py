@@ -20,7 +20,8 @@ it arises. Each class also inherits the builtin that fits it, so callers that al
     │   ├── ServoModelMismatch              a servo answered with the wrong model number
     │   ├── ServoCommError                  a packet was lost or garbled (CRC, timeout)
     │   └── ServoHardwareAlert              the servo reports a hardware error
-    └── SimulationError (RuntimeError)      the physics stand-in failed
+    ├── SimulationError (RuntimeError)      the physics stand-in failed
+    └── OutputError (ValueError)            an output option names a file that cannot be written
 """
 
 from __future__ import annotations
@@ -121,3 +122,7 @@ class ServoHardwareAlert(DriverError):
 
 class SimulationError(DH2Error, RuntimeError):
     """The physics stand-in failed."""
+
+
+class OutputError(DH2Error, ValueError):
+    """An output option names a file that cannot be written as asked (exit 2)."""

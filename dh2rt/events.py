@@ -7,12 +7,18 @@ Text form (``--event``), with modules by name or index::
     CYCLE:inject:M:HORMONE           place HORMONE (e.g. LTS or X(A)) in M's mailbox
     CYCLE:kill:M                     the module stops (its neighbours lose the link)
     CYCLE:restart:M                  it boots again with a fresh state
+
+:func:`check_events` replays a run's events against its topology before the run starts, so
+that a cut of nothing, a dock of two male connectors or an event after the last cycle is
+refused up front (naming the event) rather than ending the run at cycle 300 of 400.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+from dh2rt.docking import check_cut, check_dock
 from dh2rt.errors import DH2Error, ProgramError, TopologyError
 from dh2rt.hormone import Hormone, Vocabulary
 from dh2rt.lang import ast
@@ -60,10 +66,8 @@ def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
         index = module(m)
         try:
             return index, topology.profile.connector_index(c.strip())
-        except ValueError:
-            raise EventError(
-                f"event {text!r}: unknown connector {c!r} ({', '.join(topology.profile.connectors)})"
-            ) from None
+        except TopologyError as exc:
+            raise EventError(f"event {text!r}: {exc}") from None
 
     if kind == "cut":
         m, c = endpoint(rest)
@@ -80,6 +84,46 @@ def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
             raise EventError(f"event {text!r}: expected CYCLE:inject:M:HORMONE")
         return Event(cycle, kind, module(ref), hormone=parse_hormone(htext, vocabulary, f"event {text!r}"), text=text)
     return Event(cycle, kind, module(rest), text=text)
+
+
+def check_events(events: Sequence[Event], topology: Topology, cycles: int) -> None:
+    """Replay ``events`` in the order a run applies them against ``topology``'s links and
+    raise EventError naming the first event that cannot happen: one at or after cycle
+    ``cycles`` (the run ends first), a cut of a connector with nothing docked, a dock the
+    profile or the links then do not allow, an injection into a stopped module.
+
+    Links that native actions change during the run (reach_and_dock) are not known here;
+    an event those make impossible is reported when it is applied."""
+    profile = topology.profile
+    peer: dict[tuple[int, int], tuple[int, int]] = {}
+    for link in topology.links:
+        peer[(link.a, link.a_conn)] = (link.b, link.b_conn)
+        peer[(link.b, link.b_conn)] = (link.a, link.a_conn)
+    stopped: set[int] = set()
+
+    def where(m: int, c: int) -> str:
+        return f"{topology.names[m]}.{profile.connector_name(c)}"
+
+    for ev in sorted(events, key=lambda e: e.cycle):  # a stable sort: the run's order
+        label = f"event {ev.text or ev.kind!r}"
+        if ev.cycle >= cycles:
+            raise EventError(f"{label} at cycle {ev.cycle} never happens: the run's last cycle is {cycles - 1}")
+        try:
+            if ev.kind == "cut":
+                other = check_cut(peer.get((ev.module, ev.connector)), where(ev.module, ev.connector))
+                del peer[(ev.module, ev.connector)], peer[other]
+            elif ev.kind == "dock":
+                check_dock(profile, peer.__contains__, where, ev.module, ev.connector, ev.other, ev.other_connector)
+                peer[(ev.module, ev.connector)] = (ev.other, ev.other_connector)
+                peer[(ev.other, ev.other_connector)] = (ev.module, ev.connector)
+            elif ev.kind == "kill":
+                stopped.add(ev.module)
+            elif ev.kind == "restart":
+                stopped.discard(ev.module)
+            elif ev.kind == "inject" and ev.module in stopped:
+                raise TopologyError(f"module {topology.names[ev.module]} is stopped then")
+        except TopologyError as exc:
+            raise EventError(f"{label}: {exc}") from None
 
 
 def parse_hormone(text: str, vocabulary: Vocabulary, where: str = "hormone") -> Hormone:

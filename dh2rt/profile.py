@@ -62,8 +62,14 @@ class Profile:
         return len(self.connectors)
 
     def connector_index(self, name: str) -> int:
-        """Index (1-based) of a connector by name; raises KeyError for an unknown name."""
-        return self.connectors.index(name) + 1
+        """Index (1-based) of a connector by name; TopologyError (a ValueError) naming the
+        profile's connectors for an unknown name."""
+        try:
+            return self.connectors.index(name) + 1
+        except ValueError:
+            raise TopologyError(
+                f"unknown connector {name!r} (profile {self.name}: {', '.join(self.connectors)})"
+            ) from None
 
     def connector_name(self, index: int) -> str:
         return "0" if index == NONE else self.connectors[index - 1]

@@ -23,7 +23,7 @@ from dh2rt.compiler import CompiledProgram
 from dh2rt.docking import End
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import TopologyError
-from dh2rt.events import Event
+from dh2rt.events import Event, EventError
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
@@ -232,6 +232,14 @@ class Robot:
         self.inbox.setdefault(module, []).append(Arrival(0, 0, hormone))
 
     def apply(self, event: Event) -> None:
+        """Carry out an event now; an event the robot's links or modules do not allow now
+        raises EventError naming it (check_events refuses most of them before a run)."""
+        try:
+            self._apply(event)
+        except TopologyError as exc:
+            raise EventError(f"event {event.text or event.kind!r} at cycle {self.cycle}: {exc}") from None
+
+    def _apply(self, event: Event) -> None:
         if event.kind == "cut":
             self.cut(event.module, event.connector)
         elif event.kind == "dock":

@@ -151,6 +151,8 @@ def t_shape(profile: Profile = CONRO) -> Topology:
     return Topology(profile, tuple(names), tuple(links), "t-shape")
 
 
+#: The keys a topology file may have.
+TOML_KEYS = ("modules", "links")
 BUILTIN_NAMES = ("snake:N", "ring:N", "tripod", "quadruped", "hexapod", "octopod", "dragon", "t-shape")
 _LINK_RE = re.compile(r"^\s*([\w-]+)\.(\w+)\s*<->\s*([\w-]+)\.(\w+)\s*$")
 
@@ -183,20 +185,31 @@ def load_toml(path: Path, profile: Profile = CONRO) -> Topology:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise TopologyError(f"{path}: no such topology file") from None
+    except UnicodeDecodeError as exc:
+        raise TopologyError(f"{path}: not UTF-8 text (byte {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise TopologyError(f"{path}: {exc}") from None
-    modules = data.get("modules")
+    unknown = sorted(set(data) - set(TOML_KEYS))
+    if unknown:
+        raise TopologyError(f"{path}: unknown key(s) {', '.join(map(repr, unknown))} (known: {', '.join(TOML_KEYS)})")
+    if "modules" not in data:
+        raise TopologyError(f"{path}: missing key 'modules' (a count or a list of names)")
+    modules = data["modules"]
     if isinstance(modules, int) and not isinstance(modules, bool):
+        if modules < 1:
+            raise TopologyError(f"{path}: key 'modules' must be at least 1, got {modules}")
         names: Sequence[str] = [f"m{i}" for i in range(modules)]
     elif isinstance(modules, list) and all(isinstance(m, str) for m in modules):
         names = modules
     else:
-        raise TopologyError(f"{path}: field 'modules' must be a count or a list of names")
+        raise TopologyError(f"{path}: key 'modules' must be a count or a list of names")
+    if not names:
+        raise TopologyError(f"{path}: key 'modules' lists no module")
     if len(set(names)) != len(names):
-        raise TopologyError(f"{path}: field 'modules' repeats a name")
+        raise TopologyError(f"{path}: key 'modules' repeats a name")
     raw_links = data.get("links", [])
     if not isinstance(raw_links, list):
-        raise TopologyError(f"{path}: field 'links' must be a list of strings")
+        raise TopologyError(f"{path}: key 'links' must be a list of strings")
     links = list(_parse_links(path, names, raw_links, profile))
     return Topology(profile, tuple(names), tuple(links), str(path))
 
@@ -212,10 +225,8 @@ def _parse_links(path: Path, names: Sequence[str], raw: Iterable[object], profil
     def connector(name: str, where: str) -> int:
         try:
             return profile.connector_index(name)
-        except ValueError:
-            raise TopologyError(
-                f"{path}: {where}: unknown connector {name!r} (profile {profile.name}: {', '.join(profile.connectors)})"
-            ) from None
+        except TopologyError as exc:
+            raise TopologyError(f"{path}: {where}: {exc}") from None
 
     for i, item in enumerate(raw):
         where = f"links[{i}]"

@@ -4,6 +4,7 @@ format of :mod:`dh2rt.records`."""
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
@@ -20,14 +21,25 @@ def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:
 class TraceWriter:
     """Writes the robot's records after each cycle (the robot must have ``record=True``)."""
 
-    def __init__(self, stream: IO[str], robot: Robot, extra: Callable[[int], dict[str, Any]] | None = None) -> None:
+    def __init__(
+        self,
+        stream: IO[str],
+        robot: Robot,
+        extra: Callable[[int], dict[str, Any]] | None = None,
+        *,
+        owns_stream: bool = True,
+    ) -> None:
         self.stream = stream
+        self.owns_stream = owns_stream
         self.robot = robot
         self.extra = extra
         robot.record = True
 
     @classmethod
     def open(cls, path: Path, robot: Robot, extra: Callable[[int], dict[str, Any]] | None = None) -> TraceWriter:
+        """Write to ``path``; ``-`` is standard output (left open at the end)."""
+        if str(path) == "-":
+            return cls(sys.stdout, robot, extra, owns_stream=False)
         return cls(path.open("w", encoding="utf-8"), robot, extra)
 
     def write_cycle(self) -> None:
@@ -42,4 +54,7 @@ class TraceWriter:
         self.robot.records.clear()
 
     def close(self) -> None:
-        self.stream.close()
+        if self.owns_stream:
+            self.stream.close()
+        else:
+            self.stream.flush()

@@ -8,7 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, print_summary, timed_run
+from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, STDOUT, err, print_summary, timed_run
+from dh2rt.errors import DH2Error
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from dh2rt.trace import TraceWriter
@@ -33,9 +34,16 @@ def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> in
         if recorder is not None and c % frame_every == 0:
             recorder.capture()
 
-    elapsed, interrupted = timed_run(lambda: run.run(ns.cycles, events, on_cycle, sample=bool(ns.plot)), trace)
-    print_summary(robot, elapsed, as_json=ns.json)
-    out = sys.stdout
+    try:
+        elapsed, interrupted = timed_run(lambda: run.run(ns.cycles, events, on_cycle, sample=bool(ns.plot)), trace)
+    except DH2Error as exc:  # an event that the robot's own docking made impossible
+        run.close()
+        err(str(exc))
+        return EXIT_USAGE
+    # standard output holds only the trace (--trace -) or the JSON summary (--json)
+    to_stdout = ns.trace != STDOUT
+    print_summary(robot, elapsed, as_json=ns.json, out=sys.stdout if to_stdout else sys.stderr)
+    out = sys.stdout if to_stdout and not ns.json else sys.stderr
     gait = robot.program.clock_cycle
     periods = robot.cycle / gait
     d = run.displacement()

@@ -17,6 +17,9 @@ from typing import TypeVar
 from dh2rt.errors import ProgramSyntaxError, SourceSpan
 from dh2rt.lang import ast
 
+#: How deeply parentheses, `not`s and signs may nest in one pattern or expression.
+MAX_NESTING = 100
+
 _TOKEN_RE = re.compile(
     r"""
     (?P<ws>[ \t\r\n]+|\#[^\n]*)
@@ -92,6 +95,7 @@ class Parser:
         self.tokens = tokenize(text, file)
         self.i = 0
         self.including = (*_including, file)
+        self.depth = 0  # parentheses, `not`s and signs open around the current token
 
     # ------------------------------------------------------------ token helpers
 
@@ -103,6 +107,13 @@ class Parser:
         t = tok or self.tok
         src = self.lines[t.line - 1] if 0 < t.line <= len(self.lines) else ""
         return SourceSpan(self.file, t.line, t.column, src)
+
+    def nest(self, tok: Token) -> None:
+        """One level deeper in a pattern or an expression; refused past MAX_NESTING (a
+        program is text a person wrote: this bounds the parser's recursion, not them)."""
+        self.depth += 1
+        if self.depth > MAX_NESTING:
+            raise self.error(f"nested more than {MAX_NESTING} levels deep", tok)
 
     def error(self, message: str, tok: Token | None = None) -> ProgramSyntaxError:
         return ProgramSyntaxError(message, self.span(tok))
@@ -209,9 +220,9 @@ class Parser:
         if str(target) in self.including:
             raise self.error(f"include cycle: {target} includes itself", tok)
         try:
-            text = target.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise self.error(f"cannot include {target}: {exc.strerror}", tok) from None
+            text = read_source(target)
+        except ProgramSyntaxError as exc:
+            raise self.error(f"cannot include {target}: {exc.message}", tok) from None
         sub = Parser(text, str(target), _including=self.including)
         name = d.name
         sub.parse_into(d)
@@ -270,7 +281,10 @@ class Parser:
 
     def not_pattern(self) -> ast.Pattern:
         if tok := self.accept("not"):
-            return ast.Not(self.not_pattern(), self.span(tok))
+            self.nest(tok)
+            inner = self.not_pattern()
+            self.depth -= 1
+            return ast.Not(inner, self.span(tok))
         return self.primary_pattern()
 
     def cmp_op(self, allowed: tuple[str, ...] = _CMP_OPS) -> str:
@@ -284,8 +298,10 @@ class Parser:
         tok = self.tok
         sp = self.span(tok)
         if self.accept("("):
+            self.nest(tok)
             inner = self.pattern()
             self.expect(")", "')' to close the parenthesis")
+            self.depth -= 1
             return inner
         if self.accept("true"):
             return ast.TruePattern(sp)
@@ -443,9 +459,15 @@ class Parser:
                 lit = self.tok
                 self.i += 1
                 return ast.Num(-int(lit.text), self.span(tok))
-            return ast.Neg(self.unary(), self.span(tok))
+            self.nest(tok)
+            inner = self.unary()
+            self.depth -= 1
+            return ast.Neg(inner, self.span(tok))
         if self.accept("+"):
-            return self.unary()
+            self.nest(tok)
+            inner = self.unary()
+            self.depth -= 1
+            return inner
         return self.atom()
 
     def atom(self) -> ast.Expr:
@@ -455,8 +477,10 @@ class Parser:
             self.i += 1
             return ast.Num(int(tok.text), sp)
         if self.accept("("):
+            self.nest(tok)
             inner = self.expr()
             self.expect(")", "')' to close the parenthesis")
+            self.depth -= 1
             return inner
         if tok.kind == "ident":
             if tok.text in ("V", "S") and self.tokens[self.i + 1].text == ".":
@@ -478,8 +502,21 @@ def parse(text: str, file: str = "<string>") -> ast.Program:
 def parse_file(path: str | Path) -> ast.Program:
     """Parse a ``.dh2`` file; a missing file raises ProgramSyntaxError naming it."""
     p = Path(path)
+    return parse(read_source(p), str(p))
+
+
+def read_source(p: Path) -> str:
+    """A program file's text; ProgramSyntaxError naming the file (and, for bytes that are
+    not UTF-8, the line and column of the first one) when it cannot be read."""
     try:
-        text = p.read_text(encoding="utf-8")
+        raw = p.read_bytes()
     except OSError as exc:
-        raise ProgramSyntaxError(f"{p}: cannot read program: {exc.strerror}") from None
-    return parse(text, str(p))
+        raise ProgramSyntaxError(f"{p}: cannot read program: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        shown = raw.split(b"\n")[line - 1].decode("utf-8", errors="replace")
+        span = SourceSpan(str(p), line, column, shown)
+        raise ProgramSyntaxError(f"byte 0x{raw[exc.start]:02x} is not UTF-8 text (programs are UTF-8)", span) from None

@@ -1,0 +1,126 @@
+"""Careless input never crashes: every case exits 2 with a message naming the culprit (the
+event, the key, the file and position, the option), and no traceback.
+
+The cases run through ``dh2rt.cli.main`` in this process, so an exception that escaped would
+fail the test with its traceback; one case also goes through the console script.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dh2rt.cli import main
+from dh2rt.errors import TopologyError
+from dh2rt.profile import CONRO
+
+ROOT = Path(__file__).resolve().parents[2]
+CATERPILLAR = str(ROOT / "examples" / "caterpillar.dh2")
+
+
+def files(tmp: Path) -> dict[str, Path]:
+    """Bad inputs written to disk: name -> path."""
+    out = {
+        "latin1.dh2": b"program x\nconst ClockCycle = 4\n# caf\xe9\n",
+        "deep.dh2": (
+            "program deep\nconst ClockCycle = 4\nreceptor r when " + "(" * 10_000 + "true" + ")" * 10_000 + " { }\n"
+        ).encode(),
+        "zero.toml": b"modules = 0\n",
+        "negative.toml": b"modules = -3\n",
+        "misspelled.toml": b'modules = 3\n[[link]]\nlinks = ["0.back <-> 1.front"]\n',
+        "latin1.toml": b"modules = 2 # \xe9\n",
+        "empty.toml": b"modules = []\n",
+    }
+    for name, data in out.items():
+        (tmp / name).write_bytes(data)
+    return {name: tmp / name for name in out}
+
+
+# (argv with {tmp} and {name.ext} placeholders, words the error must contain)
+CASES = [
+    (["run", CATERPILLAR, "--event", "0:cut:m0.front"], ["0:cut:m0.front", "nothing is docked"]),
+    (["run", CATERPILLAR, "--event", "5:cut:m3.back", "--event", "6:cut:m3.back"], ["6:cut:m3.back", "nothing"]),
+    (["run", CATERPILLAR, "--event", "10:dock:m0.back-m7.back"], ["10:dock:m0.back-m7.back", "male"]),
+    (["run", CATERPILLAR, "--event", "10:dock:m0.front-m0.back"], ["10:dock:m0.front-m0.back", "itself"]),
+    (["run", CATERPILLAR, "--cycles", "100", "--event", "300:kill:m1"], ["300:kill:m1", "last cycle is 99"]),
+    (["run", CATERPILLAR, "--event", "10:kill:m2", "--event", "20:inject:m2:X(A)"], ["20:inject:m2:X(A)", "stopped"]),
+    (["run", CATERPILLAR, "--event", "10:cut:m1.side"], ["10:cut:m1.side", "unknown connector 'side'"]),
+    (["run", CATERPILLAR, "--topology", "{zero.toml}"], ["zero.toml", "'modules'", "at least 1"]),
+    (["run", CATERPILLAR, "--topology", "{negative.toml}"], ["negative.toml", "'modules'"]),
+    (["run", CATERPILLAR, "--topology", "{misspelled.toml}"], ["misspelled.toml", "unknown key", "'link'"]),
+    (["run", CATERPILLAR, "--topology", "{latin1.toml}"], ["latin1.toml", "UTF-8"]),
+    (["run", CATERPILLAR, "--topology", "{empty.toml}"], ["empty.toml", "no module"]),
+    (["check", "{latin1.dh2}"], ["latin1.dh2:3:6", "not UTF-8"]),
+    (["check", "{deep.dh2}"], ["deep.dh2:3:", "nested more than 100"]),
+    (["check", "{tmp}/nowhere.dh2"], ["nowhere.dh2", "cannot read"]),
+    (["run", CATERPILLAR, "--trace", "{tmp}/t.txt"], ["--trace", "t.txt", ".jsonl"]),
+    (["run", CATERPILLAR, "--trace", "{tmp}"], ["--trace", "folder"]),
+    (["run", CATERPILLAR, "--sim", "pybullet", "--record", "{tmp}/x.png"], ["--record", "x.png", ".gif"]),
+    (["run", CATERPILLAR, "--sim", "pybullet", "--plot", "{tmp}/x.gif"], ["--plot", "x.gif", ".png"]),
+    (["run", CATERPILLAR, "--record", "{tmp}/x.gif"], ["--record", "--sim pybullet"]),
+    (["run", CATERPILLAR, "--cycles", "-1"], ["--cycles"]),
+]
+
+
+@pytest.mark.parametrize(("argv", "words"), CASES, ids=lambda v: " ".join(v)[-60:] if isinstance(v, list) else "")
+def test_careless_input_exits_2_naming_the_culprit(
+    argv: list[str], words: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    paths = files(tmp_path)
+    args = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    for name, path in paths.items():
+        args = [a.replace("{" + name + "}", str(path)) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    for word in words:
+        assert word in err, (word, err)
+    assert "Traceback" not in err
+
+
+def test_outputs_create_missing_folders_and_dash_is_stdout(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    image = tmp_path / "missing" / "dir" / "x.img"
+    assert main(["image", CATERPILLAR, "-o", str(image)]) == 0
+    assert image.exists()
+    capsys.readouterr()
+    trace = tmp_path / "new" / "t.jsonl"
+    assert main(["run", CATERPILLAR, "--cycles", "3", "--trace", str(trace)]) == 0
+    assert len(trace.read_text().splitlines()) == 3 * 8
+    capsys.readouterr()
+    assert main(["run", CATERPILLAR, "--cycles", "3", "--trace", "-"]) == 0
+    out, err = capsys.readouterr()
+    assert len(out.splitlines()) == 3 * 8 and all(line.startswith("{") for line in out.splitlines())
+    assert "caterpillar on snake:8" in err  # the summary keeps out of the trace's way
+    assert main(["image", CATERPILLAR, "-o", "-"]) == 0
+    out, err = capsys.readouterr()
+    assert out == image.read_text() and "sha256" in err
+    assert not (Path.cwd() / "-").exists()
+
+
+def test_check_warns_about_angles_and_missing_natives(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    prog = tmp_path / "warn.dh2"
+    prog.write_text(
+        "program w\nconst ClockCycle = 4\nconst Big = 700\nnative zap()\n"
+        "receptor r when true { DOF1(Big + 20); DOF2(-45); zap() }\n"
+    )
+    assert main(["check", str(prog)]) == 0  # warnings do not fail the check
+    err = capsys.readouterr().err
+    assert f"{prog}:4:8: warning: native zap" in err
+    assert f"{prog}:5:24: warning: receptor r sets DOF1 to 720 degrees" in err
+    assert "DOF2" not in err
+
+
+def test_the_console_script_prints_no_traceback(tmp_path: Path) -> None:
+    exe = Path(sys.executable).with_name("dh2rt")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
+    proc = subprocess.run(
+        [*cmd, "run", CATERPILLAR, "--event", "0:cut:m0.front"], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and "m0.front" in proc.stderr
+
+
+def test_python_api_names_unknown_connectors() -> None:
+    with pytest.raises(TopologyError, match=r"unknown connector 'fornt' \(profile conro: front, back"):
+        CONRO.connector_index("fornt")
