@@ -193,23 +193,23 @@ def load_toml(path: Path, profile: Profile = CONRO) -> Topology:
     if unknown:
         raise TopologyError(f"{path}: unknown key(s) {', '.join(map(repr, unknown))} (known: {', '.join(TOML_KEYS)})")
     if "modules" not in data:
-        raise TopologyError(f"{path}: missing key 'modules' (a count or a list of names)")
+        raise TopologyError(f"{path}: missing field 'modules' (a count or a list of names)")
     modules = data["modules"]
     if isinstance(modules, int) and not isinstance(modules, bool):
         if modules < 1:
-            raise TopologyError(f"{path}: key 'modules' must be at least 1, got {modules}")
+            raise TopologyError(f"{path}: field 'modules' must be at least 1, got {modules}")
         names: Sequence[str] = [f"m{i}" for i in range(modules)]
     elif isinstance(modules, list) and all(isinstance(m, str) for m in modules):
         names = modules
     else:
-        raise TopologyError(f"{path}: key 'modules' must be a count or a list of names")
+        raise TopologyError(f"{path}: field 'modules' must be a count or a list of names")
     if not names:
-        raise TopologyError(f"{path}: key 'modules' lists no module")
+        raise TopologyError(f"{path}: field 'modules' lists no module")
     if len(set(names)) != len(names):
-        raise TopologyError(f"{path}: key 'modules' repeats a name")
+        raise TopologyError(f"{path}: field 'modules' repeats a name")
     raw_links = data.get("links", [])
     if not isinstance(raw_links, list):
-        raise TopologyError(f"{path}: key 'links' must be a list of strings")
+        raise TopologyError(f"{path}: field 'links' must be a list of strings")
     links = list(_parse_links(path, names, raw_links, profile))
     return Topology(profile, tuple(names), tuple(links), str(path))
 
