@@ -31,6 +31,7 @@ from typing import IO, Any
 
 from dh2rt import __version__
 from dh2rt.cmdline import (
+    EXIT_FAIL,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
@@ -283,7 +284,11 @@ def cmd_run(ns: argparse.Namespace) -> int:
 def cmd_demo(cycles: int) -> int:
     from dh2rt.demo import run_demo
 
-    return run_demo(cycles, sys.stdout)
+    try:
+        return run_demo(cycles, sys.stdout)
+    except ProgramError as exc:  # a damaged installation: its shipped programs do not compile
+        print(exc.render(), file=sys.stderr)
+        return EXIT_FAIL
 
 
 if __name__ == "__main__":

@@ -7,15 +7,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import IO
 
-from dh2rt.compiler import compile_file
+from dh2rt.bundled import compile_bundled
 from dh2rt.events import parse_event
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def _wave_row(robot: Robot) -> str:
@@ -33,7 +30,7 @@ def _wave_row(robot: Robot) -> str:
 def run_demo(cycles: int, out: IO[str]) -> int:
     """Run the three scenes; return 0 when every scene shows what the paper reports."""
     ok = True
-    caterpillar = compile_file(str(EXAMPLES / "caterpillar.dh2"))
+    caterpillar = compile_bundled("caterpillar.dh2")
     topo = parse_spec("snake:8")
     robot = Robot(caterpillar, topo, seed=7)
     print("1. Caterpillar (Table I) on snake:8 -- DOF1 per module (^ +45, v -45), H = head", file=out)
@@ -57,7 +54,7 @@ def run_demo(cycles: int, out: IO[str]) -> int:
     print(f"   -> {heads} snakes, each with its own head and wave", file=out)
 
     print("\n3. Legs to snake on the dragon (Fig. 5, Fig. 7)", file=out)
-    l2s = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
+    l2s = compile_bundled("legs_to_snake.dh2")
     dragon = parse_spec("dragon")
     robot = Robot(l2s, dragon, seed=1)
     robot.run(300, [parse_event("5:inject:spine0:LTS", dragon, l2s.vocabulary)])
