@@ -59,9 +59,24 @@ class ProgramError(DH2Error, ValueError):
             return self.message
         text = f"{self.span}: {self.message}"
         if self.span.source_line:
-            caret = " " * (self.span.column - 1) + "^"
-            text += f"\n    {self.span.source_line}\n    {caret}"
+            line, column = _window(self.span.source_line, self.span.column)
+            caret = " " * (column - 1) + "^"
+            text += f"\n    {line}\n    {caret}"
         return text
+
+
+#: Source lines longer than this are shown as a window around the column.
+SHOWN_LINE = 100
+
+
+def _window(line: str, column: int) -> tuple[str, int]:
+    """The part of ``line`` to show around ``column`` (1-based), and the column in it."""
+    if len(line) <= SHOWN_LINE:
+        return line, column
+    start = max(0, min(column - 1 - SHOWN_LINE // 2, len(line) - SHOWN_LINE))
+    end = start + SHOWN_LINE
+    shown = ("..." if start else "") + line[start:end] + ("..." if end < len(line) else "")
+    return shown, column - start + (3 if start else 0)
 
 
 class ProgramSyntaxError(ProgramError):

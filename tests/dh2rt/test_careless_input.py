@@ -124,3 +124,13 @@ def test_the_console_script_prints_no_traceback(tmp_path: Path) -> None:
 def test_python_api_names_unknown_connectors() -> None:
     with pytest.raises(TopologyError, match=r"unknown connector 'fornt' \(profile conro: front, back"):
         CONRO.connector_index("fornt")
+
+
+def test_long_source_lines_are_shown_around_the_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    prog = tmp_path / "long.dh2"
+    prog.write_text("program p\nconst ClockCycle = 4\nconst X = " + "1 + " * 500 + "?\n")
+    assert main(["check", str(prog)]) == 2
+    err = capsys.readouterr().err
+    source, caret = err.splitlines()[1:3]
+    assert len(source) < 120 and source.strip().startswith("...")
+    assert source[caret.index("^")] == "?"  # the caret still points at the culprit
