@@ -190,8 +190,19 @@ def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[s
     out = out or sys.stdout
     rows = robot.summary()
     if as_json:
+        faults = [
+            {"cycle": f.cycle, "module": robot.topology.names[f.module], "source": f.source, "message": f.message}
+            for f in robot.faults
+        ]
         json.dump(
-            {"cycles": robot.cycle, "seconds": elapsed, "lost_in_flight": robot.lost_in_flight, "modules": rows}, out
+            {
+                "cycles": robot.cycle,
+                "seconds": elapsed,
+                "lost_in_flight": robot.lost_in_flight,
+                "modules": rows,
+                "faults": faults,
+            },
+            out,
         )
         out.write("\n")
         return
@@ -217,6 +228,11 @@ def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[s
             f"{r['sent']:>6} {r['forwarded']:>5} {r['faults']:>6}",
             file=out,
         )
+    faulted = [r for r in rows if r.get("faults")]
+    if faulted:
+        print(f"receptor faults in {len(faulted)} module(s):", file=out)
+        for r in faulted:
+            print(f"  {r['name']}: {r['faults']} fault(s), the last at {r['last_fault']}", file=out)
     for line in robot.log[-20:]:
         print(f"  {line}", file=out)
 

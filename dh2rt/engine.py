@@ -53,6 +53,11 @@ _NO_FAULTS: list[str] = []  # never appended to: see _fault
 _NO_ENTRIES: list[Entry] = []  # never appended to: steps make their own
 _NO_EMISSIONS: list[Emission] = []  # never appended to: steps make their own
 MAX_FAULTS_KEPT = 16
+#: What a receptor's actions may raise by design, and the engine survives as a fault: a
+#: dh2rt error (a hormone argument out of range, a failing servo in a native action) or a
+#: division by zero in a DH2 expression. Anything else is a bug in a native or in dh2rt and
+#: surfaces to the caller.
+ACTION_FAULTS = (DH2Error, ZeroDivisionError)
 
 
 class Engine:
@@ -288,8 +293,8 @@ class Engine:
                     bound.add(id(entry))
                 try:
                     r.act(self, b)
-                except Exception as exc:  # a native or a value out of range: keep the module alive
-                    self._fault(f"receptor {r.name}: {exc}")
+                except ACTION_FAULTS as exc:  # what an action can raise by design: keep the module alive
+                    self._fault(f"receptor {r.name}", str(exc))
                 if not r.keep_alive and rstatus[i] == ACTIVE:
                     rstatus[i] = PASSIVE
         # forward what no receptor bound; routed hormones go on along their route
@@ -303,8 +308,8 @@ class Engine:
                     p[1] = p[0]
                     try:
                         p[2](self)
-                    except DH2Error as exc:
-                        self._fault(f"periodic {name}: {exc}")
+                    except ACTION_FAULTS as exc:
+                        self._fault(f"periodic {name}", str(exc))
         self.n_sent += len(out)
         timer = self.timer + 1
         self.timer = 0 if timer >= self.clock else timer
@@ -342,9 +347,14 @@ class Engine:
                         out.append(Emission(c, h))
                         self.n_forwarded += 1
 
-    def _fault(self, message: str) -> None:
+    def _fault(self, source: str, message: str) -> None:
+        """An action failed as actions may (see ACTION_FAULTS): count it, keep the message,
+        and tell the host through an effect ``("fault", (source, message))`` so that it can
+        say when and where (the host knows the cycle and the module; the engine does not)."""
         self.n_faults += 1
+        text = f"{source}: {message}"
         if self.faults is _NO_FAULTS:
             self.faults = []
-        self.faults.append(message)
+        self.faults.append(text)
         del self.faults[:-MAX_FAULTS_KEPT]
+        self.effect("fault", source, message)

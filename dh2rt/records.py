@@ -7,6 +7,7 @@ front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer
 "0"), ``received`` (hormone, connector it arrived at, connector it was sent through, path) and
 ``sent`` (hormone, connector, and for replies the route still to go). Physics runs add
 ``pos`` ([x, y, z] metres); the module runtime adds ``t`` (its clock when the cycle began).
+A cycle in which receptor actions failed has ``faults``: ``["receptor NAME: message", ...]``.
 
 It reads an engine only, so that the in-process robot (:mod:`dh2rt.trace`) and the module
 runtime (:mod:`dh2rt.runtime`) share it without the runtime depending on the robot.
@@ -40,13 +41,19 @@ def emission_json(e: Emission, profile: Profile) -> dict[str, Any]:
 
 
 def cycle_json(
-    engine: Engine, cycle: int, module: int, name: str, received: Sequence[Arrival], sent: Sequence[Emission]
+    engine: Engine,
+    cycle: int,
+    module: int,
+    name: str,
+    received: Sequence[Arrival],
+    sent: Sequence[Emission],
+    faults: Sequence[str] = (),
 ) -> dict[str, Any]:
     """One module's cycle in the trace format, read from its engine just after the cycle ran
     (the in-process robot and the module runtime both write these)."""
     p = engine.profile
     t = engine.topo_type
-    return {
+    record: dict[str, Any] = {
         "cycle": cycle,
         "module": module,
         "name": name,
@@ -58,3 +65,6 @@ def cycle_json(
         "received": [arrival_json(a, p) for a in received],
         "sent": [emission_json(x, p) for x in sent],
     }
+    if faults:
+        record["faults"] = list(faults)
+    return record

@@ -30,6 +30,21 @@ from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
 from dh2rt.topology import Link, Topology
 
 EffectHandler = Callable[["Robot", int, tuple[Any, ...]], None]
+#: What the robot keeps of receptor faults (the engines count them all).
+MAX_FAULT_RECORDS = 1000
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """A receptor's action failed (see dh2rt.engine.ACTION_FAULTS)."""
+
+    cycle: int
+    module: int
+    source: str  # "receptor NAME" or "periodic NAME"
+    message: str
+
+    def describe(self, names: Sequence[str]) -> str:
+        return f"cycle {self.cycle}: {names[self.module]}: {self.source}: {self.message}"
 
 
 @dataclass(slots=True)
@@ -40,6 +55,7 @@ class CycleRecord:
     module: int
     received: list[Arrival]
     sent: list[Emission]
+    faults: list[str]  # "receptor NAME: message" for each fault of this cycle
 
 
 class Robot:
@@ -98,6 +114,8 @@ class Robot:
             "reach_and_dock": _reach_and_dock,
             "assist": lambda _r, _m, _a: None,
         }
+        #: Receptor faults in the order they happened (the last MAX_FAULT_RECORDS).
+        self.faults: list[Fault] = []
         self.log: list[str] = []
         #: Hormones that were on their way across a link when it was cut or its sender or
         #: receiver was killed: never delivered (dh2rt.docking.without_in_flight).
@@ -316,12 +334,12 @@ class Robot:
         t0 = self.cycle
         boxes: list[dict[int, list[Arrival]]] = [self.inbox] + [{} for _ in range(window)]
         self._due_in(boxes, t0)
-        effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        effects: list[tuple[int, int, str, tuple[Any, ...]]] = []
         for sweep in plan.sweeps:
             effects += self._sweep(sweep.rounds(window), t0, boxes)
         self.inbox = boxes[window]
         self.cycle = t0 + window - 1
-        self._carry_out(effects)  # empty: only programs without native actions run in windows
+        self._carry_out(effects)  # faults only: programs with native actions never run in windows
         self.cycle += 1
 
     def _due_in(self, boxes: list[dict[int, list[Arrival]]], t0: int) -> None:
@@ -333,7 +351,7 @@ class Robot:
 
     def _sweep(
         self, rounds: Iterable[tuple[int, Sequence[int]]], t0: int, boxes: list[dict[int, list[Arrival]]]
-    ) -> list[tuple[int, str, tuple[Any, ...]]]:
+    ) -> list[tuple[int, int, str, tuple[Any, ...]]]:
         """Step cycle ``t0+i`` of each listed module, for each round ``(i, modules)``.
 
         ``boxes[i]`` holds the mailboxes for cycle t0+i (what is sent goes to ``boxes[i+1]``);
@@ -346,7 +364,7 @@ class Robot:
         record = self.record
         sleep = self.skip_quiet and not record
         window = len(boxes) - 1
-        effects: list[tuple[int, str, tuple[Any, ...]]] = []
+        effects: list[tuple[int, int, str, tuple[Any, ...]]] = []
         nothing: list[Arrival] = []
         for i, members in rounds:
             cycle = t0 + i
@@ -382,9 +400,10 @@ class Robot:
                         else:
                             mail.append(Arrival(target[1], through, h))
                 if e.effects:
-                    effects.extend((m, kind, args) for kind, args in e.effects)
+                    effects.extend((m, cycle, kind, args) for kind, args in e.effects)
                 if record:
-                    self.records.append(CycleRecord(cycle, m, list(arrivals), list(out)))
+                    faults = [f"{a[0]}: {a[1]}" for kind, a in e.effects if kind == "fault"] if e.effects else []
+                    self.records.append(CycleRecord(cycle, m, list(arrivals), list(out), faults))
                 elif sleep:
                     quiet = e.quiet_cycles()
                     if quiet is None:
@@ -398,8 +417,12 @@ class Robot:
                             self._wake_at.setdefault(t0 + due, []).append(m)
         return effects
 
-    def _carry_out(self, effects: list[tuple[int, str, tuple[Any, ...]]]) -> None:
-        for m, kind, args in effects:
+    def _carry_out(self, effects: list[tuple[int, int, str, tuple[Any, ...]]]) -> None:
+        for m, cycle, kind, args in effects:
+            if kind == "fault":
+                self.faults.append(Fault(cycle, m, *args))
+                del self.faults[:-MAX_FAULT_RECORDS]
+                continue
             handler = self.effect_handlers.get(kind)
             if handler is not None:
                 handler(self, m, args)
@@ -433,7 +456,9 @@ class Robot:
             yield self.cycle - 1
 
     def summary(self) -> list[dict[str, Any]]:
-        """Per-module state: type, actuators, counters."""
+        """Per-module state: type, actuators, counters, and the module's last fault (as
+        ``cycle N: receptor R: message``, or None)."""
+        last = {f.module: f for f in self.faults}
         rows = []
         for m, e in enumerate(self.engines):
             if e is None:
@@ -450,6 +475,7 @@ class Robot:
                     "DOF1": e.dof[0],
                     "DOF2": e.dof[1],
                     **e.counters,
+                    "last_fault": last[m].describe(self.topology.names) if m in last else None,
                 }
             )
         return rows

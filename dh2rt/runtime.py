@@ -122,6 +122,8 @@ class ModuleRuntime:
         self.stats = RuntimeCounters()
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[str, tuple[Any, ...]]] = []
+        #: The last receptor fault, as ``cycle N: receptor R: message`` (None: none yet).
+        self.last_fault: str | None = None
         self._pending: list[Received] = []
         self._heard: set[int] = set()  # connectors heard between cycles (Hellos)
         self._started = 0.0
@@ -225,12 +227,20 @@ class ModuleRuntime:
                 engine.send_failed(em.through)
         self.stats.hormones_sent += len(sent)
         self._beacon(carried)
+        faults: list[str] = []
         if engine.effects:
-            self.effects.extend(engine.effects)
+            for kind, args in engine.effects:
+                if kind == "fault":
+                    faults.append(f"{args[0]}: {args[1]}")
+                else:
+                    self.effects.append((kind, args))
+            if faults:
+                self.last_fault = f"cycle {self.cycle}: {faults[-1]}"
+                self._log(f"fault: {faults[-1]}")
         self._actuate(engine.dof[0], engine.dof[1])
         engine.dof_changed = False
         if self.record:
-            self.records.append(self._record(arrivals, sent))
+            self.records.append(self._record(arrivals, sent, faults))
         self.cycle += 1
         self.stats.cycles = self.cycle
 
@@ -305,10 +315,10 @@ class ModuleRuntime:
         self.engine.link_up(r.at, r.remote)
         return True
 
-    def _record(self, arrivals: list[Arrival], sent: list[Emission]) -> dict[str, Any]:
-        """This cycle in the trace format of :mod:`dh2rt.trace`, plus ``t``: the clock when
+    def _record(self, arrivals: list[Arrival], sent: list[Emission], faults: list[str]) -> dict[str, Any]:
+        """This cycle in the trace format of :mod:`dh2rt.records`, plus ``t``: the clock when
         the cycle began (after whatever it received had been sent)."""
-        record = cycle_json(self.engine, self.cycle, self.module, self.name, arrivals, sent)
+        record = cycle_json(self.engine, self.cycle, self.module, self.name, arrivals, sent, faults)
         record["t"] = self._started
         return record
 
@@ -396,6 +406,7 @@ class ModuleRuntime:
             "status": list(e.status),
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,
+            "last_fault": self.last_fault,
         }
 
     @property

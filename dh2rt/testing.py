@@ -547,11 +547,11 @@ def step_all(mods: list[ModuleRuntime], cycles: int = 1) -> None:
 
 class FaultWatch:
     """While active, records every receptor fault of every engine (in this process) as
-    ``(engine, message)``, as well as counting it in the engine as usual."""
+    ``(engine, "receptor NAME: message")``, as well as counting it in the engine as usual."""
 
     def __init__(self) -> None:
         self.faults: list[tuple[Engine, str]] = []
-        self._original: Callable[[Engine, str], None] | None = None
+        self._original: Callable[[Engine, str, str], None] | None = None
 
     @property
     def messages(self) -> list[str]:
@@ -561,9 +561,9 @@ class FaultWatch:
         original = self._original = Engine._fault
         faults = self.faults
 
-        def watched(engine: Engine, message: str) -> None:
-            faults.append((engine, message))
-            original(engine, message)
+        def watched(engine: Engine, source: str, message: str) -> None:
+            faults.append((engine, f"{source}: {message}"))
+            original(engine, source, message)
 
         setattr(Engine, "_fault", watched)  # noqa: B010  (every engine, including ones made later)
         return self

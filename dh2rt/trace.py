@@ -15,7 +15,7 @@ from dh2rt.robot import CycleRecord, Robot
 
 def record_json(robot: Robot, rec: CycleRecord) -> dict[str, Any]:
     name = robot.topology.names[rec.module]
-    return cycle_json(robot.engine(rec.module), rec.cycle, rec.module, name, rec.received, rec.sent)
+    return cycle_json(robot.engine(rec.module), rec.cycle, rec.module, name, rec.received, rec.sent, rec.faults)
 
 
 class TraceWriter:

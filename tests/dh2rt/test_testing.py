@@ -6,6 +6,7 @@ import pytest
 
 from dh2rt.compiler import CompiledProgram, compile_source
 from dh2rt.engine import Engine
+from dh2rt.errors import ServoCommError
 from dh2rt.robot import Robot
 from dh2rt.testing import FakeClock, FaultWatch, runtime_chain, step_all
 from dh2rt.topology import parse_spec
@@ -21,7 +22,7 @@ receptor r1 when LocalTimer == 0 {
 
 
 def _boom(engine: Engine) -> None:
-    raise RuntimeError("the native failed")
+    raise ServoCommError("the native failed")  # a failing servo: a fault by design
 
 
 def _robot() -> Robot:
@@ -46,6 +47,17 @@ def test_the_strict_fixture_lets_a_marked_test_fault() -> None:
     """conftest's strict_faults fails an unmarked test that faults, and a marked one that
     does not: this one passes only if the fixture saw the faults."""
     _robot().run(4)
+
+
+def test_a_native_with_a_bug_surfaces() -> None:
+    """Only what actions raise by design is a fault; anything else is a bug and stops the run."""
+
+    def buggy(engine: Engine) -> None:
+        raise KeyError("oops")
+
+    robot = Robot(compile_source(RAISING), parse_spec("snake:2"), natives={"boom": buggy})
+    with pytest.raises(KeyError, match="oops"):
+        robot.run(4)
 
 
 def test_fake_clock() -> None:
