@@ -190,7 +190,9 @@ class Engine:
         """Emit through ``send`` every ``period`` cycles from now (the paper's periodical_hormone)."""
         if self.periodics is _NO_PERIODICS:
             self.periodics = {}
-        self.periodics[name] = [period, period, send]
+        # Actions run before this step's periodic countdown, which takes one off at once:
+        # start one higher so that the next send comes ``period`` cycles after the first.
+        self.periodics[name] = [period, period + 1, send]
 
     def stop_periodic(self, name: str) -> None:
         """The paper's stop_hormone."""
