@@ -9,7 +9,6 @@ the in-process robot, the physics world or the real module's drivers carry the e
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 from dh2rt.engine import Engine, Native
 from dh2rt.hormone import Path
@@ -40,8 +39,3 @@ STANDARD_NATIVES: Mapping[str, Native] = {
     "assist_leg_assimilation": assist_leg_assimilation,
     "dock_tail_to_foot": dock_tail_to_foot,
 }
-
-
-def natives_for(names: Mapping[str, Any]) -> dict[str, Native]:
-    """The standard natives a program declares (unknown names are left for the caller)."""
-    return {n: STANDARD_NATIVES[n] for n in names if n in STANDARD_NATIVES}

@@ -46,9 +46,7 @@ def tokenize(text: str, file: str) -> list[Token]:
     """Split ``text`` into tokens; raises ProgramSyntaxError at the first bad character."""
     lines = text.split("\n")
     tokens: list[Token] = []
-    pos = line = 1
-    pos = 0
-    line_start = 0
+    pos, line, line_start = 0, 1, 0
     while pos < len(text):
         m = _TOKEN_RE.match(text, pos)
         if m is None:

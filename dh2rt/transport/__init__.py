@@ -11,7 +11,6 @@ from dh2rt.transport.base import (
     PortEnd,
     Received,
     Transport,
-    split_arrivals,
 )
 from dh2rt.transport.registry import TRANSPORTS, open_transport, parse_spec, transport_class
 
@@ -25,6 +24,5 @@ __all__ = [
     "Transport",
     "open_transport",
     "parse_spec",
-    "split_arrivals",
     "transport_class",
 ]

@@ -11,8 +11,8 @@ Using one (the module runtime's loop)::
     with open_transport("virtual", codec, channel="robot") as t:   # dh2rt.transport.registry
         t.attach(2, BusEnd(link_id=7, side=0))       # my back is docked on link 7
         while running:
-            arrivals, control = split_arrivals(t.poll())   # hormones -> engine; beacons -> liveness
-            for e in engine.step(arrivals):
+            received = t.poll()      # hormones and beacons: dh2rt.runtime sorts them out
+            for e in engine.step([Arrival(r.at, r.remote, r.frame) for r in received if isinstance(r.frame, Hormone)]):
                 if not t.send(e.through, e.hormone):        # False: nothing attached there
                     status[e.through] = 0
             t.send(2, KeepAlive(seq))                       # liveness beacon
@@ -46,13 +46,12 @@ and the open/closed state; register the class in :mod:`dh2rt.transport.registry`
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
 from dh2rt.closing import Closing
 from dh2rt.errors import CodecError, TransportError
-from dh2rt.hormone import Arrival, Hormone
 from dh2rt.wire.frame import Frame, FrameCodec
 
 
@@ -102,18 +101,6 @@ class LinkCounters:
     dropped: int = 0
     corrupted: int = 0
     send_failed: int = 0
-
-
-def split_arrivals(received: Iterable[Received]) -> tuple[list[Arrival], list[Received]]:
-    """Hormones as engine :class:`~dh2rt.hormone.Arrival` s, and everything else (beacons)."""
-    arrivals: list[Arrival] = []
-    control: list[Received] = []
-    for r in received:
-        if isinstance(r.frame, Hormone):
-            arrivals.append(Arrival(r.at, r.remote, r.frame))
-        else:
-            control.append(r)
-    return arrivals, control
 
 
 class Transport(Closing, ABC):

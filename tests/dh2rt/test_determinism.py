@@ -82,8 +82,6 @@ def test_skipping_quiet_cycles_changes_nothing(legs_to_snake: CompiledProgram, l
         fast = Robot(program, topo, seed=6, skip_quiet=True)
         slow = Robot(program, topo, seed=6, skip_quiet=False)
         evs = [parse_event(e, topo, program.vocabulary) for e in events]
-        for robot in (fast, slow):
-            robot.pending_events = list(evs)  # type: ignore[attr-defined]
         fast_iter, slow_iter = fast.iter_cycles(300, evs), slow.iter_cycles(300, evs)
         for _ in range(300):
             next(fast_iter)

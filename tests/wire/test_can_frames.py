@@ -1,10 +1,6 @@
-"""CAN ids, segmentation and reassembly, and pcap (LINKTYPE_CAN_SOCKETCAN) files."""
+"""CAN ids, segmentation and reassembly."""
 
 from __future__ import annotations
-
-import io
-import struct
-from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -22,14 +18,11 @@ from dh2rt.wire.can_frames import (
     MIDDLE,
     SINGLE,
     CanId,
-    CapturedFrame,
     Reassembler,
     listen_filter,
     make_arbitration_id,
     parse_arbitration_id,
-    read_pcap,
     segment,
-    write_pcap,
 )
 from dh2rt.wire.frame import FrameCodec
 
@@ -120,33 +113,3 @@ def test_reassembler_never_raises_on_garbage(frames: list[tuple[int, bytes]]) ->
     for can_id, data in frames:
         out = r.feed(can_id, data)
         assert out is None or isinstance(out, bytes)
-
-
-def test_pcap_round_trip(tmp_path: Path) -> None:
-    frames = [
-        CapturedFrame(1700000000.25, make_arbitration_id(0, SINGLE, 0, 7, 1), b"\x42\x00\x00\x00"),
-        CapturedFrame(1700000000.5, 0x123, b"\x01", is_extended_id=False),
-        CapturedFrame(1700000001.0, 0x1ABCDEF, bytes(range(12)), is_fd=True, bitrate_switch=True),
-        CapturedFrame(1700000002.0, 0x7FF, b"", is_extended_id=False, is_remote_frame=True),
-    ]
-    path = tmp_path / "cap.pcap"
-    assert write_pcap(path, frames) == 4
-    raw = path.read_bytes()
-    assert struct.unpack("<I", raw[20:24])[0] == 227
-    # first record's CAN header: id | EFF flag, big-endian; length 4
-    assert raw[40:44] == struct.pack(">I", frames[0].arbitration_id | 0x80000000) and raw[44] == 4
-    assert read_pcap(path) == frames
-
-
-def test_read_pcap_errors() -> None:
-    with pytest.raises(CodecError, match="bad magic"):
-        read_pcap(io.BytesIO(b"\x00" * 24))
-    with pytest.raises(CodecError, match="shorter than"):
-        read_pcap(io.BytesIO(b"\xd4\xc3"))
-    header = struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1)
-    with pytest.raises(CodecError, match="link type 1"):
-        read_pcap(io.BytesIO(header))
-    good = io.BytesIO()
-    write_pcap(good, [CapturedFrame(1.0, 5, b"\x01\x02")])
-    with pytest.raises(CodecError, match="record 0"):
-        read_pcap(io.BytesIO(good.getvalue()[:-1]))
