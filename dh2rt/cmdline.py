@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.compiler import CompiledProgram, compile_file
-from dh2rt.errors import DH2Error, OutputError
+from dh2rt.errors import OptionError, OutputError
 from dh2rt.events import Event, check_events, parse_event
 from dh2rt.robot import Robot
 from dh2rt.topology import BUILTIN_NAMES, parse_spec
@@ -69,7 +69,7 @@ def prepare_run(ns: argparse.Namespace) -> tuple[CompiledProgram, Robot, list[Ev
     cp = load_program(ns.program)
     topo = parse_spec(ns.topology, cp.profile)
     if ns.cycles < 0:
-        raise DH2Error("--cycles must be 0 or more")
+        raise OptionError(f"--cycles {ns.cycles}: must be 0 or more")
     robot = Robot(cp, topo, seed=ns.seed)
     events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
     check_events(events, topo, ns.cycles)

@@ -36,7 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from dh2rt.compiler import ACTIVE, PASSIVE, CompiledProgram
-from dh2rt.errors import DH2Error
+from dh2rt.errors import DH2Error, MissingNatives
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.profile import TopoType
 
@@ -127,7 +127,8 @@ class Engine:
         natives = natives or _NO_NATIVES  # shared, not copied: thousands of engines share one
         missing = sorted(set(program.natives) - set(natives))
         if missing:
-            raise DH2Error(f"program {program.name} needs native action(s) the runtime lacks: {', '.join(missing)}")
+            lacking = ", ".join(missing)
+            raise MissingNatives(f"program {program.name} needs native action(s) the runtime lacks: {lacking}")
         self.natives: Mapping[str, Native] = natives
 
     # ------------------------------------------------------------ what callers read

@@ -2,26 +2,47 @@
 
 Every error dh2rt raises derives from :class:`DH2Error` and is grouped by the phase in which
 it arises. Each class also inherits the builtin that fits it, so callers that already catch
-``ValueError`` or ``OSError`` keep working::
+``ValueError``, ``OSError`` or ``RuntimeError`` keep working. Codec errors follow h11's split:
+an *encode* error is ours (we asked for a frame the wire cannot carry), a *decode* error is
+the other side's (bytes from a link or a file that do not decode)::
 
     DH2Error
     ├── ProgramError (ValueError)           a DH2 program is wrong; carries file:line:col
     │   ├── ProgramSyntaxError              the text does not parse
-    │   └── ProgramCompileError             it parses but means nothing valid
+    │   ├── ProgramCompileError             it parses but means nothing valid
+    │   └── MissingNatives                  it needs native actions this runtime lacks
     ├── TopologyError (ValueError)          a topology spec or file is wrong
+    │   └── EventError                      an event is malformed or cannot happen
     ├── HormoneError (ValueError)           a hormone breaks a limit (too long, bad value)
     ├── ImageError (ValueError)             a serialized program image is corrupt or foreign
-    ├── CodecError (ValueError)             bytes on a link do not decode
-    │   └── FrameCorrupted                  a frame failed its CRC or framing
+    ├── CodecError (ValueError)             bytes and frames do not convert
+    │   ├── EncodeError                     (local) a frame this side asked for breaks a wire limit
+    │   │   └── FrameEncodeError (HormoneError)  a hormone frame breaks a wire limit
+    │   ├── DecodeError                     (remote) bytes from a link or a file do not decode
+    │   │   └── FrameCorrupted              a frame failed its CRC or framing
+    │   └── DxlProtocolError                Dynamixel Protocol 2.0 packets
+    │       ├── DxlEncodeError (EncodeError)     values that make no valid packet
+    │       └── DxlDecodeError (DecodeError)     bytes that are no valid packet
+    │           └── DxlCrcError (FrameCorrupted) a packet whose CRC does not match
     ├── TransportError (OSError)            a link or bus is missing or failed
     │   └── TransportUnavailable            the interface does not exist on this machine
     ├── DriverError (RuntimeError)          a servo or its stand-in failed
+    │   ├── DriverConfigError (ValueError)  a driver argument is invalid
     │   ├── ServoNotFound                   no reply from the servo id
     │   ├── ServoModelMismatch              a servo answered with the wrong model number
     │   ├── ServoCommError                  a packet was lost or garbled (CRC, timeout)
-    │   └── ServoHardwareAlert              the servo reports a hardware error
+    │   ├── ServoHardwareAlert              the servo reports a hardware error
+    │   └── ServoInstructionError           the servo rejected an instruction
     ├── SimulationError (RuntimeError)      the physics stand-in failed
-    └── OutputError (ValueError)            an output option names a file that cannot be written
+    │   ├── PhysicsWorldError (ValueError)  a module, connector or setting of the world does not exist
+    │   ├── RecordError (ValueError)        a recording parameter or sample is malformed
+    │   └── GaitError (ValueError)          a gait parameter is out of range
+    ├── HilError (RuntimeError)             hardware-in-the-loop tooling failed
+    │   ├── HilWorldError                   the loop's world cannot start or drive its modules
+    │   ├── EmulatorError                   the servo emulator was misused
+    │   └── ModuleConfigError (ValueError)  a module's configuration is malformed (names the field)
+    └── OptionError (ValueError)            a command-line option's value cannot be used
+        └── OutputError                     an output option names a file that cannot be written
 """
 
 from __future__ import annotations
@@ -87,8 +108,17 @@ class ProgramCompileError(ProgramError):
     """The program parses but refers to unknown names, breaks arity or limits."""
 
 
+class MissingNatives(ProgramError):
+    """The program declares native actions this runtime does not have."""
+
+
 class TopologyError(DH2Error, ValueError):
     """A topology spec or file is wrong."""
+
+
+class EventError(TopologyError):
+    """An event string is malformed, names an unknown module, connector or hormone, or cannot
+    happen on the robot's links at its cycle."""
 
 
 class HormoneError(DH2Error, ValueError):
@@ -100,11 +130,39 @@ class ImageError(DH2Error, ValueError):
 
 
 class CodecError(DH2Error, ValueError):
-    """Bytes received on a link do not decode to a frame."""
+    """Bytes and frames do not convert (see EncodeError and DecodeError)."""
 
 
-class FrameCorrupted(CodecError):
+class EncodeError(CodecError):
+    """Local: this side asked for a frame the wire cannot carry (a bug or a limit here)."""
+
+
+class FrameEncodeError(EncodeError, HormoneError):
+    """A frame cannot be encoded: a connector, sequence number or digest breaks a wire limit."""
+
+
+class DecodeError(CodecError):
+    """Remote: bytes received on a link (or read from a file) do not decode."""
+
+
+class FrameCorrupted(DecodeError):
     """A frame failed its CRC or its framing."""
+
+
+class DxlProtocolError(CodecError):
+    """Bytes or values that do not make a valid Dynamixel Protocol 2.0 packet."""
+
+
+class DxlEncodeError(DxlProtocolError, EncodeError):
+    """Local: values that make no valid Protocol 2.0 packet (an id, a length out of range)."""
+
+
+class DxlDecodeError(DxlProtocolError, DecodeError):
+    """Remote: bytes that are no valid Protocol 2.0 packet."""
+
+
+class DxlCrcError(DxlDecodeError, FrameCorrupted):
+    """A framed Dynamixel packet whose CRC does not match."""
 
 
 class TransportError(DH2Error, OSError):
@@ -139,5 +197,45 @@ class SimulationError(DH2Error, RuntimeError):
     """The physics stand-in failed."""
 
 
-class OutputError(DH2Error, ValueError):
+class DriverConfigError(DriverError, ValueError):
+    """A driver argument is invalid (the message names it)."""
+
+
+class ServoInstructionError(DriverError):
+    """The servo answered but rejected the instruction (access, data range or limit error)."""
+
+
+class PhysicsWorldError(SimulationError, ValueError):
+    """A physics World was asked about a module, connector or setting that does not exist."""
+
+
+class RecordError(SimulationError, ValueError):
+    """A recording parameter or sample is malformed."""
+
+
+class GaitError(SimulationError, ValueError):
+    """A gait parameter is out of range."""
+
+
+class HilError(DH2Error, RuntimeError):
+    """Hardware-in-the-loop tooling failed."""
+
+
+class HilWorldError(HilError):
+    """The loop's world cannot start or drive its modules."""
+
+
+class EmulatorError(HilError):
+    """The servo emulator was misused (bad id, restarted after stop, unknown fault)."""
+
+
+class ModuleConfigError(HilError, ValueError):
+    """A module's configuration is malformed; the message names the field."""
+
+
+class OptionError(DH2Error, ValueError):
+    """A command-line option has a value the command cannot use (exit 2)."""
+
+
+class OutputError(OptionError):
     """An output option names a file that cannot be written as asked (exit 2)."""

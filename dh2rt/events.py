@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from dh2rt.docking import check_cut, check_dock
-from dh2rt.errors import DH2Error, ProgramError, TopologyError
+from dh2rt.errors import DH2Error, EventError, ProgramError, TopologyError
 from dh2rt.hormone import Hormone, Vocabulary
 from dh2rt.lang import ast
 from dh2rt.lang.parser import Parser
@@ -27,9 +27,6 @@ from dh2rt.topology import Topology
 
 KINDS = ("cut", "dock", "inject", "kill", "restart")
 
-
-class EventError(TopologyError):
-    """An event string is malformed or names an unknown module, connector or hormone."""
 
 
 @dataclass(frozen=True, slots=True)

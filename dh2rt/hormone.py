@@ -20,7 +20,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from dh2rt.errors import CodecError, HormoneError
+from dh2rt.errors import DecodeError, HormoneError
 
 #: An argument value: an atom (``str``) or a 32-bit signed integer.
 Value = int | str
@@ -134,27 +134,27 @@ class Vocabulary:
         """Decode content at ``data[start:]``; returns name, args and the offset after it."""
         pos = start
         if pos >= len(data):
-            raise CodecError("hormone content: no bytes")
+            raise DecodeError("hormone content: no bytes")
         idx = data[pos]
         pos += 1
         if idx >= len(self.by_index):
-            raise CodecError(f"hormone content: unknown hormone index {idx}")
+            raise DecodeError(f"hormone content: unknown hormone index {idx}")
         spec = self.by_index[idx]
         args: list[Value] = []
         for param in spec.params:
             if pos >= len(data):
-                raise CodecError(f"hormone {spec.name}: content truncated at parameter {param.name}")
+                raise DecodeError(f"hormone {spec.name}: content truncated at parameter {param.name}")
             if param.domain is not None:
                 atom = data[pos]
                 pos += 1
                 if atom >= len(param.domain):
-                    raise CodecError(f"hormone {spec.name}.{param.name}: atom index {atom} out of range")
+                    raise DecodeError(f"hormone {spec.name}.{param.name}: atom index {atom} out of range")
                 args.append(param.domain[atom])
             else:
                 raw, pos = _get_varint(data, pos)
                 value = _unzigzag(raw)
                 if not INT_MIN <= value <= INT_MAX:
-                    raise CodecError(f"hormone {spec.name}.{param.name}: integer out of range")
+                    raise DecodeError(f"hormone {spec.name}.{param.name}: integer out of range")
                 args.append(value)
         return spec.name, tuple(args), pos
 
@@ -190,11 +190,11 @@ def _get_varint(data: bytes, pos: int) -> tuple[int, int]:
     result = 0
     for _ in range(5):
         if pos >= len(data):
-            raise CodecError("varint truncated")
+            raise DecodeError("varint truncated")
         b = data[pos]
         pos += 1
         result |= (b & 0x7F) << shift
         if not b & 0x80:
             return result, pos
         shift += 7
-    raise CodecError("varint longer than 5 bytes")
+    raise DecodeError("varint longer than 5 bytes")

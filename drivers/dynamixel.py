@@ -44,9 +44,11 @@ from types import ModuleType
 from typing import Any, Final
 
 from dh2rt.errors import (
+    DriverConfigError,
     DriverError,
     ServoCommError,
     ServoHardwareAlert,
+    ServoInstructionError,
     ServoModelMismatch,
     ServoNotFound,
 )
@@ -60,12 +62,6 @@ SUPPORTED_BAUDRATES: Final = (
 MAX_UNICAST_ID: Final = 252
 
 
-class DriverConfigError(DriverError, ValueError):
-    """A DynamixelDriver argument is invalid (the message names it)."""
-
-
-class ServoInstructionError(DriverError):
-    """The servo answered but rejected the instruction (access, data range or limit error)."""
 
 
 def _load_sdk() -> ModuleType:

@@ -29,7 +29,7 @@ import enum
 from dataclasses import dataclass
 from typing import Final
 
-from dh2rt.errors import CodecError, FrameCorrupted
+from dh2rt.errors import DxlCrcError, DxlDecodeError, DxlEncodeError
 
 HEADER: Final = b"\xff\xff\xfd\x00"
 STUFF_PATTERN: Final = b"\xff\xff\xfd"
@@ -62,12 +62,6 @@ class Instruction(enum.IntEnum):
     BULK_WRITE = 0x93
 
 
-class DxlProtocolError(CodecError):
-    """Bytes or values that do not make a valid Protocol 2.0 packet."""
-
-
-class DxlCrcError(DxlProtocolError, FrameCorrupted):
-    """A framed packet whose CRC does not match."""
 
 
 def _make_table() -> tuple[int, ...]:
@@ -118,7 +112,7 @@ class Packet:
     def error(self) -> int:
         """The status packet's error byte."""
         if not self.is_status or not self.params:
-            raise DxlProtocolError(
+            raise DxlDecodeError(
                 f"packet from id {self.id} (instruction 0x{self.instruction:02x}) "
                 "is not a status packet with an error byte"
             )
@@ -141,7 +135,7 @@ class CorruptPacket:
 
 def _check_byte(name: str, value: int, high: int = 0xFF) -> None:
     if not isinstance(value, int) or not 0 <= value <= high:
-        raise DxlProtocolError(f"{name} must be an integer in 0..{high}, got {value!r}")
+        raise DxlEncodeError(f"{name} must be an integer in 0..{high}, got {value!r}")
 
 
 def encode_packet(packet: Packet) -> bytes:
@@ -151,7 +145,7 @@ def encode_packet(packet: Packet) -> bytes:
     body = stuff(bytes((packet.instruction,)) + bytes(packet.params))
     length = len(body) + 2
     if _HEAD_LEN + length > MAX_LENGTH:
-        raise DxlProtocolError(
+        raise DxlEncodeError(
             f"packet too long: {len(packet.params)} params make {_HEAD_LEN + length} bytes (max {MAX_LENGTH})"
         )
     frame = HEADER + bytes((packet.id, length & 0xFF, length >> 8)) + body
@@ -178,10 +172,10 @@ def decode_packet(frame: bytes) -> Packet:
     """Decode exactly one whole packet; raise :class:`DxlProtocolError` if it is not one."""
     frame = bytes(frame)
     if len(frame) < _HEAD_LEN + MIN_LENGTH or not frame.startswith(HEADER):
-        raise DxlProtocolError(f"not a Protocol 2.0 packet: {frame[:16].hex(' ')!r}")
+        raise DxlDecodeError(f"not a Protocol 2.0 packet: {frame[:16].hex(' ')!r}")
     length = _frame_length(frame)
     if length < MIN_LENGTH or _HEAD_LEN + length != len(frame):
-        raise DxlProtocolError(f"length field says {length} but {len(frame) - _HEAD_LEN} bytes follow it")
+        raise DxlDecodeError(f"length field says {length} but {len(frame) - _HEAD_LEN} bytes follow it")
     expected = frame[-2] | (frame[-1] << 8)
     actual = crc16(frame[:-2])
     if expected != actual:

@@ -31,12 +31,12 @@ from typing import IO, Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
 from dh2rt.compiler import compile_file
-from dh2rt.errors import DH2Error, ProgramError
-from dh2rt.events import Event, parse_event
+from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
+from dh2rt.events import Event, check_events, parse_event
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from hil.world import World, WorldError
+from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -173,21 +173,23 @@ def _main(argv: list[str] | None) -> int:
         return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
     try:
         if ns.module_count < 1:
-            raise DH2Error(f"--module-count {ns.module_count}: must be 1 or more")
+            raise OptionError(f"--module-count {ns.module_count}: must be 1 or more")
         if ns.cycles < 0:
-            raise DH2Error(f"--cycles {ns.cycles}: must be 0 or more")
+            raise OptionError(f"--cycles {ns.cycles}: must be 0 or more")
         if ns.cycle_ms <= 0:
-            raise DH2Error(f"--cycle-ms {ns.cycle_ms}: must be positive")
+            raise OptionError(f"--cycle-ms {ns.cycle_ms}: must be positive")
         if ns.silence_cycles < 1:
-            raise DH2Error(f"--silence-cycles {ns.silence_cycles}: must be 1 or more")
+            raise OptionError(f"--silence-cycles {ns.silence_cycles}: must be 1 or more")
         program = compile_file(str(ns.program))
         spec = ns.topology or f"snake:{ns.module_count}"
         topology = parse_spec(spec, program.profile)
         if ns.topology and any(a.startswith("--module-count") for a in args) and topology.size != ns.module_count:
-            raise DH2Error(
+            raise OptionError(
                 f"--topology {ns.topology} has {topology.size} modules but --module-count is {ns.module_count}"
             )
         events = [parse_event(e, topology, program.vocabulary) for e in ns.event]
+        if ns.cycles is not None:
+            check_events(events, topology, ns.cycles)
         kind, _ = parse_transport_spec(ns.transport)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
@@ -246,7 +248,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         world.tick()
     except KeyboardInterrupt:
         interrupted = True
-    except (WorldError, DH2Error, OSError) as exc:
+    except (HilWorldError, DH2Error, OSError) as exc:
         _err(str(exc))
         failed = True
     finally:

@@ -43,7 +43,7 @@ from types import FrameType
 from typing import IO, Any
 
 from dh2rt.compiler import load_image
-from dh2rt.errors import DH2Error
+from dh2rt.errors import DH2Error, ModuleConfigError
 from dh2rt.events import parse_hormone
 from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
@@ -68,14 +68,11 @@ def open_driver(config: Mapping[str, Any], stand_in: str) -> tuple[ModuleDriver 
 
     ids = list(config.get("servo_ids", [1, 2]))
     if len(ids) != 2 or not all(isinstance(i, int) for i in ids):
-        raise ConfigError(f"config servo_ids {ids!r}: expected two servo ids [DOF1, DOF2]")
+        raise ModuleConfigError(f"config servo_ids {ids!r}: expected two servo ids [DOF1, DOF2]")
     try:
         return DynamixelDriver(str(port), dof1_id=ids[0], dof2_id=ids[1]), None
     except DH2Error as exc:
         return None, str(exc)
-
-class ConfigError(DH2Error, ValueError):
-    """A module config is malformed; the message names the field."""
 
 
 def link_end(spec: Mapping[str, Any], where: str = "link") -> LinkEnd:
@@ -85,7 +82,7 @@ def link_end(spec: Mapping[str, Any], where: str = "link") -> LinkEnd:
     try:
         return BusEnd(int(spec["link_id"]), int(spec["side"]))
     except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: expected {{'link_id', 'side'}} or {{'port'}}, got {dict(spec)!r}") from exc
+        raise ModuleConfigError(f"{where}: expected {{'link_id', 'side'}} or {{'port'}}, got {dict(spec)!r}") from exc
 
 
 class ModuleHost:
@@ -104,7 +101,7 @@ class ModuleHost:
             elif "image_path" in config:
                 image = Path(str(config["image_path"])).read_bytes()
             else:
-                raise ConfigError("config: one of 'image' (hex) or 'image_path' is required")
+                raise ModuleConfigError("config: one of 'image' (hex) or 'image_path' is required")
             self.program = load_image(image)
             self.module = int(config.get("module", 0))
             self.status_every = max(1, int(config.get("status_every", 10)))
@@ -113,9 +110,9 @@ class ModuleHost:
             attach = {int(c): link_end(v, f"config attach[{c}]") for c, v in dict(config.get("attach", {})).items()}
             driver_name = str(config.get("driver", "recording"))
             if driver_name not in ("recording", "none"):
-                raise ConfigError(f"config driver {driver_name!r}: expected 'recording' or 'none'")
+                raise ModuleConfigError(f"config driver {driver_name!r}: expected 'recording' or 'none'")
         except (OSError, ValueError, TypeError) as exc:
-            raise ConfigError(str(exc)) from exc
+            raise ModuleConfigError(str(exc)) from exc
         self.driver, driver_fault = open_driver(config, driver_name)
         codec = FrameCodec(self.program.vocabulary, self.program.profile.connector_count)
         transport = open_transport(str(config.get("transport", "inproc")), codec)
@@ -220,7 +217,7 @@ class ModuleHost:
                 status["event"] = "status"
                 self.report(status)
             elif kind != "go":
-                raise ConfigError(f"unknown command {kind!r}")
+                raise ModuleConfigError(f"unknown command {kind!r}")
         except (DH2Error, KeyError, ValueError, TypeError) as exc:
             self.report({"event": "log", "module": self.module, "message": f"command {dict(cmd)!r} refused: {exc}"})
 
@@ -271,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
             text = Path(text[1:]).read_text(encoding="utf-8")
         config = json.loads(text)
         if not isinstance(config, dict):
-            raise ConfigError("config: expected a JSON object")
+            raise ModuleConfigError("config: expected a JSON object")
         commands: queue.Queue[dict[str, Any]] = queue.Queue()
         host = ModuleHost(config, commands, report)
     except (OSError, ValueError, DH2Error) as exc:

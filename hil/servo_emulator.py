@@ -39,7 +39,7 @@ import tty
 from collections.abc import Callable, Iterable, Mapping
 from typing import Protocol
 
-from dh2rt.errors import DH2Error
+from dh2rt.errors import EmulatorError
 from drivers import dxl_table as dxt
 from drivers.base import Joint, ModuleDriver
 from hil.dxl_protocol import (
@@ -51,10 +51,6 @@ from hil.dxl_protocol import (
     PacketParser,
     encode_status,
 )
-
-
-class EmulatorError(DH2Error, RuntimeError):
-    """The servo emulator was misused (bad id, restarted after stop, unknown fault)."""
 
 
 class Fault(enum.Enum):

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 from dh2rt.compiler import CompiledProgram
 from dh2rt.docking import DOCK_DELAY, route_end
-from dh2rt.errors import DH2Error, TopologyError
+from dh2rt.errors import HilWorldError, TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.runtime import SILENCE_CYCLES
@@ -62,9 +62,6 @@ THREAD_TRANSPORTS = ("inproc", "virtual")
 if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
 
-
-class WorldError(DH2Error, RuntimeError):
-    """The world cannot start or drive its modules."""
 
 
 @dataclass(slots=True)
@@ -261,7 +258,7 @@ class World:
 
                 self.physics = PhysicsStandIn(topology, seed=seed)
             elif stand_in not in ("recording", "none"):
-                raise WorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
+                raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         except BaseException:  # a failed or interrupted start leaves no pty or thread behind
             if self.emulator is not None:
                 self.emulator.close()
@@ -345,10 +342,10 @@ class World:
         while not all(v.ready for v in self.views):
             self.poll(0.05)
             if any(v.failed or (not v.ready and self._exited(v.module)) for v in self.views):
-                raise WorldError(self._failure_text("a module failed to start"))
+                raise HilWorldError(self._failure_text("a module failed to start"))
             if time.monotonic() > deadline:
                 late = [v.name for v in self.views if not v.ready]
-                raise WorldError(f"modules {', '.join(late)} not ready after {ready_timeout:.0f} s")
+                raise HilWorldError(f"modules {', '.join(late)} not ready after {ready_timeout:.0f} s")
         # one start instant for all (CLOCK_MONOTONIC is shared by every process here): the
         # modules exchange Hellos until then and start cycling together, like modules powered
         # up at once; afterwards each keeps its own clock

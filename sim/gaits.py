@@ -22,14 +22,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol
 
-from dh2rt.errors import SimulationError
+from dh2rt.errors import GaitError
 
 #: The head's DOF1 angle after each of its four events A, B, C, D (Table I).
 HEAD_ANGLES: tuple[float, float, float, float] = (45.0, -45.0, -45.0, 45.0)
 
-
-class GaitError(SimulationError, ValueError):
-    """A gait parameter is out of range."""
 
 
 def _check(n_modules: int, cycle: int, clock_cycle: int) -> int:

@@ -15,16 +15,13 @@ from typing import Any
 
 import pybullet as p
 
-from dh2rt.errors import SimulationError
+from dh2rt.errors import RecordError
 from sim.world import World
 
 Vec3 = tuple[float, float, float]
 #: One sample: (time s, [(dof1 deg, dof2 deg) per module], centroid (x, y, z) metres).
 Sample = tuple[float, Sequence[tuple[float, float]], Vec3]
 
-
-class RecordError(SimulationError, ValueError):
-    """A recording parameter or sample is malformed."""
 
 
 class Recorder:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import pybullet as p
 
 from dh2rt.closing import Closing
-from dh2rt.errors import SimulationError
+from dh2rt.errors import PhysicsWorldError, SimulationError
 from dh2rt.topology import Link, Topology
 from drivers.pybullet_driver import PyBulletDriver
 from sim.conro import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConroModel, ModuleBody, Vec3, build_module
@@ -33,9 +33,6 @@ Quat = tuple[float, float, float, float]
 _IDENTITY: Quat = (0.0, 0.0, 0.0, 1.0)
 _GROUND_HALF = 50.0  # metres: the floor is a 100 m square
 
-
-class WorldError(SimulationError, ValueError):
-    """A World was asked about a module, connector or setting that does not exist."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,11 +68,11 @@ class World(Closing):
         dock_force_n: float = 40.0,
     ) -> None:
         if not math.isfinite(physics_hz) or not 30.0 <= physics_hz <= 10_000.0:
-            raise WorldError(f"physics_hz must be between 30 and 10000, got {physics_hz}")
+            raise PhysicsWorldError(f"physics_hz must be between 30 and 10000, got {physics_hz}")
         if solver_iterations < 1:
-            raise WorldError(f"solver_iterations must be >= 1, got {solver_iterations}")
+            raise PhysicsWorldError(f"solver_iterations must be >= 1, got {solver_iterations}")
         if dock_force_n <= 0:
-            raise WorldError(f"dock_force_n must be > 0, got {dock_force_n}")
+            raise PhysicsWorldError(f"dock_force_n must be > 0, got {dock_force_n}")
         self._check_profile(topology, model)
         self.topology = topology
         self.model = model
@@ -108,7 +105,7 @@ class World(Closing):
                 or prof.connector_name(c.index) != c.name
                 or prof.gender(c.index) != c.gender
             ):
-                raise WorldError(
+                raise PhysicsWorldError(
                     f"topology profile {prof.name!r} does not match the module model at connector "
                     f"{c.index} ({c.name}, {c.gender})"
                 )
@@ -330,7 +327,7 @@ class World(Closing):
     def step(self, n: int = 1) -> None:
         """Advance the physics ``n`` steps of ``1 / physics_hz`` seconds."""
         if n < 0:
-            raise WorldError(f"step: n must be >= 0, got {n}")
+            raise PhysicsWorldError(f"step: n must be >= 0, got {n}")
         step, cid = p.stepSimulation, self.client
         for _ in range(n):
             step(physicsClientId=cid)
@@ -411,7 +408,7 @@ class World(Closing):
         """Teleport an undocked module: upright, joints straight and at rest."""
         self._check_module(module)
         if any(m == module for m, _ in self._docks):
-            raise WorldError(f"set_module_pose: module {module} is docked; undock it first")
+            raise PhysicsWorldError(f"set_module_pose: module {module} is docked; undock it first")
         body = self._modules[module].body
         p.resetBasePositionAndOrientation(body, position, _yaw_quat(math.radians(yaw_deg)), physicsClientId=self.client)
         p.resetBaseVelocity(body, (0, 0, 0), (0, 0, 0), physicsClientId=self.client)
@@ -428,12 +425,12 @@ class World(Closing):
 
     def _check_module(self, module: int) -> None:
         if not isinstance(module, int) or not 0 <= module < len(self._modules):
-            raise WorldError(f"no module {module!r}: this world has modules 0..{len(self._modules) - 1}")
+            raise PhysicsWorldError(f"no module {module!r}: this world has modules 0..{len(self._modules) - 1}")
 
     def _check_connector(self, conn: int) -> None:
         if not isinstance(conn, int) or not 1 <= conn <= self.topology.profile.connector_count:
             names = ", ".join(f"{i + 1}={n}" for i, n in enumerate(self.topology.profile.connectors))
-            raise WorldError(f"no connector {conn!r} (connectors: {names})")
+            raise PhysicsWorldError(f"no connector {conn!r} (connectors: {names})")
 
     def _connector_index(self, connector: int | str) -> int:
         if isinstance(connector, str):
@@ -441,7 +438,7 @@ class World(Closing):
                 return self.topology.profile.connector_index(connector)
             except ValueError:
                 names = ", ".join(self.topology.profile.connectors)
-                raise WorldError(f"no connector {connector!r} (connectors: {names})") from None
+                raise PhysicsWorldError(f"no connector {connector!r} (connectors: {names})") from None
         self._check_connector(connector)
         return connector
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from dh2rt.errors import CodecError
+from dh2rt.errors import DecodeError
 from dh2rt.wire.can_frames import CLASSIC_DATA, FD_DATA
 
 LINKTYPE_CAN_SOCKETCAN = 227
@@ -61,23 +61,23 @@ def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -
 
 
 def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
-    """Read a pcap of link type 227; raises CodecError naming what is wrong with the file."""
+    """Read a pcap of link type 227; raises DecodeError naming what is wrong with the file."""
     if isinstance(source, str | Path):
         with open(source, "rb") as fh:
             return read_pcap(fh)
     head = source.read(24)
     if len(head) < 24:
-        raise CodecError("pcap: file shorter than its 24-byte header")
+        raise DecodeError("pcap: file shorter than its 24-byte header")
     for endian in ("<", ">"):
         magic = struct.unpack(endian + "I", head[:4])[0]
         if magic in (_PCAP_MAGIC_US, _PCAP_MAGIC_NS):
             break
     else:
-        raise CodecError(f"pcap: bad magic number {head[:4].hex()} (not a pcap file)")
+        raise DecodeError(f"pcap: bad magic number {head[:4].hex()} (not a pcap file)")
     scale = 1e-6 if magic == _PCAP_MAGIC_US else 1e-9
     linktype = struct.unpack(endian + "I", head[20:24])[0] & 0x0FFFFFFF
     if linktype != LINKTYPE_CAN_SOCKETCAN:
-        raise CodecError(f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)")
+        raise DecodeError(f"pcap: link type {linktype}, expected {LINKTYPE_CAN_SOCKETCAN} (CAN SocketCAN)")
     frames: list[CapturedFrame] = []
     index = 0
     while True:
@@ -85,14 +85,14 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
         if not rec:
             return frames
         if len(rec) < 16:
-            raise CodecError(f"pcap: record {index} header truncated")
+            raise DecodeError(f"pcap: record {index} header truncated")
         sec, frac, incl, _orig = struct.unpack(endian + "IIII", rec)
         body = source.read(incl)
         if len(body) < incl or incl < 8:
-            raise CodecError(f"pcap: record {index} truncated or shorter than the 8-byte CAN header")
+            raise DecodeError(f"pcap: record {index} truncated or shorter than the 8-byte CAN header")
         can_id, length, fd_flags = struct.unpack(">IBB", body[:6])
         if length > len(body) - 8 or length > FD_DATA:
-            raise CodecError(f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}")
+            raise DecodeError(f"pcap: record {index} claims {length} data bytes, has {len(body) - 8}")
         extended = bool(can_id & CAN_EFF_FLAG)
         is_fd = bool(fd_flags & FD_FDF) or length > CLASSIC_DATA
         frames.append(

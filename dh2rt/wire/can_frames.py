@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from dh2rt.errors import CodecError
+from dh2rt.errors import CodecError, DecodeError, EncodeError
 from dh2rt.wire.frame import frame_kind
 
 SINGLE, FIRST, MIDDLE, LAST = 0, 1, 2, 3
@@ -69,14 +69,14 @@ def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: i
         ("side", side, 1),
     ):
         if not 0 <= value <= limit:
-            raise ValueError(f"CAN id field {name}={value} is outside 0..{limit}")
+            raise EncodeError(f"CAN id field {name}={value} is outside 0..{limit}")
     return (kind << 27) | (segment << 25) | (seq << 19) | (link_id << 1) | side
 
 
 def parse_arbitration_id(can_id: int) -> CanId:
     """Split a 29-bit id into its fields."""
     if not 0 <= can_id < (1 << 29):
-        raise CodecError(f"CAN id {can_id:#x} is not a 29-bit identifier")
+        raise DecodeError(f"CAN id {can_id:#x} is not a 29-bit identifier")
     return CanId(
         (can_id >> 27) & 3,
         (can_id >> 25) & 3,
@@ -98,7 +98,7 @@ def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
 def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA) -> list[CanFrame]:
     """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``."""
     if not payload:
-        raise ValueError("cannot send an empty payload")
+        raise EncodeError("cannot send an empty payload")
     kind = int(frame_kind(payload))
     sizes = _chunk_sizes(len(payload), max_data)
     if len(sizes) == 1:
@@ -109,7 +109,7 @@ def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DAT
         chunks.append(bytes(payload[pos : pos + size]))
         pos += size
     if len(chunks) > MAX_SEGMENTS:
-        raise ValueError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
+        raise EncodeError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
     frames = []
     for i, chunk in enumerate(chunks):
         mark = FIRST if i == 0 else LAST if i == len(chunks) - 1 else MIDDLE
@@ -126,7 +126,7 @@ def _chunk_sizes(n: int, max_data: int) -> list[int]:
     if max_data == CLASSIC_DATA:
         return [min(CLASSIC_DATA, n - i) for i in range(0, n, CLASSIC_DATA)]
     if max_data != FD_DATA:
-        raise ValueError(f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}")
+        raise EncodeError(f"max_data must be {CLASSIC_DATA} (classic) or {FD_DATA} (FD), got {max_data}")
     sizes: list[int] = []
     while n > 0:
         size = max(s for s in FD_LENGTHS if s <= n)

@@ -21,7 +21,7 @@ The sender connector is the ``remote`` of the :class:`~dh2rt.hormone.Arrival` th
 builds. Nothing here names a module. A caterpillar hormone ``X(A)`` with an empty path is
 4 bytes: header, hop count 0, hormone index, atom index.
 
-Decoding raises only :class:`~dh2rt.errors.CodecError` (or a subclass); encoding raises
+Decoding raises only :class:`~dh2rt.errors.DecodeError` (or a subclass); encoding raises
 :class:`FrameEncodeError` for a frame that breaks a wire limit, or ``HormoneError`` for a
 hormone that breaks its declaration.
 """
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import NamedTuple
 
-from dh2rt.errors import CodecError, HormoneError
+from dh2rt.errors import CodecError, DecodeError, FrameEncodeError
 from dh2rt.hormone import MAX_HOPS_LIMIT, Hormone, Vocabulary
 
 #: The wire format version carried in every frame's first byte.
@@ -53,9 +53,6 @@ class FrameKind(IntEnum):
     KEEPALIVE = 2
     HELLO = 3
 
-
-class FrameEncodeError(HormoneError):
-    """A frame cannot be encoded: a connector, sequence number or digest breaks a wire limit."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,7 +88,7 @@ def program_digest(program: bytes) -> bytes:
 def frame_kind(payload: bytes) -> FrameKind:
     """The kind of an encoded frame, read from its first byte without decoding the rest."""
     if not payload:
-        raise CodecError("frame: no bytes")
+        raise DecodeError("frame: no bytes")
     return FrameKind((payload[0] >> 4) & 0x3)
 
 
@@ -161,29 +158,29 @@ class FrameCodec:
         except CodecError:
             raise
         except (IndexError, ValueError) as exc:  # defensive: garbage must only raise CodecError
-            raise CodecError(f"frame: malformed ({exc})") from None
+            raise DecodeError(f"frame: malformed ({exc})") from None
 
     def _decode(self, data: bytes) -> Decoded:
         if not data:
-            raise CodecError("frame: no bytes")
+            raise DecodeError("frame: no bytes")
         head = data[0]
         version = head >> 6
         if version != WIRE_VERSION:
-            raise CodecError(f"frame: wire version {version}, expected {WIRE_VERSION}")
+            raise DecodeError(f"frame: wire version {version}, expected {WIRE_VERSION}")
         kind = FrameKind((head >> 4) & 0x3)
         sender = head & 0x0F
         if not 1 <= sender <= self.connector_count:
-            raise CodecError(f"frame: sender connector {sender} is outside 1..{self.connector_count}")
+            raise DecodeError(f"frame: sender connector {sender} is outside 1..{self.connector_count}")
         if kind is FrameKind.KEEPALIVE:
             if len(data) != 2:
-                raise CodecError(f"keep-alive frame: {len(data)} bytes, expected 2")
+                raise DecodeError(f"keep-alive frame: {len(data)} bytes, expected 2")
             return Decoded(sender, KeepAlive(data[1]))
         if kind is FrameKind.HELLO:
             if len(data) != 1 + HELLO_DIGEST_BYTES:
-                raise CodecError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
+                raise DecodeError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
             return Decoded(sender, Hello(data[1:]))
         if len(data) < 2:
-            raise CodecError("hormone frame: truncated before the hop count")
+            raise DecodeError("hormone frame: truncated before the hop count")
         hops = data[1]
         name, args, pos = self.vocabulary.decode_content(data, 2)
         flat, pos = self._unpack(data, pos, 2 * hops, "path")
@@ -191,28 +188,28 @@ class FrameCodec:
         route: tuple[int, ...] | None = None
         if kind is FrameKind.ROUTED:
             if pos >= len(data):
-                raise CodecError(f"hormone frame {name}: truncated before the route length")
+                raise DecodeError(f"hormone frame {name}: truncated before the route length")
             count = data[pos]
             route, pos = self._unpack(data, pos + 1, count, "route")
         if pos != len(data):
-            raise CodecError(f"hormone frame {name}: {len(data) - pos} trailing byte(s)")
+            raise DecodeError(f"hormone frame {name}: {len(data) - pos} trailing byte(s)")
         return Decoded(sender, Hormone(name, args, path, route))
 
     def _unpack(self, data: bytes, pos: int, count: int, what: str) -> tuple[tuple[int, ...], int]:
         bits = self.connector_bits
         nbytes = (count * bits + 7) // 8
         if pos + nbytes > len(data):
-            raise CodecError(f"frame: {what} truncated ({count} connectors need {nbytes} bytes)")
+            raise DecodeError(f"frame: {what} truncated ({count} connectors need {nbytes} bytes)")
         acc = int.from_bytes(data[pos : pos + nbytes], "big")
         pad = nbytes * 8 - count * bits
         if acc & ((1 << pad) - 1):
-            raise CodecError(f"frame: {what} padding bits are not zero")
+            raise DecodeError(f"frame: {what} padding bits are not zero")
         acc >>= pad
         mask = (1 << bits) - 1
         values = tuple((acc >> (bits * (count - 1 - i))) & mask for i in range(count))
         for v in values:
             if not 1 <= v <= self.connector_count:
-                raise CodecError(f"frame: {what} connector {v} is outside 1..{self.connector_count}")
+                raise DecodeError(f"frame: {what} connector {v} is outside 1..{self.connector_count}")
         return values, pos + nbytes
 
 

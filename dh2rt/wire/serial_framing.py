@@ -1,9 +1,16 @@
 """Serial framing for point-to-point links (infrared emulation), sans-IO.
 
-On the wire each frame is ``COBS(payload + CRC16) + b"\\x00"``: the CRC is CRC-16/CCITT-FALSE
-(``binascii.crc_hqx(payload, 0xFFFF)``, big-endian) over the payload, COBS removes every zero
-byte so that ``0x00`` only ever delimits frames. A caterpillar hormone's 4-byte payload
-becomes 8 bytes on the wire: COBS code byte, 4 payload bytes, 2 CRC bytes, delimiter.
+On the wire each frame is ``COBS(payload + FCS) + b"\\x00"``: the frame check sequence is
+CRC-32 (ISO-HDLC, as HDLC's FCS-32 and Ethernet: ``binascii.crc32``, little-endian) over the
+payload, and COBS removes every zero byte so that ``0x00`` only ever delimits frames. A
+caterpillar hormone's 4-byte payload becomes 10 bytes on the wire: COBS code byte, 4 payload
+bytes, 4 FCS bytes, delimiter.
+
+Why CRC-32 with a final XOR: framing version 1 used CRC-16/CCITT-FALSE, which has no final
+XOR, so ``crc(msg || crc_hi) == crc_lo << 8``: a one-bit error that turned the delimiter
+``00`` into ``01`` made the frame decode as its payload plus one byte, with a valid CRC, every
+time. A final XOR (HDLC's reason for one) removes that structure, and 32 bits leave a chance
+of 2^-32 for random corruption to pass (see ``docs/link-layer.md``).
 
 :class:`SerialDecoder` is incremental: feed it bytes as they come, in any chunks, and it
 returns the payloads whose CRC holds. A corrupted frame (bad COBS, bad CRC, too short) is
@@ -15,17 +22,19 @@ from __future__ import annotations
 
 import binascii
 
-from dh2rt.errors import FrameCorrupted
+from dh2rt.errors import FrameCorrupted, FrameEncodeError
 
+#: The serial framing's version (1: CRC-16/CCITT-FALSE; 2: CRC-32), for documents and captures.
+FRAMING_VERSION = 2
 DELIMITER = 0x00
-CRC_BYTES = 2
+CRC_BYTES = 4
 #: Largest payload a serial frame carries (a hormone frame is at most about 200 bytes).
 MAX_PAYLOAD = 512
 
 
-def crc16(data: bytes) -> int:
-    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF), as in ``binascii.crc_hqx``."""
-    return binascii.crc_hqx(data, 0xFFFF)
+def fcs32(data: bytes) -> int:
+    """CRC-32/ISO-HDLC (poly 0x04C11DB7 reflected, init and final XOR 0xFFFFFFFF)."""
+    return binascii.crc32(data)
 
 
 def cobs_encode(data: bytes) -> bytes:
@@ -69,8 +78,8 @@ def cobs_decode(data: bytes) -> bytes:
 def encode_serial(payload: bytes) -> bytes:
     """The bytes that carry ``payload`` over a serial link, delimiter included."""
     if len(payload) > MAX_PAYLOAD:
-        raise ValueError(f"serial payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
-    body = payload + crc16(payload).to_bytes(CRC_BYTES, "big")
+        raise FrameEncodeError(f"serial payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    body = payload + fcs32(payload).to_bytes(CRC_BYTES, "little")
     return cobs_encode(body) + b"\x00"
 
 
@@ -79,8 +88,8 @@ def decode_serial(frame: bytes) -> bytes:
     body = cobs_decode(frame)
     if len(body) <= CRC_BYTES:
         raise FrameCorrupted(f"serial frame of {len(body)} bytes is too short for a payload and CRC")
-    payload, crc = body[:-CRC_BYTES], int.from_bytes(body[-CRC_BYTES:], "big")
-    if crc16(payload) != crc:
+    payload, crc = body[:-CRC_BYTES], int.from_bytes(body[-CRC_BYTES:], "little")
+    if fcs32(payload) != crc:
         raise FrameCorrupted("serial frame failed its CRC")
     return payload
 

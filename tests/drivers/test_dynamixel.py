@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from dh2rt.errors import (
+    DriverConfigError,
     DriverError,
     ServoCommError,
     ServoHardwareAlert,
@@ -19,7 +20,7 @@ from dh2rt.errors import (
 )
 from drivers import dxl_table as dxt
 from drivers.base import JointLimits
-from drivers.dynamixel import DriverConfigError, DynamixelDriver
+from drivers.dynamixel import DynamixelDriver
 from drivers.recording import RecordingDriver
 from hil.servo_emulator import Fault, ServoEmulator
 

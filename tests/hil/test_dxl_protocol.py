@@ -9,12 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dh2rt.errors import CodecError, FrameCorrupted
+from dh2rt.errors import CodecError, DxlCrcError, DxlProtocolError, FrameCorrupted
 from hil.dxl_protocol import (
     BROADCAST_ID,
     CorruptPacket,
-    DxlCrcError,
-    DxlProtocolError,
     Event,
     Instruction,
     Packet,

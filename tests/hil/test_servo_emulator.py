@@ -9,6 +9,7 @@ from collections.abc import Iterator
 import pytest
 from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
 
+from dh2rt.errors import EmulatorError
 from drivers import dxl_table as dxt
 from drivers.recording import RecordingDriver
 from hil.dxl_protocol import (
@@ -20,7 +21,6 @@ from hil.dxl_protocol import (
     encode_instruction,
 )
 from hil.servo_emulator import (
-    EmulatorError,
     Fault,
     KinematicJoint,
     ModuleJointAdapter,

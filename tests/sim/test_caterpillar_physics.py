@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
+from dh2rt.errors import GaitError
 from dh2rt.topology import parse_spec
 from sim.gaits import (
     CLOCK_CYCLE,
     STEPS_PER_CYCLE,
-    GaitError,
     caterpillar_schedule,
     delay_wave_schedule,
     run_caterpillar,

@@ -7,9 +7,10 @@ from pathlib import Path
 import pytest
 from PIL import Image, ImageChops
 
+from dh2rt.errors import RecordError
 from dh2rt.topology import parse_spec
 from sim.gaits import run_caterpillar
-from sim.record import Recorder, RecordError, plot_run
+from sim.record import Recorder, plot_run
 from sim.world import World
 
 

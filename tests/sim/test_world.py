@@ -7,9 +7,10 @@ import math
 import pybullet as p
 import pytest
 
+from dh2rt.errors import PhysicsWorldError
 from dh2rt.profile import CONRO
 from dh2rt.topology import Link, Topology, parse_spec
-from sim.world import World, WorldError
+from sim.world import World
 
 FRONT, BACK, LEFT, RIGHT = 1, 2, 3, 4
 
@@ -136,22 +137,22 @@ def test_undock_lets_the_modules_separate() -> None:
 
 
 def test_set_module_pose_refuses_docked_modules() -> None:
-    with World(parse_spec("snake:2")) as w, pytest.raises(WorldError, match="docked"):
+    with World(parse_spec("snake:2")) as w, pytest.raises(PhysicsWorldError, match="docked"):
         w.set_module_pose(1, (0.0, 0.0, 0.03), 0.0)
 
 
 def test_bad_input_names_the_value() -> None:
     topo = parse_spec("snake:2")
-    with pytest.raises(WorldError, match="physics_hz"):
+    with pytest.raises(PhysicsWorldError, match="physics_hz"):
         World(topo, physics_hz=0.0)
     with World(topo) as w:
-        with pytest.raises(WorldError, match="no module 5"):
+        with pytest.raises(PhysicsWorldError, match="no module 5"):
             w.module_position(5)
-        with pytest.raises(WorldError, match="'nose'"):
+        with pytest.raises(PhysicsWorldError, match="'nose'"):
             w.connector_pose(0, "nose")
-        with pytest.raises(WorldError, match="no connector 7"):
+        with pytest.raises(PhysicsWorldError, match="no connector 7"):
             w.dock(0, 7, 1, 1)
-        with pytest.raises(WorldError, match="n must be"):
+        with pytest.raises(PhysicsWorldError, match="n must be"):
             w.step(-1)
         assert w.connector_pose(0, "front") == w.connector_pose(0, FRONT)
 

@@ -8,11 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dh2rt.errors import CodecError, HormoneError
+from dh2rt.errors import CodecError, FrameEncodeError, HormoneError
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
 from dh2rt.wire.frame import (
     FrameCodec,
-    FrameEncodeError,
     FrameKind,
     Hello,
     KeepAlive,
