@@ -26,9 +26,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dh2rt.compiler import CompiledProgram, compile_program
+from dh2rt.compiler import compile_program
 from dh2rt.hormone import Arrival, Hormone
 from dh2rt.lang.parser import parse_file
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import snake
 

@@ -32,8 +32,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
 from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from dh2rt.wire.frame import FrameCodec, KeepAlive

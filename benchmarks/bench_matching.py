@@ -23,10 +23,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from dh2rt.compiler import ACTIVE, CompiledProgram, compile_file
-from dh2rt.engine import Engine, Entry
+from dh2rt.compiler import compile_file
+from dh2rt.engine import Engine
 from dh2rt.lang import ast
 from dh2rt.profile import Profile
+from dh2rt.program import ACTIVE, CompiledProgram, Entry
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 
@@ -171,7 +172,7 @@ def collect_states(program: CompiledProgram, topology: str, cycles: int) -> list
             assert e is not None
             present: dict[str, list[Entry]] = {}
             for at, remote, h in robot.inbox.get(m, []):
-                present.setdefault(h.name, []).append([h.name, h.args, ((remote, at), *h.path), h.route, at])
+                present.setdefault(h.name, []).append((h.name, h.args, ((remote, at), *h.path), h.route, at))
             status = list(e.status)
             for at, remote, _h in robot.inbox.get(m, []):
                 status[at - 1] = remote

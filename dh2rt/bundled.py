@@ -7,7 +7,8 @@ from __future__ import annotations
 from importlib.resources import as_file, files
 from importlib.resources.abc import Traversable
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
+from dh2rt.program import CompiledProgram
 
 #: The programs shipped: the paper's caterpillar, legs-to-snake and one locomotion program.
 BUNDLED = ("caterpillar.dh2", "legs_to_snake.dh2", "locomotion.dh2")

@@ -17,9 +17,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
 from dh2rt.errors import OptionError, OutputError
 from dh2rt.events import Event, check_events, parse_event
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import BUILTIN_NAMES, parse_spec
 from dh2rt.trace import TraceWriter

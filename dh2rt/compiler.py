@@ -1,22 +1,17 @@
-"""The DH2 compiler: AST to a :class:`CompiledProgram` of closures, compiled once.
+"""The DH2 compiler: AST to a :class:`~dh2rt.program.CompiledProgram` of closures, compiled once.
 
 Checks every name against the declarations and the topology profile and reports the first
 error with ``FILE:LINE:COL`` (``ProgramCompileError``). Each receptor becomes a match closure
-and an action closure over the engine's state (see :mod:`dh2rt.engine`).
-
-Receptor index: from each pattern the compiler derives a necessary *guard* (the types it can
-match, the LocalTimer values, the hormones that must be present). Receptors are filed by
-type, then by hormone name, else by timer value, else as "always a candidate". A module looks
-up only the buckets of its current type, timer and present hormones, so receptors that cannot
-match the current state cost nothing.
+and an action closure over a module's state (:class:`~dh2rt.program.ModuleState`, which an
+engine is), and a guard from which :mod:`dh2rt.matcher` builds the receptor index.
 """
 
 from __future__ import annotations
 
 import operator
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 from dh2rt.errors import HormoneError, ProgramCompileError, SourceSpan
 from dh2rt.hormone import (
@@ -34,22 +29,29 @@ from dh2rt.hormone import (
     Vocabulary,
 )
 from dh2rt.lang import ast
-from dh2rt.lang.image import image_hash, to_image
+from dh2rt.lang.image import to_image
+from dh2rt.matcher import Guard, build_index, derive_guard, without_type_tests
 from dh2rt.profile import CONRO, Profile
+from dh2rt.program import (
+    ABSENT,
+    ACTIVE,
+    PASSIVE,
+    ActionFn,
+    Bindings,
+    CompiledProgram,
+    CompiledReceptor,
+    MatchFn,
+    ModuleState,
+    NativeSpec,
+    ReceptorStatus,
+    ValueFn,
+)
 
-if TYPE_CHECKING:
-    from dh2rt.engine import Engine
-
-# Receptor status codes (the paper's R: 1 active, 0 passive); absent = terminated.
-ABSENT = -1
-PASSIVE = 0
-ACTIVE = 1
-_STATUS_CODE = {"active": ACTIVE, "passive": PASSIVE, "absent": ABSENT}
-
-Bindings = dict[str, Any]
-MatchFn = Callable[["Engine", Bindings], bool]
-ActionFn = Callable[["Engine", Bindings], None]
-ValueFn = Callable[["Engine", Bindings], Any]
+_STATUS_CODE = {
+    "active": ReceptorStatus.ACTIVE,
+    "passive": ReceptorStatus.PASSIVE,
+    "absent": ReceptorStatus.ABSENT,
+}
 
 _CMP: dict[str, Callable[[Any, Any], bool]] = {
     "==": operator.eq,
@@ -80,102 +82,6 @@ _ARITH: dict[str, Callable[[int, int], int]] = {
     "/": _div,
     "%": _mod,
 }
-
-
-@dataclass(frozen=True, slots=True)
-class Guard:
-    """A necessary condition of a pattern; None means "any"."""
-
-    types: frozenset[int] | None = None
-    timers: frozenset[int] | None = None
-    hormones: frozenset[str] | None = None
-    #: When every way to match needs a hormone of exactly known content: (name, args) pairs.
-    contents: frozenset[tuple[str, tuple[Any, ...]]] | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class CompiledReceptor:
-    index: int
-    name: str
-    initial: int
-    match: MatchFn
-    act: ActionFn
-    keep_alive: bool
-    guard: Guard
-
-
-@dataclass(frozen=True, slots=True)
-class NativeSpec:
-    name: str
-    arity: int
-
-
-@dataclass
-class CompiledProgram:
-    """A program ready to run: closures, index, vocabulary, and the image it came from."""
-
-    name: str
-    profile: Profile
-    clock_cycle: int
-    max_hops: int
-    var_names: tuple[str, ...]
-    var_initial: tuple[int, ...]
-    sensor_names: tuple[str, ...]
-    vocabulary: Vocabulary
-    natives: Mapping[str, NativeSpec]
-    receptors: tuple[CompiledReceptor, ...]
-    image: bytes
-    ast: ast.Program
-    # The index, built by _build_index: per type, the receptors to try when no hormone is
-    # present (by LocalTimer value: "always" ones merged with that timer value's), and per
-    # hormone name the receptors that need it.
-    always: list[tuple[int, ...]] = field(default_factory=list)
-    by_timer: list[dict[int, tuple[int, ...]]] = field(default_factory=list)
-    by_hormone: list[dict[str, tuple[int, ...]]] = field(default_factory=list)
-    by_content: list[dict[tuple[str, tuple[Any, ...]], tuple[int, ...]]] = field(default_factory=list)
-    base: list[list[tuple[int, ...]]] = field(default_factory=list)
-    #: quiet[type][timer]: how many cycles from this timer value on have no receptor filed
-    #: without a hormone (None: never one for this type). A module with no mail and no
-    #: periodic hormone can skip that many cycles: they would only advance LocalTimer.
-    quiet: list[list[int | None]] = field(default_factory=list)
-
-    @property
-    def hash(self) -> str:
-        return image_hash(self.image)
-
-    def receptor_index(self, name: str) -> int:
-        for r in self.receptors:
-            if r.name == name:
-                return r.index
-        raise KeyError(name)
-
-    def candidates(self, type_index: int, timer: int, present: Mapping[str, Sequence[Any]]) -> tuple[int, ...]:
-        """The receptors worth matching in this state, in declaration order.
-
-        ``present`` maps each hormone name present to its entries (``entry[1]`` is the args).
-        """
-        base = self.base[type_index][timer]
-        by_name, by_content = self.by_hormone[type_index], self.by_content[type_index]
-        if not present or not (by_name or by_content):
-            return base
-        # The usual case is one bucket: return it as it is (already in program order).
-        found: tuple[int, ...] = ()
-        sources = 1 if base else 0
-        for name, entries in present.items():
-            if by_name:
-                h = by_name.get(name)
-                if h:
-                    found += h
-                    sources += 1
-            if by_content:
-                for entry in entries:
-                    c = by_content.get((name, entry[1]))
-                    if c:
-                        found += c
-                        sources += 1
-        if sources <= 1:
-            return found or base
-        return tuple(sorted({*base, *found}))
 
 
 # ---------------------------------------------------------------- the compiler
@@ -270,7 +176,7 @@ class _Compiler:
 
     # ------------------------------------------------------------ expressions
 
-    def fold(self, e: ast.Expr, binds: Mapping[str, _Binding]) -> int | None:
+    def fold(self, e: ast.Expr, binds: Mapping[str, Any]) -> int | None:
         """The constant value of ``e``, or None if it depends on the state."""
         if isinstance(e, ast.Num):
             return e.value
@@ -350,7 +256,7 @@ class _Compiler:
         if isinstance(p, ast.Or):
             lf, rf = self.pattern(p.left, binds, False), self.pattern(p.right, binds, False)
 
-            def either(e: Engine, b: Bindings) -> bool:
+            def either(e: ModuleState, b: Bindings) -> bool:
                 mark = len(e.matched)
                 if lf(e, b):
                     return True
@@ -361,7 +267,7 @@ class _Compiler:
         if isinstance(p, ast.Not):
             inner = self.pattern(p.operand, binds, False)
 
-            def negated(e: Engine, b: Bindings) -> bool:
+            def negated(e: ModuleState, b: Bindings) -> bool:
                 mark = len(e.matched)
                 result = inner(e, b)
                 del e.matched[mark:]
@@ -436,7 +342,7 @@ class _Compiler:
         name, negate, path_var = p.name, p.negate, p.path_var
         checks_t, setters_t = tuple(checks), tuple(setters)
 
-        def match(e: Engine, b: Bindings) -> bool:
+        def match(e: ModuleState, b: Bindings) -> bool:
             entries = e.present.get(name)
             if entries:
                 for entry in entries:
@@ -457,6 +363,10 @@ class _Compiler:
 
         return match
 
+    @property
+    def type_count(self) -> int:
+        return len(self.profile.types)
+
     def type_index(self, name: str, span: SourceSpan | None) -> int:
         t = self.profile.type_by_name(name)
         if t is None:
@@ -469,54 +379,6 @@ class _Compiler:
         if spec is None:
             raise self.fail(f"unknown hormone {name!r} (declare it with `hormone {name}(...)`)", span)
         return spec
-
-    # ------------------------------------------------------------ guards
-
-    def guard(self, p: ast.Pattern) -> Guard:
-        if isinstance(p, ast.TypeIs):
-            s = frozenset(self.type_index(t, p.span) for t in p.types)
-            if p.negate:
-                s = frozenset(range(len(self.profile.types))) - s
-            return Guard(types=s)
-        if isinstance(p, ast.TimerIs) and p.op == "==":
-            k = self.fold(p.value, {})  # bound names cannot appear here with a constant result
-            return Guard(timers=frozenset({k})) if k is not None else Guard()
-        if isinstance(p, ast.HormoneIs) and not p.negate:
-            return Guard(hormones=frozenset({p.name}), contents=self.exact_content(p))
-        if isinstance(p, ast.And):
-            a, b = self.guard(p.left), self.guard(p.right)
-            need = a if a.hormones is not None else b  # either side's hormone is necessary
-            return Guard(
-                types=_meet(a.types, b.types),
-                timers=_meet(a.timers, b.timers),
-                hormones=need.hormones,
-                contents=need.contents,
-            )
-        if isinstance(p, ast.Or):
-            a, b = self.guard(p.left), self.guard(p.right)
-            return Guard(
-                types=_join(a.types, b.types),
-                timers=_join(a.timers, b.timers),
-                hormones=_join(a.hormones, b.hormones),
-                contents=_join(a.contents, b.contents),
-            )
-        return Guard()
-
-    def exact_content(self, p: ast.HormoneIs) -> frozenset[tuple[str, tuple[Any, ...]]] | None:
-        """``{(name, args)}`` when every argument of the pattern is a constant, else None."""
-        spec = self.hormones[p.name]
-        args: list[Any] = []
-        for a, param in zip(p.args, spec.params, strict=True):
-            if isinstance(a, ast.Wildcard | ast.Bind):
-                return None
-            if param.domain is not None and isinstance(a, ast.Name):
-                args.append(a.name)
-            else:
-                v = self.fold(a, {})
-                if v is None:
-                    return None
-                args.append(v)
-        return frozenset({(p.name, tuple(args))})
 
     # ------------------------------------------------------------ actions
 
@@ -532,7 +394,7 @@ class _Compiler:
         if len(seq) == 1:
             return seq[0], keep
 
-        def run(e: Engine, b: Bindings) -> None:
+        def run(e: ModuleState, b: Bindings) -> None:
             for f in seq:
                 f(e, b)
 
@@ -542,7 +404,7 @@ class _Compiler:
         if isinstance(a, ast.SetDOF):
             vf, j = self.int_expr(a.value, binds), a.joint - 1
 
-            def set_dof(e: Engine, b: Bindings) -> None:
+            def set_dof(e: ModuleState, b: Bindings) -> None:
                 e.dof[j] = float(vf(e, b))
                 e.dof_changed = True
 
@@ -552,7 +414,7 @@ class _Compiler:
                 raise self.fail(f"undefined variable V.{a.name} (declare it with `var {a.name} = 0`)", a.span)
             vf, i = self.int_expr(a.value, binds), self.vars[a.name]
 
-            def set_var(e: Engine, b: Bindings) -> None:
+            def set_var(e: ModuleState, b: Bindings) -> None:
                 e.vars[i] = vf(e, b)
 
             return set_var
@@ -566,7 +428,7 @@ class _Compiler:
                 raise self.fail("the period of a periodic hormone must be a constant of at least 1", _span_of(a.period))
             name = a.hormone.name
 
-            def start(e: Engine, b: Bindings) -> None:
+            def start(e: ModuleState, b: Bindings) -> None:
                 h = make(e, b)
                 bound = dict(b)
                 e.start_periodic(name, period, lambda en: send(en, bound, h))
@@ -577,7 +439,7 @@ class _Compiler:
             self.hormone_spec(a.name, a.span)
             name = a.name
 
-            def stop(e: Engine, _b: Bindings) -> None:
+            def stop(e: ModuleState, _b: Bindings) -> None:
                 e.stop_periodic(name)
 
             return stop
@@ -600,7 +462,7 @@ class _Compiler:
             argfs = tuple(self.native_arg(x, binds) for x in a.args)
             name = a.name
 
-            def call(e: Engine, b: Bindings) -> None:
+            def call(e: ModuleState, b: Bindings) -> None:
                 e.natives[name](e, *(f(e, b) for f in argfs))
 
             return call
@@ -614,7 +476,9 @@ class _Compiler:
             raise self.fail(f"{x.name!r} is not a bound path", x.span)
         return self.int_expr(x, binds)
 
-    def hormone_term(self, t: ast.HormoneTerm, binds: Mapping[str, _Binding]) -> Callable[[Engine, Bindings], Hormone]:
+    def hormone_term(
+        self, t: ast.HormoneTerm, binds: Mapping[str, _Binding]
+    ) -> Callable[[ModuleState, Bindings], Hormone]:
         spec = self.hormone_spec(t.name, t.span)
         if len(t.args) != len(spec.params):
             raise self.fail(f"hormone {t.name} takes {len(spec.params)} argument(s), given {len(t.args)}", t.span)
@@ -633,7 +497,7 @@ class _Compiler:
         fs = tuple(argfs)
         params = spec.params
 
-        def make(e: Engine, b: Bindings) -> Hormone:
+        def make(e: ModuleState, b: Bindings) -> Hormone:
             args = tuple(f(e, b) for f in fs)
             for v, prm in zip(args, params, strict=True):
                 if prm.domain is None and not INT_MIN <= v <= INT_MAX:
@@ -642,7 +506,7 @@ class _Compiler:
 
         return make
 
-    def target(self, t: ast.Target, binds: Mapping[str, _Binding]) -> Callable[[Engine, Bindings, Hormone], None]:
+    def target(self, t: ast.Target, binds: Mapping[str, _Binding]) -> Callable[[ModuleState, Bindings, Hormone], None]:
         if isinstance(t, ast.ViaConnector):
             try:
                 c = self.profile.connector_index(t.name)
@@ -652,13 +516,13 @@ class _Compiler:
                     t.span,
                 ) from None
 
-            def via(e: Engine, _b: Bindings, h: Hormone) -> None:
+            def via(e: ModuleState, _b: Bindings, h: Hormone) -> None:
                 e.out.append(Emission(c, h))
 
             return via
         if isinstance(t, ast.ViaAll):
 
-            def via_all(e: Engine, _b: Bindings, h: Hormone) -> None:
+            def via_all(e: ModuleState, _b: Bindings, h: Hormone) -> None:
                 for i, s in enumerate(e.status):
                     if s:
                         e.out.append(Emission(i + 1, h))
@@ -670,7 +534,7 @@ class _Compiler:
             )
         pv = t.path_var
 
-        def via_reply(e: Engine, b: Bindings, h: Hormone) -> None:
+        def via_reply(e: ModuleState, b: Bindings, h: Hormone) -> None:
             route = reply_route(b[pv])
             if route:
                 e.out.append(Emission(route[0], Hormone(h.name, h.args, (), route[1:])))
@@ -687,12 +551,12 @@ class _Compiler:
             # The index files a receptor only under the types its pattern allows, so the
             # compiled match leaves out top-level type tests: the bucket already made them.
             # guard() checks those type names, with their positions, as the match would have.
-            match = self.pattern(_without_type_tests(r.pattern) if self.indexed else r.pattern, binds, True)
-            guard = self.guard(r.pattern) if self.indexed else Guard()
+            match = self.pattern(without_type_tests(r.pattern) if self.indexed else r.pattern, binds, True)
+            guard = derive_guard(r.pattern, self) if self.indexed else Guard()
             act, keep = self.actions(r, binds)
             receptors.append(CompiledReceptor(i, r.name, _STATUS_CODE[r.status], match, act, keep, guard))
         image = to_image(self.p)
-        cp = CompiledProgram(
+        return CompiledProgram(
             name=self.p.name,
             profile=self.profile,
             clock_cycle=self.clock_cycle,
@@ -705,23 +569,8 @@ class _Compiler:
             receptors=tuple(receptors),
             image=image,
             ast=self.p,
+            index=build_index([r.guard for r in receptors], self.type_count, self.clock_cycle),
         )
-        _build_index(cp)
-        return cp
-
-
-def _without_type_tests(p: ast.Pattern) -> ast.Pattern:
-    """``p`` less the TypeIs conjuncts of its top-level 'and' (implied by the type index)."""
-    if isinstance(p, ast.TypeIs):
-        return ast.TruePattern(p.span)
-    if isinstance(p, ast.And):
-        left, right = _without_type_tests(p.left), _without_type_tests(p.right)
-        if isinstance(left, ast.TruePattern):
-            return right
-        if isinstance(right, ast.TruePattern):
-            return left
-        return ast.And(left, right, p.span)
-    return p
 
 
 def _constant(value: Any) -> ValueFn:
@@ -738,7 +587,7 @@ def reply_route(path: Path) -> tuple[int, ...]:
 
 
 def _activate(i: int) -> ActionFn:
-    def op(e: Engine, _b: Bindings) -> None:
+    def op(e: ModuleState, _b: Bindings) -> None:
         if e.rstatus[i] != ABSENT:
             e.rstatus[i] = ACTIVE
 
@@ -746,7 +595,7 @@ def _activate(i: int) -> ActionFn:
 
 
 def _inhibit(i: int) -> ActionFn:
-    def op(e: Engine, _b: Bindings) -> None:
+    def op(e: ModuleState, _b: Bindings) -> None:
         if e.rstatus[i] != ABSENT:
             e.rstatus[i] = PASSIVE
 
@@ -754,14 +603,14 @@ def _inhibit(i: int) -> ActionFn:
 
 
 def _create(i: int) -> ActionFn:
-    def op(e: Engine, _b: Bindings) -> None:
+    def op(e: ModuleState, _b: Bindings) -> None:
         e.rstatus[i] = ACTIVE
 
     return op
 
 
 def _terminate(i: int) -> ActionFn:
-    def op(e: Engine, _b: Bindings) -> None:
+    def op(e: ModuleState, _b: Bindings) -> None:
         e.rstatus[i] = ABSENT
 
     return op
@@ -775,63 +624,8 @@ _RECEPTOR_OPS: dict[str, Callable[[int], ActionFn]] = {
 }
 
 
-def _meet(a: frozenset[Any] | None, b: frozenset[Any] | None) -> frozenset[Any] | None:
-    if a is None:
-        return b
-    return a if b is None else a & b
-
-
-def _join(a: frozenset[Any] | None, b: frozenset[Any] | None) -> frozenset[Any] | None:
-    return None if a is None or b is None else a | b
-
-
 def _span_of(node: object) -> SourceSpan | None:
     return getattr(node, "span", None)
-
-
-def _build_index(cp: CompiledProgram) -> None:
-    ntypes = len(cp.profile.types)
-    always: list[list[int]] = [[] for _ in range(ntypes)]
-    by_timer: list[dict[int, list[int]]] = [{} for _ in range(ntypes)]
-    by_hormone: list[dict[str, list[int]]] = [{} for _ in range(ntypes)]
-    by_content: list[dict[tuple[str, tuple[Any, ...]], list[int]]] = [{} for _ in range(ntypes)]
-    for r in cp.receptors:
-        g = r.guard
-        types = sorted(g.types) if g.types is not None else range(ntypes)
-        for t in types:
-            if g.contents is not None:
-                for key in g.contents:
-                    by_content[t].setdefault(key, []).append(r.index)
-            elif g.hormones is not None:
-                for h in g.hormones:
-                    by_hormone[t].setdefault(h, []).append(r.index)
-            elif g.timers is not None:
-                for k in g.timers:
-                    by_timer[t].setdefault(k, []).append(r.index)
-            else:
-                always[t].append(r.index)
-    cp.always = [tuple(x) for x in always]
-    cp.by_timer = [{k: tuple(v) for k, v in d.items()} for d in by_timer]
-    cp.by_hormone = [{k: tuple(v) for k, v in d.items()} for d in by_hormone]
-    cp.by_content = [{k: tuple(v) for k, v in d.items()} for d in by_content]
-    cp.base = [
-        [tuple(sorted({*always[t], *by_timer[t].get(k, ())})) for k in range(cp.clock_cycle)] for t in range(ntypes)
-    ]
-    cp.quiet = [_quiet_runs(row) for row in cp.base]
-
-
-def _quiet_runs(row: list[tuple[int, ...]]) -> list[int | None]:
-    """For each timer value, the number of consecutive values (cyclically) with no candidate."""
-    n = len(row)
-    if not any(row):
-        return [None] * n
-    out: list[int | None] = [0] * n
-    for k in range(n):
-        j = 0
-        while not row[(k + j) % n]:
-            j += 1
-        out[k] = j
-    return out
 
 
 def compile_program(program: ast.Program, profile: Profile = CONRO, *, indexed: bool = True) -> CompiledProgram:

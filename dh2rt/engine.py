@@ -33,21 +33,20 @@ liveness over real links is built on it by the module runtime.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from dh2rt.compiler import ACTIVE, PASSIVE, CompiledProgram
 from dh2rt.errors import DH2Error, MissingNatives
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.profile import TopoType
+from dh2rt.program import ACTIVE, PASSIVE, CompiledProgram, Entry
 
 #: A native action: called with the engine and the evaluated arguments.
 Native = Callable[..., None]
-#: A hormone present in H: [name, args, path (with the last hop), route, arrived_at].
-Entry = list[Any]
 
 # Shared empty sentinels: an idle module reads these instead of its own empty containers.
 _NO_HORMONES: dict[str, list[Entry]] = {}
-_NO_PERIODICS: dict[str, list[Any]] = {}
+_NO_PERIODICS: dict[str, _Periodic] = {}
 _NO_NATIVES: Mapping[str, Native] = {}
 _NO_FAULTS: list[str] = []  # never appended to: see _fault
 _NO_ENTRIES: list[Entry] = []  # never appended to: steps make their own
@@ -58,6 +57,15 @@ MAX_FAULTS_KEPT = 16
 #: division by zero in a DH2 expression. Anything else is a bug in a native or in dh2rt and
 #: surfaces to the caller.
 ACTION_FAULTS = (DH2Error, ZeroDivisionError)
+
+
+@dataclass(slots=True)
+class _Periodic:
+    """A periodic hormone: sent through ``send`` every ``period`` cycles."""
+
+    period: int
+    countdown: int
+    send: Callable[[Engine], None]
 
 
 class Engine:
@@ -71,6 +79,7 @@ class Engine:
         "dof_changed",
         "effects",
         "faults",
+        "index",
         "matched",
         "n_dropped_hops",
         "n_faults",
@@ -101,6 +110,7 @@ class Engine:
         natives: Mapping[str, Native] | None = None,
     ) -> None:
         self.program = program
+        self.index = program.index
         self.profile = program.profile
         self.clock = program.clock_cycle
         self.type_table = program.profile.type_of_status
@@ -113,7 +123,7 @@ class Engine:
         self.dof: list[float] = [0.0, 0.0]
         self.dof_changed = False
         self.present: dict[str, list[Entry]] = _NO_HORMONES
-        self.periodics: dict[str, list[Any]] = _NO_PERIODICS
+        self.periodics: dict[str, _Periodic] = _NO_PERIODICS
         self.out: list[Emission] = _NO_EMISSIONS
         self.matched: list[Entry] = _NO_ENTRIES
         self.effects: Sequence[tuple[str, tuple[Any, ...]]] = ()
@@ -193,7 +203,7 @@ class Engine:
             self.periodics = {}
         # Actions run before this step's periodic countdown, which takes one off at once:
         # start one higher so that the next send comes ``period`` cycles after the first.
-        self.periodics[name] = [period, period + 1, send]
+        self.periodics[name] = _Periodic(period, period + 1, send)
 
     def stop_periodic(self, name: str) -> None:
         """The paper's stop_hormone."""
@@ -206,7 +216,7 @@ class Engine:
         arrives and no link changes: 0 when the next one might act; None for "forever"."""
         if self.periodics:
             return 0
-        return self.program.quiet[self.type_index][self.timer]
+        return self.index.quiet[self.type_index][self.timer]
 
     def skip(self, cycles: int) -> None:
         """Advance LocalTimer over ``cycles`` quiet cycles (see :meth:`quiet_cycles`):
@@ -220,9 +230,10 @@ class Engine:
         The same index and closures as :meth:`step` (for debugging tools and benchmarks).
         """
         program = self.program
+        index = self.index
         t = self.type_index
         present = self.present
-        cands = program.candidates(t, self.timer, present) if present else program.base[t][self.timer]
+        cands = index.candidates(t, self.timer, present) if present else index.base[t][self.timer]
         out: list[int] = []
         if not cands:
             return out
@@ -237,13 +248,13 @@ class Engine:
 
     def step(self, arrivals: Sequence[Arrival] = ()) -> Sequence[Emission]:
         """Run one cycle on what arrived; return the Buffer to send (see the module docs)."""
-        program = self.program
+        index = self.index
         if self.effects:
             self.effects = ()
         if not arrivals and not self.periodics:
             # Nothing arrived and nothing periodic: unless a receptor is filed under this
             # type and LocalTimer, the cycle only advances the timer (most cycles, most modules).
-            cands = program.base[self.type_index][self.timer]
+            cands = index.base[self.type_index][self.timer]
             if not cands:
                 self.present = _NO_HORMONES
                 timer = self.timer + 1
@@ -258,12 +269,12 @@ class Engine:
             changed = False
             for at, remote, h in arrivals:
                 if not at:  # injected: sensed or created here, not received over a link
-                    entry = [h.name, h.args, h.path, h.route, 0]
+                    entry: Entry = (h.name, h.args, h.path, h.route, 0)
                 else:
                     if status[at - 1] != remote:
                         status[at - 1] = remote
                         changed = True
-                    entry = [h.name, h.args, ((remote, at), *h.path), h.route, at]
+                    entry = (h.name, h.args, ((remote, at), *h.path), h.route, at)
                 bucket = present.get(h.name)
                 if bucket is None:
                     present[h.name] = [entry]
@@ -278,10 +289,10 @@ class Engine:
             self.present = present
         t = self.type_index
         # receptors: only those the index says can match this type, timer and H
-        cands = program.candidates(t, self.timer, present) if present else program.base[t][self.timer]
+        cands = index.candidates(t, self.timer, present) if present else index.base[t][self.timer]
         bound: set[int] = set()
         if cands:
-            receptors = program.receptors
+            receptors = self.program.receptors
             rstatus = self.rstatus
             for i in cands:
                 if rstatus[i] != ACTIVE:
@@ -306,11 +317,11 @@ class Engine:
         # periodic hormones
         if self.periodics:
             for name, p in list(self.periodics.items()):  # a periodic may stop another
-                p[1] -= 1
-                if p[1] <= 0:
-                    p[1] = p[0]
+                p.countdown -= 1
+                if p.countdown <= 0:
+                    p.countdown = p.period
                     try:
-                        p[2](self)
+                        p.send(self)
                     except ACTION_FAULTS as exc:
                         self._fault(f"periodic {name}", str(exc))
         self.n_sent += len(out)

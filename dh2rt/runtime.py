@@ -39,12 +39,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import DriverError
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.liveness import SILENCE_CYCLES, Beacon, Liveness, Verdict
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.program import CompiledProgram
 from dh2rt.records import cycle_json
 from dh2rt.transport.base import LinkEnd, Received, Transport
 from dh2rt.wire.frame import Hello, program_digest

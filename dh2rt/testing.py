@@ -31,9 +31,9 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.engine import Engine
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.runtime import Driver, ModuleRuntime
 from dh2rt.transport.base import BusEnd, Received, Transport

@@ -43,11 +43,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.docking import DOCK_DELAY, route_end
 from dh2rt.errors import HilWorldError, TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
 from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import Topology
 from dh2rt.transport.registry import parse_spec as parse_transport_spec

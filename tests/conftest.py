@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
+from dh2rt.program import CompiledProgram
 from dh2rt.testing import FaultWatch
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import snake
 

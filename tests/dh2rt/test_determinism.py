@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import random
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.events import parse_event
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.testing import robot_snapshot
 from dh2rt.topology import Link, Topology, parse_spec

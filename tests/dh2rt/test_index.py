@@ -25,13 +25,13 @@ def test_candidates_ignore_receptors_that_cannot_match() -> None:
     body = CONRO.type_by_name("body")
     assert body is not None
     for cp in (small, big):
-        cands = cp.candidates(body.index, 0, {"X": [["X", ("A",), (), None, 1]]})
+        cands = cp.index.candidates(body.index, 0, {"X": [["X", ("A",), (), None, 1]]})
         assert [cp.receptors[i].name for i in cands] == ["body_a"]
-        assert cp.candidates(body.index, 0, {"X": [["X", ("B",), (), None, 1]]}) == ()  # by content
-        assert cp.candidates(body.index, 5, {}) == ()
+        assert cp.index.candidates(body.index, 0, {"X": [["X", ("B",), (), None, 1]]}) == ()  # by content
+        assert cp.index.candidates(body.index, 5, {}) == ()
     head = CONRO.type_by_name("head")
     assert head is not None
-    assert len(big.candidates(head.index, 1, {})) <= 8  # only that timer value's receptors
+    assert len(big.index.candidates(head.index, 1, {})) <= 8  # only that timer value's receptors
 
 
 def test_engine_evaluates_only_candidates() -> None:

@@ -57,7 +57,7 @@ def test_table_one_has_eight_receptors_and_four_hormones(examples: Path) -> None
     assert x.name == "X" and x.params[0].domain == ("A", "B", "C", "D")
     cp = compile_program(p)
     assert cp.clock_cycle == 40
-    timers = sorted(k for d in cp.by_timer for k in d)
+    timers = sorted(k for d in cp.index.by_timer for k in d)
     assert set(timers) == {0, 10, 20, 30}  # the quarters of ClockCycle
 
 

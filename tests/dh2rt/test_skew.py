@@ -6,8 +6,8 @@ import random
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.events import parse_event
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.skew import breadth_first_order, make_plan
 from dh2rt.testing import robot_snapshot

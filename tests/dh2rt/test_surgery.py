@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.profile import CONRO
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec, snake
 

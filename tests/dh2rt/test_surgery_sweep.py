@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.events import Event, parse_event
 from dh2rt.profile import CONRO
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram, compile_source
+from dh2rt.compiler import compile_source
 from dh2rt.engine import Engine
 from dh2rt.errors import ServoCommError
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.testing import FakeClock, FaultWatch, runtime_chain, step_all
 from dh2rt.topology import parse_spec

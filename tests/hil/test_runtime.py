@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
 from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
 from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
 from dh2rt.testing import FakeClock, runtime_chain, step_all
 from dh2rt.transport.base import BusEnd

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram, compile_file
+from dh2rt.compiler import compile_file
 from dh2rt.errors import ServoModelMismatch, ServoNotFound
+from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.testing import FakeClock
 from dh2rt.transport.inproc import InprocBus, InprocTransport

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from dh2rt.cli import main
-from dh2rt.compiler import CompiledProgram
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import snake
 from drivers.dynamixel import DynamixelDriver

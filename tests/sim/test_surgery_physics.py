@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from dh2rt.compiler import CompiledProgram
 from dh2rt.events import parse_event
+from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from sim.runner import PhysicsRun
