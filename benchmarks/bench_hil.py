@@ -103,7 +103,7 @@ def measure_world(program: CompiledProgram, transport: str, period: float, cycle
     from hil.world import World
 
     world = World(program, parse_spec(f"snake:{MODULES}", program.profile), transport, cycle_period=period,
-                  cycles=cycles, trace=True, status_every=1000)  # fmt: skip
+                  cycles=cycles, trace=True, status_every=1000, stand_in="recording")  # fmt: skip
     try:
         world.start()
         deadline = time.monotonic() + cycles * period + 30

@@ -40,7 +40,8 @@ the other side's (bytes from a link or a file that do not decode)::
     ├── HilError (RuntimeError)             hardware-in-the-loop tooling failed
     │   ├── HilWorldError                   the loop's world cannot start or drive its modules
     │   ├── EmulatorError                   the servo emulator was misused
-    │   └── ModuleConfigError (ValueError)  a module's configuration is malformed (names the field)
+    │   ├── ModuleConfigError (ValueError)  a module's configuration is malformed (names the field)
+    │   └── ControlProtocolError (ValueError)  a command or report between world and module is malformed
     └── OptionError (ValueError)            a command-line option's value cannot be used
         └── OutputError                     an output option names a file that cannot be written
 """
@@ -231,6 +232,10 @@ class EmulatorError(HilError):
 
 class ModuleConfigError(HilError, ValueError):
     """A module's configuration is malformed; the message names the field."""
+
+
+class ControlProtocolError(HilError, ValueError):
+    """A command or report between the world and a module is malformed; names the field."""
 
 
 class OptionError(DH2Error, ValueError):

@@ -29,6 +29,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
+from dh2rt.bundled import compile_bundled
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
@@ -36,10 +37,10 @@ from dh2rt.events import Event, check_events, parse_event
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_PROGRAM = ROOT / "examples" / "caterpillar.dh2"
 #: Set in the environment of a launcher re-executed inside its private network namespace.
 NETNS_ENV = "DH2RT_HIL_NETNS"
 NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
@@ -53,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         "serial infrared links) or as threads over an in-process bus.",
         epilog="Without SocketCAN, try: dh2rt --transport serial --module-count 8 --cycles 300",
     )
-    p.add_argument("--program", type=Path, default=DEFAULT_PROGRAM, help="a .dh2 file (default: the caterpillar)")
+    p.add_argument(
+        "--program", type=Path, default=None, help="a .dh2 file (default: the caterpillar shipped with dh2rt)"
+    )
     add_run_options(p, program_required=False)
     p.set_defaults(topology=None)
     p.add_argument(
@@ -62,14 +65,24 @@ def build_parser() -> argparse.ArgumentParser:
         help="vcan0, can0 (any SocketCAN name), udp, serial, virtual, inproc (default: serial)",
     )
     p.add_argument("--module-count", type=int, default=8, help="modules of the default snake:N (default: 8)")
-    p.add_argument("--cycle-ms", type=float, default=20.0, help="cycle period in ms (default: 20)")
-    p.add_argument("--silence-cycles", type=int, default=3, help="liveness bound in cycles (default: 3)")
+    p.add_argument(
+        "--cycle-ms",
+        type=float,
+        default=DEFAULTS.cycle_period * 1000,
+        help=f"cycle period in ms (default: {DEFAULTS.cycle_period * 1000:g})",
+    )
+    p.add_argument(
+        "--silence-cycles",
+        type=int,
+        default=DEFAULTS.silence_cycles,
+        help=f"liveness bound in cycles (default: {DEFAULTS.silence_cycles})",
+    )
     p.add_argument("--frame-loss", type=float, default=0.0, help="serial: frame loss probability per link")
     p.add_argument("--bit-error", type=float, default=0.0, help="serial: bit error probability")
     p.add_argument(
         "--stand-in",
-        choices=("pybullet", "recording", "none"),
-        default="pybullet",
+        choices=STAND_INS,
+        default=DEFAULT_STAND_IN,
         help="the modules' body: pybullet (default; each module drives emulated Dynamixel servos whose joints "
         "are PyBullet joints, the full firmware path), recording (each module records its angles), none",
     )
@@ -180,7 +193,7 @@ def _main(argv: list[str] | None) -> int:
             raise OptionError(f"--cycle-ms {ns.cycle_ms}: must be positive")
         if ns.silence_cycles < 1:
             raise OptionError(f"--silence-cycles {ns.silence_cycles}: must be 1 or more")
-        program = compile_file(str(ns.program))
+        program = compile_file(str(ns.program)) if ns.program is not None else compile_bundled("caterpillar.dh2")
         spec = ns.topology or f"snake:{ns.module_count}"
         topology = parse_spec(spec, program.profile)
         if ns.topology and any(a.startswith("--module-count") for a in args) and topology.size != ns.module_count:

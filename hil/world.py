@@ -2,11 +2,14 @@
 
 The :class:`World` plays what the in-process :class:`~dh2rt.robot.Robot` plays in one
 process, but for modules that each run their own :class:`~dh2rt.runtime.ModuleRuntime` on
-a real link layer. It owns the topology; it assigns each docked connector pair a CAN link id
-and sides (``vcan0``/``can0``/``udp``/``virtual``/``inproc``) or a pair of pty ends through
-the :class:`~hil.link_emulator.LinkEmulator` (``serial``); it starts the modules (one OS
-process each over ``socketcan``, ``udp`` and ``serial``; one thread each over the
-in-process buses ``virtual`` and ``inproc``); and it carries out events at world cycles:
+a real link layer. It owns the topology and the link map (:mod:`hil.link_map`: a CAN link
+id and sides per docked connector pair over ``vcan0``/``can0``/``udp``/``virtual``/
+``inproc``, or a pair of pty ends through the :class:`~hil.link_emulator.LinkEmulator` over
+``serial``); it starts the modules through :mod:`hil.supervisor` (one OS process each over
+``socketcan``, ``udp`` and ``serial``; one thread each over the in-process buses
+``virtual`` and ``inproc``), each from a typed :class:`~hil.config.ModuleConfig`, talks to
+them in the typed control protocol of :mod:`hil.control`, keeps what they report in
+:mod:`hil.status` views, and carries out events at world cycles:
 
 * ``cut``: CAN: both ends are told to detach the link id; serial: the emulator undocks the
   link (the modules notice by liveness, as they would over infrared).
@@ -17,8 +20,9 @@ in-process buses ``virtual`` and ``inproc``); and it carries out events at world
 * ``inject``: the hormone is sent to the module over its control channel.
 
 Effects that natives ask of the physical world arrive as reports; ``reach_and_dock`` is
-carried out as the Robot does it (DOCK_DELAY world cycles later: the foot's link is cut and
-the asking connector docked to it), so ``legs_to_snake`` reconfigures in the loop.
+carried out by the rules of :mod:`dh2rt.docking`, with this world as the docking world
+(DOCK_DELAY world cycles later: the foot's link is cut and the asking connector docked to
+it), so ``legs_to_snake`` reconfigures in the loop.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -27,177 +31,49 @@ arrive on one queue and are read by :meth:`World.poll`.
 
 from __future__ import annotations
 
-import contextlib
-import itertools
-import json
 import os
 import queue
 import random
-import signal
-import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dh2rt.docking import DOCK_DELAY, route_end
-from dh2rt.errors import HilWorldError, TopologyError
+from dh2rt import docking
+from dh2rt.docking import End
+from dh2rt.errors import HilWorldError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
-from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import Topology
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ModuleConfig
+from hil.control import (
+    Attach,
+    Command,
+    Detach,
+    Effect,
+    Exited,
+    Failure,
+    Go,
+    Inject,
+    Log,
+    Ready,
+    Report,
+    Status,
+    Stop,
+    TraceRecord,
+)
 from hil.link_emulator import LinkEmulator
-from hil.module_process import ModuleHost
+from hil.link_map import LinkMap
+from hil.status import ModuleView
+from hil.status import rows as status_rows
+from hil.supervisor import ModuleHandle, ProcessModule, Reports, start_module
 
-ROOT = Path(__file__).resolve().parents[1]
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
 
-
 if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
-
-
-
-@dataclass(slots=True)
-class ModuleView:
-    """What the world last heard from one module."""
-
-    module: int
-    name: str
-    alive: bool = False
-    ready: bool = False
-    finished: bool = False
-    failed: bool = False
-    killed: bool = False
-    status: dict[str, Any] = field(default_factory=dict)
-    frames_per_s: float = 0.0
-    errors: list[str] = field(default_factory=list)
-    _last: tuple[float, int] | None = None
-
-    @property
-    def state(self) -> str:
-        """failed, killed, done (ran its cycles), running or stopped."""
-        if self.failed:
-            return "failed"
-        if self.killed:
-            return "killed"
-        if self.finished:
-            return "done"
-        return "running" if self.alive else "stopped"
-
-
-class _ProcessModule:
-    """One module as an OS process; commands on its stdin, reports from its stdout."""
-
-    def __init__(self, module: int, config: dict[str, Any], reports: queue.Queue[tuple[int, dict[str, Any]]]) -> None:
-        self.module = module
-        env = dict(os.environ)
-        env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hil.module_process", "--config", json.dumps(config)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            cwd=str(ROOT),
-            env=env,
-        )
-        self.pid = self.proc.pid
-        try:
-            self._reader = threading.Thread(target=self._read, args=(reports,), daemon=True)
-            self._reader.start()
-        except BaseException:  # interrupted before the world holds this handle: end it here
-            self.proc.kill()
-            self.proc.wait()
-            raise
-
-    def _read(self, reports: queue.Queue[tuple[int, dict[str, Any]]]) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with contextlib.suppress(json.JSONDecodeError):
-                obj = json.loads(line)
-                if isinstance(obj, dict):
-                    reports.put((self.module, obj))
-        reports.put((self.module, {"event": "exit"}))
-
-    def send(self, cmd: dict[str, Any]) -> None:
-        stdin = self.proc.stdin
-        if stdin is None or self.proc.poll() is not None:
-            return
-        with contextlib.suppress(BrokenPipeError, ValueError, OSError):
-            stdin.write(json.dumps(cmd) + "\n")
-            stdin.flush()
-
-    def running(self) -> bool:
-        return self.proc.poll() is None
-
-    def exit_code(self) -> int | None:
-        return self.proc.poll()
-
-    def end(self, grace: float) -> None:
-        """Ask politely (SIGTERM to its pid), then SIGKILL; reap it and close its pipes."""
-        if self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(self.pid, signal.SIGTERM)
-            try:
-                self.proc.wait(grace)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(self.pid, signal.SIGKILL)
-                self.proc.wait(5)
-        self._reader.join(2)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            if stream is not None:
-                with contextlib.suppress(OSError, BrokenPipeError):
-                    stream.close()
-
-
-class _ThreadModule:
-    """One module as a thread of the world's process (in-process buses only)."""
-
-    def __init__(self, module: int, config: dict[str, Any], reports: queue.Queue[tuple[int, dict[str, Any]]]) -> None:
-        self.module = module
-        self.pid = os.getpid()
-        self.commands: queue.Queue[dict[str, Any]] = queue.Queue()
-        self._code: int | None = None
-        self.host = ModuleHost(config, self.commands, lambda obj: reports.put((module, obj)))
-
-        def body() -> None:
-            self._code = self.host.serve()
-            reports.put((module, {"event": "exit"}))
-
-        self.thread = threading.Thread(target=body, name=f"dh2rt-module-{module}", daemon=True)
-        self.thread.start()
-
-    def send(self, cmd: dict[str, Any]) -> None:
-        self.commands.put(cmd)
-
-    def running(self) -> bool:
-        return self.thread.is_alive()
-
-    def exit_code(self) -> int | None:
-        return None if self.thread.is_alive() else (self._code if self._code is not None else 1)
-
-    def end(self, grace: float) -> None:
-        self.host.stop_event.set()
-        self.thread.join(grace + 2)
-
-
-_Handle = _ProcessModule | _ThreadModule
-
-
-@dataclass(slots=True)
-class _WorldLink:
-    link_id: int
-    a: int
-    a_conn: int
-    b: int
-    b_conn: int
 
 
 class World:
@@ -213,14 +89,14 @@ class World:
         cycle_period: float = 0.02,
         cycles: int | None = None,
         trace: bool = False,
-        silence_cycles: int = SILENCE_CYCLES,
-        status_every: int = 10,
+        silence_cycles: int = DEFAULTS.silence_cycles,
+        status_every: int = DEFAULTS.status_every,
         frame_loss: float = 0.0,
         bit_error: float = 0.0,
         emulator_seed: int | None = None,
-        handshake: float = 2.0,
+        handshake: float = DEFAULTS.handshake,
         start_delay: float = 0.3,
-        stand_in: str = "recording",
+        stand_in: str = DEFAULT_STAND_IN,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -257,80 +133,55 @@ class World:
                 from hil.physics_stand_in import PhysicsStandIn
 
                 self.physics = PhysicsStandIn(topology, seed=seed)
-            elif stand_in not in ("recording", "none"):
+            elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         except BaseException:  # a failed or interrupted start leaves no pty or thread behind
             if self.emulator is not None:
                 self.emulator.close()
             raise
-        self.reports: queue.Queue[tuple[int, dict[str, Any]]] = queue.Queue()
+        self.reports: Reports = queue.Queue()
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
-        self.handles: list[_Handle | None] = [None] * topology.size
+        self.handles: list[ModuleHandle | None] = [None] * topology.size
         self.records: list[dict[str, Any]] = []
-        self.effects: list[dict[str, Any]] = []
+        self.effects: list[tuple[int, Effect]] = []
         self.log: list[str] = []
         #: (event text, monotonic time it was carried out): CLOCK_MONOTONIC is system-wide,
         #: so these compare with the ``t`` of the modules' trace records.
         self.event_times: list[tuple[str, float]] = []
-        self._link_ids = itertools.count()
-        self.peer: dict[tuple[int, int], _WorldLink] = {}
-        self.links: dict[int, _WorldLink] = {}
+        self.link_map = LinkMap(self.emulator)
         self._pending: list[tuple[int, Callable[[], None]]] = []  # (world cycle, effect)
         self._go_at: float | None = None
         self._closed = False
         for lk in topology.links:
-            self._new_link(lk.a, lk.a_conn, lk.b, lk.b_conn)
+            self.link_map.add(lk.a, lk.a_conn, lk.b, lk.b_conn)
 
-    # ------------------------------------------------------------ links
-
-    def _new_link(self, a: int, a_conn: int, b: int, b_conn: int) -> _WorldLink:
-        link = _WorldLink(next(self._link_ids), a, a_conn, b, b_conn)
-        if self.emulator is not None:
-            self.emulator.add_link(link.link_id)
-        self.links[link.link_id] = link
-        self.peer[(a, a_conn)] = link
-        self.peer[(b, b_conn)] = link
-        return link
-
-    def _end(self, link: _WorldLink, module: int, connector: int) -> dict[str, Any]:
-        """The link end ``module`` attaches at ``connector``: side 0 is the link's ``a``."""
-        side = 0 if (module, connector) == (link.a, link.a_conn) else 1
-        if self.emulator is not None:
-            return {"port": self.emulator.link(link.link_id).paths[side]}
-        return {"link_id": link.link_id, "side": side}
-
-    def attachments(self, module: int) -> dict[str, dict[str, Any]]:
-        """Connector -> link end of every docked connector of ``module``."""
-        return {str(c): self._end(link, m, c) for (m, c), link in sorted(self.peer.items()) if m == module}
+    @property
+    def links(self) -> dict[int, Any]:
+        """The docked links by link id (see hil.link_map)."""
+        return self.link_map.links
 
     # ------------------------------------------------------------ modules
 
-    def config(self, module: int, cycles: int | None, phase: int) -> dict[str, Any]:
-        return {
-            "module": module,
-            "name": self.topology.names[module],
-            "image": self.program.image.hex(),
-            "transport": self.transport_spec,
-            "attach": self.attachments(module),
-            "timer_phase": phase,
-            "cycle_period": self.cycle_period,
-            "cycles": cycles,
-            "silence_cycles": self.silence_cycles,
-            "driver": "none" if self.stand_in == "none" else "recording",
-            "servo_port": self.physics.port(module) if self.physics is not None else None,
-            "trace": self.trace,
-            "status_every": self.status_every,
-            "handshake": self.handshake,
-        }
+    def config(self, module: int, cycles: int | None, phase: int) -> ModuleConfig:
+        return ModuleConfig(
+            module=module,
+            name=self.topology.names[module],
+            image=self.program.image,
+            transport=self.transport_spec,
+            attach=self.link_map.attachments(module),
+            timer_phase=phase,
+            cycle_period=self.cycle_period,
+            cycles=cycles,
+            silence_cycles=self.silence_cycles,
+            driver="none" if self.stand_in == "none" else "recording",
+            servo_port=self.physics.port(module) if self.physics is not None else None,
+            trace=self.trace,
+            status_every=self.status_every,
+            handshake=self.handshake,
+        )
 
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
-        config = self.config(module, cycles, phase)
-        handle: _Handle
-        if self.threads:
-            handle = _ThreadModule(module, config, self.reports)
-        else:
-            handle = _ProcessModule(module, config, self.reports)
-        self.handles[module] = handle
+        self.handles[module] = start_module(self.config(module, cycles, phase), self.reports, thread=self.threads)
         v = self.views[module]
         v.alive, v.ready, v.finished, v.failed, v.killed = True, False, False, False, False
 
@@ -352,7 +203,7 @@ class World:
         self._go_at = time.monotonic() + self.start_delay
         for h in self.handles:
             if h is not None:
-                h.send({"cmd": "go", "at": self._go_at})
+                h.send(Go(at=self._go_at))
 
     def _exited(self, module: int) -> bool:
         h = self.handles[module]
@@ -382,36 +233,29 @@ class World:
             except queue.Empty:
                 return
 
-    def _report(self, module: int, obj: dict[str, Any]) -> None:
+    def _report(self, module: int, rep: Report) -> None:
         v = self.views[module]
-        event = obj.get("event")
-        if event == "ready":
+        if isinstance(rep, Ready):
             v.ready = True
-        elif event in ("status", "final"):
-            counters = obj.get("counters", {})
-            frames = int(counters.get("frames_sent", 0)) + int(counters.get("frames_received", 0))
-            now = time.monotonic()
-            if event == "status" and (v._last is None or now - v._last[0] >= 0.2):
-                if v._last is not None:
-                    v.frames_per_s = (frames - v._last[1]) / (now - v._last[0])
-                v._last = (now, frames)
-            v.status = obj
-            if event == "final":
+        elif isinstance(rep, Status):
+            status = {**rep.status, "targets": list(rep.targets) if rep.targets else None} if rep.final else rep.status
+            v.heard(status, time.monotonic(), sample_rate=not rep.final)
+            if rep.final:
                 v.finished = True
-                if obj.get("failed"):
+                if rep.failed:
                     v.failed = True
-        elif event == "trace":
-            self.records.append(obj["record"])
-        elif event == "effect":
-            self.effects.append(obj)
-            self.log.append(f"{v.name}: effect {obj.get('kind')} {obj.get('args')}")
-            self._effect(module, str(obj.get("kind")), obj.get("args") or [])
-        elif event == "log":
-            self.log.append(f"{v.name}: {obj.get('message')}")
-        elif event == "error":
-            v.errors.append(str(obj.get("message")))
+        elif isinstance(rep, TraceRecord):
+            self.records.append(dict(rep.record))
+        elif isinstance(rep, Effect):
+            self.effects.append((module, rep))
+            self.log.append(f"{v.name}: effect {rep.kind} {rep.args}")
+            self._effect(module, rep.kind, rep.args)
+        elif isinstance(rep, Log):
+            self.log.append(f"{v.name}: {rep.message}")
+        elif isinstance(rep, Failure):
+            v.errors.append(rep.message)
             v.failed = True
-        elif event == "exit":
+        elif isinstance(rep, Exited):
             h = self.handles[module]
             code = h.exit_code() if h is not None else None
             if h is not None and not v.killed and code not in (0, None):
@@ -428,41 +272,28 @@ class World:
         except (IndexError, TypeError, ValueError):
             self.log.append(f"{self.topology.names[module]}: malformed reach_and_dock {args!r}")
             return
-        self._pending.append((self.cycle + DOCK_DELAY, lambda: self.reach_and_dock(module, connector, route)))
+        docking.reach_and_dock(self, module, connector, route)
 
-    def _peer_of(self, end: tuple[int, int]) -> tuple[int, int] | None:
-        """The module and connector docked at ``end`` (module, connector), if any."""
-        link = self.peer.get(end)
-        if link is None:
-            return None
-        return (link.b, link.b_conn) if end == (link.a, link.a_conn) else (link.a, link.a_conn)
+    # ------------------------------------------------------------ the docking world
 
-    def reach_and_dock(self, module: int, connector: int, route: Sequence[int]) -> None:
-        """Follow ``route`` from ``module`` to the module at its end, release that module's
-        link at the connector the route arrives at, and dock ``module``'s ``connector`` there
-        (the in-process Robot's ``reach_and_dock``, on real links)."""
-        end = route_end(self._peer_of, module, route)
-        if end is None:
-            self.log.append(f"reach_and_dock from {self._where(module, connector)}: route broken")
-            return
-        here, at = end
-        if here == module or not self.views[here].alive or not self.views[module].alive:
-            return
-        if (module, connector) in self.peer:
-            self.log.append(f"reach_and_dock: {self._where(module, connector)} is not free")
-            return
-        if self.physics is not None and not self.physics.aligned(module, connector, here, at):
-            # as sim.runner does: the motions that align the two are not modelled
-            self.log.append(
-                f"world cycle {self.cycle}: {self._where(module, connector)} cannot reach "
-                f"{self._where(here, at)}: not aligned in the world"
-            )
-            return
-        self.cut(here, at)
-        self.dock(module, connector, here, at)
-        if self.physics is not None:
-            self.physics.dock(module, connector, here, at)
-        self.log.append(f"world cycle {self.cycle}: {self._where(module, connector)} docked to {self._where(here, at)}")
+    def peer_of(self, end: End) -> End | None:
+        return self.link_map.peer_of(end)
+
+    def running(self, module: int) -> bool:
+        return self.views[module].alive
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        # as sim.runner does: the motions that align two connectors are not modelled
+        return self.physics is None or self.physics.aligned(a, a_conn, b, b_conn)
+
+    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
+        self._pending.append((self.cycle + cycles_from_now, action))
+
+    def where(self, module: int, connector: int) -> str:
+        return f"{self.topology.names[module]}.{self.profile.connector_name(connector)}"
+
+    def note(self, message: str) -> None:
+        self.log.append(f"world cycle {self.cycle}: {message}")
 
     def tick(self) -> None:
         """Read reports; carry out due effects; notice modules that died on their own; step
@@ -507,32 +338,25 @@ class World:
         self.log.append(f"world cycle {self.cycle}: {event.text or event.kind}")
         self.event_times.append((event.text or event.kind, started))
 
-    def _where(self, m: int, c: int) -> str:
-        return f"{self.topology.names[m]}.{self.profile.connector_name(c)}"
-
     def cut(self, module: int, connector: int) -> None:
-        link = self.peer.get((module, connector))
-        if link is None:
-            raise TopologyError(f"cannot cut {self._where(module, connector)}: nothing is docked there")
-        del self.peer[(link.a, link.a_conn)]
-        del self.peer[(link.b, link.b_conn)]
+        """Undock: the latch in physics, the emulated infrared link (its modules notice by
+        liveness), or both CAN ends told to detach (what was in flight is dropped there)."""
+        docking.check_cut(self.link_map.peer_of((module, connector)), self.where(module, connector))
+        link = self.link_map.peer[(module, connector)]
+        self.link_map.remove(link)
         if self.physics is not None:
             self.physics.undock(module, connector)
-        if self.emulator is not None:
-            self.emulator.undock(link.link_id)
-        else:
+        if self.emulator is None:
             for m, c in ((link.a, link.a_conn), (link.b, link.b_conn)):
-                self._send(m, {"cmd": "detach", "connector": c})
+                self._send(m, Detach(c))
 
     def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
-        if not self.profile.can_link(a_conn, b_conn):
-            raise TopologyError(f"cannot dock {self._where(a, a_conn)} to {self._where(b, b_conn)}: same gender")
+        docking.check_dock(self.profile, self.link_map.peer.__contains__, self.where, a, a_conn, b, b_conn)
+        link = self.link_map.add(a, a_conn, b, b_conn)
         for m, c in ((a, a_conn), (b, b_conn)):
-            if (m, c) in self.peer:
-                raise TopologyError(f"cannot dock {self._where(m, c)}: it is already docked")
-        link = self._new_link(a, a_conn, b, b_conn)
-        for m, c in ((a, a_conn), (b, b_conn)):
-            self._send(m, {"cmd": "attach", "connector": c, "link": self._end(link, m, c)})
+            self._send(m, Attach(c, self.link_map.end(link, m, c)))
+        if self.physics is not None:
+            self.physics.dock(a, a_conn, b, b_conn)  # latches only if aligned within tolerance
 
     def kill(self, module: int) -> None:
         h = self.handles[module]
@@ -540,7 +364,7 @@ class World:
             return
         self.views[module].killed = True
         h.end(grace=0.0 if not self.threads else 1.0)
-        if isinstance(h, _ProcessModule):
+        if isinstance(h, ProcessModule):
             h.proc.wait(5)
         self.views[module].alive = False
 
@@ -557,13 +381,13 @@ class World:
         base = self._go_at if self._go_at is not None else time.monotonic()
         start = self.cycle + 1 + int(self.start_delay / self.cycle_period)
         left = None if self.cycles is None else max(0, self.cycles - start)
-        self._send(module, {"cmd": "go", "at": base + start * self.cycle_period, "cycles": left})
+        self._send(module, Go(at=base + start * self.cycle_period, cycles=left))
 
     def inject(self, module: int, hormone: Hormone) -> None:
         text = hormone.name if not hormone.args else hormone.content()
-        self._send(module, {"cmd": "inject", "hormone": text})
+        self._send(module, Inject(text))
 
-    def _send(self, module: int, cmd: dict[str, Any]) -> None:
+    def _send(self, module: int, cmd: Command) -> None:
         h = self.handles[module]
         if h is not None and self.views[module].alive:
             h.send(cmd)
@@ -579,31 +403,8 @@ class World:
     # ------------------------------------------------------------ reading, stopping
 
     def rows(self) -> list[dict[str, Any]]:
-        """One row per module for the status table and the summary."""
-        out: list[dict[str, Any]] = []
-        for v in self.views:
-            s = v.status
-            c = s.get("counters", {})
-            out.append(
-                {
-                    "module": v.module,
-                    "name": v.name,
-                    "alive": v.alive,
-                    "state": v.state,
-                    "cycle": s.get("cycle", 0),
-                    "type": s.get("type", "-"),
-                    "T": s.get("T"),
-                    "DOF1": s.get("DOF1", 0.0),
-                    "DOF2": s.get("DOF2", 0.0),
-                    "frames_per_s": v.frames_per_s,
-                    "counters": c,
-                    "actuator_fault": s.get("actuator_fault"),
-                    "errors": int(c.get("frames_dropped", 0))
-                    + int(c.get("frames_corrupted", 0))
-                    + int(c.get("refused", 0)),
-                }
-            )
-        return out
+        """One row per module for the status table and the summary (see hil.status)."""
+        return status_rows(self.views)
 
     def sorted_records(self) -> list[dict[str, Any]]:
         """Trace records merged from the modules, by cycle then module."""
@@ -617,30 +418,19 @@ class World:
             return
         for m, h in enumerate(self.handles):
             if h is not None and h.running():
-                self._send(m, {"cmd": "stop"})
+                self._send(m, Stop())
         deadline = time.monotonic() + grace
         while any(h is not None and h.running() for h in self.handles) and time.monotonic() < deadline:
             self.poll(0.05)
         for h in self.handles:
             if h is not None:
                 h.end(grace=1.0)
-        self._end_strays()
         self.poll()
         if self.emulator is not None:
             self.emulator.close()
         if self.physics is not None:
             self.physics.close()
         self._closed = True
-
-    def _end_strays(self) -> None:
-        """End module processes this world started but holds no handle for (a Ctrl-C between
-        starting one and recording it): its own children running hil.module_process, by pid."""
-        known = {h.pid for h in self.handles if isinstance(h, _ProcessModule)}
-        for pid in _own_module_processes():
-            if pid not in known:
-                with contextlib.suppress(ProcessLookupError, ChildProcessError):
-                    os.kill(pid, signal.SIGKILL)
-                    os.waitpid(pid, 0)
 
     def __enter__(self) -> World:
         return self
@@ -649,26 +439,6 @@ class World:
         self.stop()
 
 
-def _own_module_processes() -> list[int]:
-    """Pids of this process's children that run hil.module_process (Linux /proc; else none)."""
-    me = os.getpid()
-    found: list[int] = []
-    proc = Path("/proc")
-    if not proc.is_dir():
-        return found
-    for entry in proc.iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == me and b"hil.module_process" in cmdline:
-            found.append(int(entry.name))
-    return found
-
-
 def module_pids(world: World) -> Sequence[int]:
     """The pids of the world's module processes (tests check they are gone)."""
-    return [h.pid for h in world.handles if isinstance(h, _ProcessModule)]
+    return [h.pid for h in world.handles if isinstance(h, ProcessModule)]

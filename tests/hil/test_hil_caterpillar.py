@@ -183,7 +183,7 @@ def test_impaired_serial_links_never_feed_a_corrupted_hormone_and_recover() -> N
     period = PERIOD_MS / 1000
     world = World(
         program, topology, "serial", cycle_period=period, cycles=260, trace=True,
-        frame_loss=0.05, bit_error=0.0005, emulator_seed=7,
+        frame_loss=0.05, bit_error=0.0005, emulator_seed=7, stand_in="recording",
     )  # fmt: skip
     try:
         world.start()
@@ -236,7 +236,7 @@ def test_world_events_change_links() -> None:
         parse_event(text, topology, program.vocabulary)
         for text in ("20:cut:m1.back", "50:dock:m1.back-m2.front", "70:inject:m2:X(C)")
     ]
-    world = World(program, topology, "virtual", cycle_period=period, cycles=110, trace=True)
+    world = World(program, topology, "virtual", cycle_period=period, cycles=110, trace=True, stand_in="recording")
     try:
         world.start()
         applied: set[int] = set()

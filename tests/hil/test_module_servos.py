@@ -11,6 +11,8 @@ from typing import Any
 from dh2rt.compiler import compile_file
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from drivers.recording import RecordingDriver
+from hil.config import ModuleConfig
+from hil.control import Command, Go, report_to_json
 from hil.module_process import ModuleHost
 from hil.servo_emulator import ServoEmulator
 
@@ -18,10 +20,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def serve(config: dict[str, Any]) -> list[dict[str, Any]]:
+    """Run a module from its config as JSON; its reports as they would cross the pipe."""
     reports: list[dict[str, Any]] = []
-    commands: queue.Queue[dict[str, Any]] = queue.Queue()
-    commands.put({"cmd": "go"})
-    host = ModuleHost(config, commands, reports.append)
+    commands: queue.Queue[Command] = queue.Queue()
+    commands.put(Go())
+    host = ModuleHost(ModuleConfig.from_json(config), commands, lambda rep: reports.append(report_to_json(rep)))
     try:
         assert host.serve() == 0
     finally:
@@ -35,7 +38,7 @@ def base_config() -> dict[str, Any]:
 
 
 def test_no_servo_port_takes_the_stand_in() -> None:
-    host = ModuleHost(base_config(), queue.Queue(), lambda _r: None)
+    host = ModuleHost(ModuleConfig.from_json(base_config()), queue.Queue(), lambda _r: None)
     try:
         assert isinstance(host.driver, RecordingDriver)
     finally:

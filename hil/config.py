@@ -1,0 +1,178 @@
+"""A module's configuration: one frozen, typed record shared by the world that starts a
+module and the module process that runs it, with one source for every default.
+
+On the wire between processes it is a JSON object (:meth:`ModuleConfig.to_json`); reading
+one back (:meth:`ModuleConfig.from_json`) checks every field and raises ModuleConfigError
+naming the field. The launcher's option defaults come from here too (``DEFAULTS``), so a
+value typed nowhere is the same at every hop: launcher, world, module process, runtime.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from dh2rt.errors import ModuleConfigError
+from dh2rt.liveness import SILENCE_CYCLES
+from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
+
+#: Cycle period of a module (seconds): 50 Hz.
+CYCLE_PERIOD_S = 0.02
+#: Seconds a module exchanges Hellos before cycle 0 when it is not told when to start.
+HANDSHAKE_S = 1.0
+#: Cycles between two status reports of a module to its world.
+STATUS_EVERY = 10
+#: The modules' body in the loop: PyBullet joints through emulated Dynamixel servos (the
+#: full firmware path), a recording stand-in, or nothing.
+STAND_INS = ("pybullet", "recording", "none")
+DEFAULT_STAND_IN = "pybullet"
+#: A module's own driver when it has no servo port: record the angles, or drive nothing.
+DRIVERS = ("recording", "none")
+#: Dynamixel ids of DOF1 (pitch) and DOF2 (yaw).
+DEFAULT_SERVO_IDS = (1, 2)
+
+
+def end_to_json(end: LinkEnd) -> dict[str, Any]:
+    """A link end as JSON: ``{"link_id", "side"}`` on a bus, ``{"port"}`` on a serial link."""
+    if isinstance(end, PortEnd):
+        return {"port": end.url}
+    return {"link_id": end.link_id, "side": end.side}
+
+
+def end_from_json(obj: object, where: str) -> LinkEnd:
+    if isinstance(obj, Mapping):
+        if "port" in obj and isinstance(obj["port"], str):
+            return PortEnd(obj["port"])
+        link_id, side = obj.get("link_id"), obj.get("side")
+        if isinstance(link_id, int) and isinstance(side, int) and side in (0, 1):
+            return BusEnd(link_id, side)
+    raise ModuleConfigError(f"{where}: expected {{'link_id': N, 'side': 0|1}} or {{'port': PATH}}, got {obj!r}")
+
+
+@dataclass(frozen=True)
+class ModuleConfig:
+    """Everything one module needs to run (the firmware's configuration)."""
+
+    image: bytes
+    module: int = 0
+    name: str = ""
+    transport: str = "inproc"
+    attach: Mapping[int, LinkEnd] = field(default_factory=dict)
+    timer_phase: int = 0
+    cycle_period: float = CYCLE_PERIOD_S
+    cycles: int | None = None
+    silence_cycles: int = SILENCE_CYCLES
+    driver: str = "recording"
+    servo_port: str | None = None
+    servo_ids: tuple[int, int] = DEFAULT_SERVO_IDS
+    trace: bool = False
+    status_every: int = STATUS_EVERY
+    handshake: float = HANDSHAKE_S
+
+    def __post_init__(self) -> None:
+        if self.driver not in DRIVERS:
+            raise ModuleConfigError(f"config driver {self.driver!r}: expected one of {', '.join(DRIVERS)}")
+        if self.cycle_period <= 0:
+            raise ModuleConfigError(f"config cycle_period {self.cycle_period}: must be positive")
+        if self.silence_cycles < 1:
+            raise ModuleConfigError(f"config silence_cycles {self.silence_cycles}: must be 1 or more")
+        if self.status_every < 1:
+            raise ModuleConfigError(f"config status_every {self.status_every}: must be 1 or more")
+        if self.cycles is not None and self.cycles < 0:
+            raise ModuleConfigError(f"config cycles {self.cycles}: must be 0 or more")
+
+    @property
+    def label(self) -> str:
+        return self.name or f"m{self.module}"
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "image":
+                value = value.hex()
+            elif f.name == "attach":
+                value = {str(c): end_to_json(e) for c, e in sorted(value.items())}
+            elif f.name == "servo_ids":
+                value = list(value)
+            out[f.name] = value
+        return out
+
+    @classmethod
+    def from_json(cls, obj: object) -> ModuleConfig:
+        """Check and convert a JSON object; ModuleConfigError names the field that is wrong.
+        ``image_path`` (a file holding the image) may stand for ``image``."""
+        if not isinstance(obj, Mapping):
+            raise ModuleConfigError("config: expected a JSON object")
+        known = {f.name for f in fields(cls)} | {"image_path"}
+        unknown = sorted(set(obj) - known)
+        if unknown:
+            raise ModuleConfigError(f"config: unknown field(s) {', '.join(map(repr, unknown))}")
+        kw: dict[str, Any] = {}
+        if "image" in obj:
+            try:
+                kw["image"] = bytes.fromhex(_typed(obj, "image", str))
+            except ValueError:
+                raise ModuleConfigError("config image: not hexadecimal") from None
+        elif "image_path" in obj:
+            path = _typed(obj, "image_path", str)
+            try:
+                kw["image"] = Path(path).read_bytes()
+            except OSError as exc:
+                raise ModuleConfigError(f"config image_path {path}: {exc.strerror or exc}") from None
+        else:
+            raise ModuleConfigError("config: one of 'image' (hex) or 'image_path' is required")
+        for name, kind in (
+            ("module", int),
+            ("name", str),
+            ("transport", str),
+            ("timer_phase", int),
+            ("silence_cycles", int),
+            ("driver", str),
+            ("trace", bool),
+            ("status_every", int),
+        ):
+            if name in obj:
+                kw[name] = _typed(obj, name, kind)
+        for name in ("cycle_period", "handshake"):
+            if name in obj:
+                kw[name] = float(_typed(obj, name, (int, float)))
+        if obj.get("cycles") is not None:
+            kw["cycles"] = _typed(obj, "cycles", int)
+        if obj.get("servo_port") is not None:
+            kw["servo_port"] = _typed(obj, "servo_port", str)
+        if "servo_ids" in obj:
+            ids = obj["servo_ids"]
+            if not (isinstance(ids, list | tuple) and len(ids) == 2 and all(_is_int(i) for i in ids)):
+                raise ModuleConfigError(f"config servo_ids {ids!r}: expected two servo ids [DOF1, DOF2]")
+            kw["servo_ids"] = (int(ids[0]), int(ids[1]))
+        if "attach" in obj:
+            attach = obj["attach"]
+            if not isinstance(attach, Mapping):
+                raise ModuleConfigError("config attach: expected an object of connector -> link end")
+            ends: dict[int, LinkEnd] = {}
+            for c, end in attach.items():
+                if not str(c).isdigit():
+                    raise ModuleConfigError(f"config attach: connector {c!r} is not a number")
+                ends[int(c)] = end_from_json(end, f"config attach[{c}]")
+            kw["attach"] = ends
+        return cls(**kw)
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _typed(obj: Mapping[str, Any], name: str, kind: type | tuple[type, ...]) -> Any:
+    value = obj[name]
+    wrong_bool = isinstance(value, bool) and kind is not bool
+    if wrong_bool or not isinstance(value, kind):
+        expected = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
+        raise ModuleConfigError(f"config {name} {value!r}: expected {expected}")
+    return value
+
+
+#: The launcher's option defaults, from the one source above.
+DEFAULTS = ModuleConfig(image=b"")

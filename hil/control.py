@@ -1,0 +1,232 @@
+"""The control protocol between the world and its modules: typed commands in, typed
+reports out, as JSON lines (one object a line) over a module process's stdin and stdout, or
+as the same objects through queues for modules that run as threads.
+
+Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
+:class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
+:class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
+:class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
+ControlProtocolError naming the field; a receiver logs it and goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import EllipsisType
+from typing import Any
+
+from dh2rt.errors import ControlProtocolError, ModuleConfigError
+from dh2rt.transport.base import LinkEnd
+from hil.config import end_from_json, end_to_json
+
+# ---------------------------------------------------------------- commands
+
+
+@dataclass(frozen=True)
+class Go:
+    """Start cycling: at ``at`` (a CLOCK_MONOTONIC reading; Hellos until then) or at once;
+    ``cycles`` more cycles (None: until stopped; ``...``: as configured)."""
+
+    at: float | None = None
+    cycles: int | EllipsisType | None = ...
+
+
+@dataclass(frozen=True)
+class Attach:
+    connector: int
+    end: LinkEnd
+
+
+@dataclass(frozen=True)
+class Detach:
+    connector: int
+
+
+@dataclass(frozen=True)
+class Inject:
+    hormone: str  # as text, e.g. X(A)
+
+
+@dataclass(frozen=True)
+class StatusRequest:
+    pass
+
+
+@dataclass(frozen=True)
+class Stop:
+    pass
+
+
+Command = Go | Attach | Detach | Inject | StatusRequest | Stop
+
+
+def command_to_json(cmd: Command) -> dict[str, Any]:
+    if isinstance(cmd, Go):
+        out: dict[str, Any] = {"cmd": "go", "at": cmd.at}
+        if cmd.cycles is not ...:
+            out["cycles"] = cmd.cycles
+        return out
+    if isinstance(cmd, Attach):
+        return {"cmd": "attach", "connector": cmd.connector, "link": end_to_json(cmd.end)}
+    if isinstance(cmd, Detach):
+        return {"cmd": "detach", "connector": cmd.connector}
+    if isinstance(cmd, Inject):
+        return {"cmd": "inject", "hormone": cmd.hormone}
+    if isinstance(cmd, StatusRequest):
+        return {"cmd": "status"}
+    return {"cmd": "stop"}
+
+
+def command_from_json(obj: object) -> Command:
+    """A command from its JSON object; ControlProtocolError naming the field otherwise."""
+    if not isinstance(obj, Mapping):
+        raise ControlProtocolError(f"command: expected an object, got {obj!r}")
+    kind = obj.get("cmd")
+    if kind == "go":
+        at = obj.get("at")
+        if at is not None and not isinstance(at, int | float):
+            raise ControlProtocolError(f"go command: field 'at' {at!r} is not a time")
+        cycles: int | EllipsisType | None = ...
+        if "cycles" in obj:
+            cycles = None if obj["cycles"] is None else _int(obj, "cycles", "go command")
+        return Go(None if at is None else float(at), cycles)
+    if kind == "attach":
+        try:
+            end = end_from_json(obj.get("link"), "attach command: field 'link'")
+        except ModuleConfigError as exc:
+            raise ControlProtocolError(str(exc)) from None
+        return Attach(_int(obj, "connector", "attach command"), end)
+    if kind == "detach":
+        return Detach(_int(obj, "connector", "detach command"))
+    if kind == "inject":
+        hormone = obj.get("hormone")
+        if not isinstance(hormone, str):
+            raise ControlProtocolError(f"inject command: field 'hormone' {hormone!r} is not text")
+        return Inject(hormone)
+    if kind == "status":
+        return StatusRequest()
+    if kind == "stop":
+        return Stop()
+    raise ControlProtocolError(f"command: unknown 'cmd' {kind!r}")
+
+
+# ---------------------------------------------------------------- reports
+
+
+@dataclass(frozen=True)
+class Ready:
+    """Transport open, links attached: waiting for Go."""
+
+
+@dataclass(frozen=True)
+class Status:
+    """The module's runtime status (``ModuleRuntime.status()``: cycle, type, T, DOF1/DOF2,
+    ConnectorStatus, counters, faults); ``final`` at exit, with ``failed`` and the last
+    commanded ``targets``."""
+
+    status: Mapping[str, Any]
+    final: bool = False
+    failed: bool = False
+    targets: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class TraceRecord:
+    record: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Effect:
+    kind: str
+    args: list[Any] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Log:
+    message: str
+
+
+@dataclass(frozen=True)
+class Failure:
+    """The module failed (a bad config, an exception in its loop)."""
+
+    message: str
+
+
+@dataclass(frozen=True)
+class Exited:
+    """The module's process or thread ended (made by the supervisor, not sent by a module)."""
+
+
+Report = Ready | Status | TraceRecord | Effect | Log | Failure | Exited
+
+
+def report_to_json(rep: Report) -> dict[str, Any]:
+    if isinstance(rep, Ready):
+        return {"event": "ready"}
+    if isinstance(rep, Status):
+        out = {**rep.status, "event": "final" if rep.final else "status"}
+        if rep.final:
+            out["failed"] = rep.failed
+            out["targets"] = None if rep.targets is None else list(rep.targets)
+        return out
+    if isinstance(rep, TraceRecord):
+        return {"event": "trace", "record": dict(rep.record)}
+    if isinstance(rep, Effect):
+        return {"event": "effect", "kind": rep.kind, "args": _jsonable(rep.args)}
+    if isinstance(rep, Log):
+        return {"event": "log", "message": rep.message}
+    if isinstance(rep, Failure):
+        return {"event": "error", "message": rep.message}
+    return {"event": "exit"}
+
+
+def report_from_json(obj: object) -> Report:
+    """A report from its JSON object; ControlProtocolError naming the field otherwise."""
+    if not isinstance(obj, Mapping):
+        raise ControlProtocolError(f"report: expected an object, got {obj!r}")
+    event = obj.get("event")
+    if event == "ready":
+        return Ready()
+    if event in ("status", "final"):
+        status = {k: v for k, v in obj.items() if k not in ("event", "failed", "targets")}
+        if not isinstance(status.get("counters", {}), Mapping):
+            raise ControlProtocolError(f"{event} report: field 'counters' is not an object")
+        targets = obj.get("targets")
+        return Status(
+            status,
+            final=event == "final",
+            failed=bool(obj.get("failed", False)),
+            targets=None if targets is None else (float(targets[0]), float(targets[1])),
+        )
+    if event == "trace":
+        record = obj.get("record")
+        if not isinstance(record, Mapping):
+            raise ControlProtocolError("trace report: field 'record' is not an object")
+        return TraceRecord(record)
+    if event == "effect":
+        kind, args = obj.get("kind"), obj.get("args", [])
+        if not isinstance(kind, str) or not isinstance(args, list):
+            raise ControlProtocolError(f"effect report: fields 'kind' {kind!r} and 'args' {args!r}")
+        return Effect(kind, args)
+    if event == "log":
+        return Log(str(obj.get("message", "")))
+    if event == "error":
+        return Failure(str(obj.get("message", "")))
+    if event == "exit":
+        return Exited()
+    raise ControlProtocolError(f"report: unknown 'event' {event!r}")
+
+
+def _int(obj: Mapping[str, Any], name: str, where: str) -> int:
+    value = obj.get(name)
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ControlProtocolError(f"{where}: field {name!r} {value!r} is not a whole number")
+    return value
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, tuple | list):
+        return [_jsonable(v) for v in value]
+    return value

@@ -1,0 +1,73 @@
+"""What the world knows of each module from its reports, and the status table's rows."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(slots=True)
+class ModuleView:
+    """What the world last heard from one module."""
+
+    module: int
+    name: str
+    alive: bool = False
+    ready: bool = False
+    finished: bool = False
+    failed: bool = False
+    killed: bool = False
+    status: Mapping[str, Any] = field(default_factory=dict)
+    frames_per_s: float = 0.0
+    errors: list[str] = field(default_factory=list)
+    _last: tuple[float, int] | None = None
+
+    @property
+    def state(self) -> str:
+        """failed, killed, done (ran its cycles), running or stopped."""
+        if self.failed:
+            return "failed"
+        if self.killed:
+            return "killed"
+        if self.finished:
+            return "done"
+        return "running" if self.alive else "stopped"
+
+    def heard(self, status: Mapping[str, Any], now: float, *, sample_rate: bool) -> None:
+        """A status report arrived at ``now``; ``sample_rate`` refreshes frames/s (at most
+        every 0.2 s, so the rate is not a ratio of two tiny numbers)."""
+        counters = status.get("counters", {})
+        frames = int(counters.get("frames_sent", 0)) + int(counters.get("frames_received", 0))
+        if sample_rate and (self._last is None or now - self._last[0] >= 0.2):
+            if self._last is not None:
+                self.frames_per_s = (frames - self._last[1]) / (now - self._last[0])
+            self._last = (now, frames)
+        self.status = status
+
+
+def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
+    """One row per module for the status table and the summary."""
+    out: list[dict[str, Any]] = []
+    for v in views:
+        s = v.status
+        c = s.get("counters", {})
+        out.append(
+            {
+                "module": v.module,
+                "name": v.name,
+                "alive": v.alive,
+                "state": v.state,
+                "cycle": s.get("cycle", 0),
+                "type": s.get("type", "-"),
+                "T": s.get("T"),
+                "DOF1": s.get("DOF1", 0.0),
+                "DOF2": s.get("DOF2", 0.0),
+                "frames_per_s": v.frames_per_s,
+                "counters": c,
+                "actuator_fault": s.get("actuator_fault"),
+                "last_fault": s.get("last_fault"),
+                "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),
+            }
+        )
+    return out

@@ -1,0 +1,161 @@
+"""Starting, talking to and ending module processes and threads.
+
+A module runs as an OS process (``python -m hil.module_process``) over the transports that
+cross processes, or as a thread of the world's process over the in-process buses. Either
+way the world holds a :class:`ModuleHandle`: it sends typed commands (:mod:`hil.control`)
+and receives typed reports on one queue shared by all modules.
+
+Each process starts in a session and process group of its own (``start_new_session``), so
+ending it ends everything it may have started, and a Ctrl-C at the terminal reaches the
+launcher only (which then stops the modules in order). No ``/proc`` scan is needed: the
+world holds a handle from the moment a process exists.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Protocol
+
+from dh2rt.errors import ControlProtocolError
+from hil.config import ModuleConfig
+from hil.control import Command, Exited, Log, Report, command_to_json, report_from_json
+
+ROOT = Path(__file__).resolve().parents[1]
+
+Reports = queue.Queue[tuple[int, Report]]
+
+
+class ModuleHandle(Protocol):
+    """One running module, as its world sees it."""
+
+    module: int
+    pid: int
+
+    def send(self, cmd: Command) -> None: ...
+
+    def running(self) -> bool: ...
+
+    def exit_code(self) -> int | None: ...
+
+    def end(self, grace: float) -> None: ...
+
+
+class ProcessModule:
+    """One module as an OS process in a process group of its own; commands on its stdin,
+    reports from its stdout."""
+
+    def __init__(self, config: ModuleConfig, reports: Reports) -> None:
+        self.module = config.module
+        env = dict(os.environ)
+        env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "hil.module_process", "--config", json.dumps(config.to_json())],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=str(ROOT),
+            env=env,
+            start_new_session=True,
+        )
+        self.pid = self.proc.pid
+        try:
+            self._reader = threading.Thread(target=self._read, args=(reports,), daemon=True)
+            self._reader.start()
+        except BaseException:  # interrupted before the world holds this handle: end it here
+            self._signal_group(signal.SIGKILL)
+            self.proc.wait()
+            raise
+
+    def _read(self, reports: Reports) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if not line.strip():
+                continue
+            try:
+                reports.put((self.module, report_from_json(json.loads(line))))
+            except (json.JSONDecodeError, ControlProtocolError) as exc:
+                reports.put((self.module, Log(f"malformed report from the module process ({exc}): {line[:200]!r}")))
+        reports.put((self.module, Exited()))
+
+    def send(self, cmd: Command) -> None:
+        stdin = self.proc.stdin
+        if stdin is None or self.proc.poll() is not None:
+            return
+        with contextlib.suppress(BrokenPipeError, ValueError, OSError):
+            stdin.write(json.dumps(command_to_json(cmd)) + "\n")
+            stdin.flush()
+
+    def running(self) -> bool:
+        return self.proc.poll() is None
+
+    def exit_code(self) -> int | None:
+        return self.proc.poll()
+
+    def _signal_group(self, sig: signal.Signals) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.pid, sig)  # its group id is its pid (start_new_session)
+
+    def end(self, grace: float) -> None:
+        """Ask politely (SIGTERM to its process group), then SIGKILL; reap it, close its pipes."""
+        if self.proc.poll() is None:
+            self._signal_group(signal.SIGTERM)
+            try:
+                self.proc.wait(grace)
+            except subprocess.TimeoutExpired:
+                self._signal_group(signal.SIGKILL)
+                self.proc.wait(5)
+        else:
+            self._signal_group(signal.SIGKILL)  # anything it left behind in its group
+        self._reader.join(2)
+        for stream in (self.proc.stdin, self.proc.stdout):
+            if stream is not None:
+                with contextlib.suppress(OSError, BrokenPipeError):
+                    stream.close()
+
+
+class ThreadModule:
+    """One module as a thread of the world's process (in-process buses only)."""
+
+    def __init__(self, config: ModuleConfig, reports: Reports) -> None:
+        from hil.module_process import ModuleHost
+
+        module = self.module = config.module
+        self.pid = os.getpid()
+        self.commands: queue.Queue[Command] = queue.Queue()
+        self._code: int | None = None
+        self.host = ModuleHost(config, self.commands, lambda rep: reports.put((module, rep)))
+
+        def body() -> None:
+            self._code = self.host.serve()
+            reports.put((module, Exited()))
+
+        self.thread = threading.Thread(target=body, name=f"dh2rt-module-{module}", daemon=True)
+        self.thread.start()
+
+    def send(self, cmd: Command) -> None:
+        self.commands.put(cmd)
+
+    def running(self) -> bool:
+        return self.thread.is_alive()
+
+    def exit_code(self) -> int | None:
+        return None if self.thread.is_alive() else (self._code if self._code is not None else 1)
+
+    def end(self, grace: float) -> None:
+        self.host.stop_event.set()
+        self.thread.join(grace + 2)
+
+
+def start_module(config: ModuleConfig, reports: Reports, *, thread: bool) -> ModuleHandle:
+    """Start one module as a thread (in-process buses) or as a process."""
+    if thread:
+        return ThreadModule(config, reports)
+    return ProcessModule(config, reports)
