@@ -38,6 +38,7 @@ from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
+from hil.supervisor import reap_exited_children
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,7 +159,10 @@ def main(argv: list[str] | None = None) -> int:
 
     previous = signal.signal(signal.SIGINT, on_sigint) if _in_main_thread() else None
     try:
-        return _main(argv)
+        try:
+            return _main(argv)
+        finally:
+            reap_exited_children()
     except KeyboardInterrupt:
         _err("interrupted while starting")
         return EXIT_INTERRUPTED

@@ -21,7 +21,9 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
+from types import FrameType
 from typing import Protocol
 
 from dh2rt.errors import ControlProtocolError
@@ -152,6 +154,54 @@ class ThreadModule:
     def end(self, grace: float) -> None:
         self.host.stop_event.set()
         self.thread.join(grace + 2)
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM back until the block is done, so that a process is never
+    started without its handle being recorded: an interrupt in between (inside Popen, after
+    the fork) would leave a module that nobody knows to end. A signal that comes meanwhile
+    is recorded and handled as it would have been once the block ends.
+
+    The Python-level handlers are swapped rather than the signal mask: a process-directed
+    signal is delivered to any thread that does not block it, and Python runs its handler
+    in the main thread all the same."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+
+    def hold(signum: int, _frame: FrameType | None) -> None:
+        pending.append(signum)
+
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, hold) for sig in held}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for signum in pending:
+            handler = previous[signal.Signals(signum)]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(signum)
+
+
+def reap_exited_children() -> list[int]:
+    """Collect every child of this process that has exited and nobody waited for (a helper
+    a library ran during an import that a Ctrl-C cut short): without this they would stay
+    zombies once this process is gone. Running children are left alone. Returns their pids."""
+    reaped: list[int] = []
+    while True:
+        try:
+            pid, _status = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return reaped
+        if pid == 0:
+            return reaped
+        reaped.append(pid)
 
 
 def start_module(config: ModuleConfig, reports: Reports, *, thread: bool) -> ModuleHandle:

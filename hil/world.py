@@ -67,7 +67,7 @@ from hil.link_emulator import LinkEmulator
 from hil.link_map import LinkMap
 from hil.status import ModuleView
 from hil.status import rows as status_rows
-from hil.supervisor import ModuleHandle, ProcessModule, Reports, start_module
+from hil.supervisor import ModuleHandle, ProcessModule, Reports, deferred_interrupts, start_module
 
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
@@ -181,7 +181,9 @@ class World:
         )
 
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
-        self.handles[module] = start_module(self.config(module, cycles, phase), self.reports, thread=self.threads)
+        config = self.config(module, cycles, phase)
+        with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
+            self.handles[module] = start_module(config, self.reports, thread=self.threads)
         v = self.views[module]
         v.alive, v.ready, v.finished, v.failed, v.killed = True, False, False, False, False
 

@@ -22,7 +22,8 @@ from drivers import dxl_table as dxt
 from drivers.base import JointLimits
 from drivers.dynamixel import DynamixelDriver
 from drivers.recording import RecordingDriver
-from hil.servo_emulator import Fault, ServoEmulator
+from hil.servo_emulator import ServoEmulator
+from hil.servo_table import Fault
 
 # The SDK's default 16 ms latency timer (34 ms reply timeout). Shorter is possible on a pty, but
 # the in-process emulator shares the GIL with the SDK's busy wait, which can delay a reply by a

@@ -10,6 +10,7 @@ import pytest
 from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
 
 from dh2rt.errors import EmulatorError
+from dh2rt.testing import FakeClock
 from drivers import dxl_table as dxt
 from drivers.recording import RecordingDriver
 from hil.dxl_protocol import (
@@ -20,12 +21,9 @@ from hil.dxl_protocol import (
     decode_packet,
     encode_instruction,
 )
-from hil.servo_emulator import (
-    Fault,
-    KinematicJoint,
-    ModuleJointAdapter,
-    ServoEmulator,
-)
+from hil.servo_emulator import ServoEmulator
+from hil.servo_joints import KinematicJoint, ModuleJointAdapter
+from hil.servo_table import Fault
 
 COMM_SUCCESS, COMM_RX_TIMEOUT, COMM_RX_CORRUPT = 0, -3001, -3002
 
@@ -172,14 +170,6 @@ def test_misuse_is_reported_clearly(core: ServoEmulator) -> None:
 
 
 # -- joint backends --
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_kinematic_joint_is_speed_limited_then_first_order() -> None:
