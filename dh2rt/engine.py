@@ -36,7 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from dh2rt.errors import DH2Error, MissingNatives
+from dh2rt.errors import DH2Error, MissingNatives, UnknownName
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.profile import TopoType
 from dh2rt.program import ACTIVE, PASSIVE, CompiledProgram, Entry
@@ -160,16 +160,24 @@ class Engine:
         }
 
     def var(self, name: str) -> int:
-        return self.vars[self.program.var_names.index(name)]
+        return self.vars[self._slot(self.program.var_names, name, "variable")]
 
     def set_var(self, name: str, value: int) -> None:
-        self.vars[self.program.var_names.index(name)] = value
+        self.vars[self._slot(self.program.var_names, name, "variable")] = value
 
     def set_sensor(self, name: str, value: int) -> None:
-        self.sensors[self.program.sensor_names.index(name)] = value
+        self.sensors[self._slot(self.program.sensor_names, name, "sensor")] = value
 
     def receptor_status(self, name: str) -> int:
-        return self.rstatus[self.program.receptor_index(name)]
+        names = tuple(r.name for r in self.program.receptors)
+        return self.rstatus[self._slot(names, name, "receptor")]
+
+    def _slot(self, names: tuple[str, ...], name: str, what: str) -> int:
+        try:
+            return names.index(name)
+        except ValueError:
+            known = ", ".join(names) or "none"
+            raise UnknownName(f"program {self.program.name} has no {what} {name!r} (it has: {known})") from None
 
     def effect(self, kind: str, *args: Any) -> None:
         """Ask the physical layer for something (used by native actions); read via ``effects``."""

@@ -11,6 +11,7 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── ProgramSyntaxError              the text does not parse
     │   ├── ProgramCompileError             it parses but means nothing valid
     │   └── MissingNatives                  it needs native actions this runtime lacks
+    ├── UnknownName (KeyError)              the Python API was given a name the program lacks
     ├── TopologyError (ValueError)          a topology spec or file is wrong
     │   └── EventError                      an event is malformed or cannot happen
     ├── HormoneError (ValueError)           a hormone breaks a limit (too long, bad value)
@@ -111,6 +112,13 @@ class ProgramCompileError(ProgramError):
 
 class MissingNatives(ProgramError):
     """The program declares native actions this runtime does not have."""
+
+
+class UnknownName(DH2Error, KeyError):
+    """A variable, sensor or receptor name given to the Python API is not in the program."""
+
+    def __str__(self) -> str:  # KeyError would show the message in quotes
+        return str(self.args[0]) if self.args else ""
 
 
 class TopologyError(DH2Error, ValueError):
