@@ -244,6 +244,14 @@ class ModuleRuntime:
         self.cycle += 1
         self.stats.cycles = self.cycle
 
+    def attach_driver(self, driver: Driver, note: str) -> None:
+        """Actuators that were missing are back: drive them from now on (the current targets
+        are sent in the next cycle) and say so in the log."""
+        self.driver = driver
+        self.actuator_fault = None
+        self._commanded = None
+        self._log(f"actuators back: {note}")
+
     @property
     def commanded(self) -> tuple[float, float]:
         """The DOF1/DOF2 targets the driver was last given (or the engine's, before any)."""
@@ -330,8 +338,11 @@ class ModuleRuntime:
         stop_event: threading.Event | None = None,
         on_cycle: Callable[[ModuleRuntime], None] | None = None,
         sleep: Callable[[float], None] | None = None,
+        until: float | None = None,
     ) -> int:
-        """Cycle every ``cycle_period`` s until ``cycles`` more ran or ``stop_event`` is set.
+        """Cycle every ``cycle_period`` s until ``cycles`` more ran, ``stop_event`` is set, or
+        the next cycle would start at or after ``until`` (a reading of this runtime's clock:
+        modules told to stop at one instant stop together, however many cycles each managed).
 
         Between cycles the loop waits on the transport (frames are kept for the next cycle).
         A cycle that starts more than LATE_TOLERANCE periods after its deadline counts as
@@ -341,7 +352,10 @@ class ModuleRuntime:
         period = self.cycle_period
         done = 0
         deadline = self.clock()
+        last_start = None if until is None else until - period / 2
         while (cycles is None or done < cycles) and not (stop_event is not None and stop_event.is_set()):
+            if last_start is not None and deadline >= last_start:
+                break
             now = self.clock()
             if now - deadline > LATE_TOLERANCE * period:
                 self.stats.late_cycles += 1

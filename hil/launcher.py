@@ -10,7 +10,10 @@ format of ``dh2rt run``) and prints a summary.
 the launcher re-executes itself under ``unshare -rn`` with only loopback up and a multicast
 route on it, and refuses when it cannot.
 
-Exit codes: 0 ok, 1 a module failed, 2 bad input or transport unavailable, 130 interrupted.
+Exit codes: 0 ok; 1 the run went wrong (a module failed, a receptor faulted, an actuator
+fault was still in force at the end, a link was lost on a clean link, or a module missed its
+cycle period in more than LATE_SHARE of its cycles: each is named on stderr); 2 bad input or
+transport unavailable; 130 interrupted. The whole log goes to a file the summary names.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -87,7 +91,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="the modules' body: pybullet (default; each module drives emulated Dynamixel servos whose joints "
         "are PyBullet joints, the full firmware path), recording (each module records its angles), none",
     )
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
+    p.add_argument(
+        "--log",
+        type=Path,
+        metavar="FILE",
+        help="write the whole log here (default: dh2rt-hil-PID.log in the temporary folder)",
+    )
     return p
 
 
@@ -228,7 +238,11 @@ def _main(argv: list[str] | None) -> int:
 
 def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event]) -> int:
     out = sys.stdout
-    tty = out.isatty()
+    # with --json, standard output holds the JSON object only: progress goes to stderr
+    progress = sys.stderr if ns.json else out
+    tty = progress.isatty()
+    log_path = ns.log or Path(tempfile.gettempdir()) / f"dh2rt-hil-{os.getpid()}.log"
+    late_warned = False
     try:
         world = World(
             program,
@@ -260,7 +274,9 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             now = time.monotonic()
             if now - last_draw >= (0.5 if tty else 2.0):
                 last_draw = now
-                _draw(world, out, tty)
+                _draw(world, progress, tty)
+                if not late_warned:
+                    late_warned = _warn_if_late(world)
             time.sleep(0.02)
         world.tick()
     except KeyboardInterrupt:
@@ -274,19 +290,86 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         except KeyboardInterrupt:
             world.stop()
     elapsed = time.monotonic() - started
-    failed = failed or any(v.failed for v in world.views)
     if ns.trace is not None:
         _write_trace(ns.trace, world.sorted_records())
-    _summary(world, elapsed, out, ns.json)
+    wrong = problems(world, events, clean_links=ns.frame_loss == 0 and ns.bit_error == 0)
+    if failed:
+        wrong.insert(0, "the world failed (see above)")
+    _write_log(log_path, world, wrong)
+    _summary(world, elapsed, out, ns.json, wrong, log_path)
     if interrupted:
         _err(f"interrupted at world cycle {world.cycle}")
         return EXIT_INTERRUPTED
-    if failed:
-        for v in world.views:
-            for e in v.errors:
-                _err(f"module {v.name}: {e}")
+    if wrong:
+        for line in wrong:
+            _err(line)
+        _err(f"the run went wrong in {len(wrong)} way(s); the whole log is in {log_path}")
         return EXIT_FAIL
     return EXIT_OK
+
+
+#: Share of a module's cycles that may start late before the run counts as gone wrong.
+LATE_SHARE = 0.10
+
+
+def problems(world: World, events: list[Event], *, clean_links: bool) -> list[str]:
+    """What went wrong in a finished run, one line per module and kind (empty: nothing)."""
+    changes_links = any(ev.kind in ("cut", "dock", "kill", "restart") for ev in events) or any(
+        effect.kind == "reach_and_dock" for _m, effect in world.effects
+    )
+    out: list[str] = []
+    for v in world.views:
+        s = v.status
+        c = s.get("counters", {})
+        if v.failed:
+            out.append(f"module {v.name} failed: {'; '.join(v.errors) or 'see the log'}")
+        if int(c.get("engine_faults", 0)):
+            out.append(f"module {v.name}: {c['engine_faults']} receptor fault(s), the last at {s.get('last_fault')}")
+        if s.get("actuator_fault"):
+            out.append(f"module {v.name}: actuator fault at the end: {s['actuator_fault']}")
+        if clean_links and not changes_links and int(c.get("links_lost", 0)):
+            out.append(f"module {v.name} lost {c['links_lost']} link(s) on clean links (no loss injected, no surgery)")
+        cycles = max(1, int(c.get("cycles", 0)))
+        late = int(c.get("late_cycles", 0))
+        if late > LATE_SHARE * cycles:
+            out.append(
+                f"module {v.name} started {late * 100 // cycles}% of its cycles late (more than "
+                f"{LATE_SHARE:.0%}): {_suggest_period(world)}"
+            )
+    return out
+
+
+def _suggest_period(world: World) -> str:
+    ms = world.cycle_period * 1000
+    return f"this machine cannot keep {ms:g} ms cycles with {world.topology.size} modules; try --cycle-ms {ms * 2:g}"
+
+
+def _warn_if_late(world: World) -> bool:
+    """Say during the run when modules cannot keep their period; True once said."""
+    worst = 0.0
+    for r in world.rows():
+        c = r["counters"]
+        cycles = int(c.get("cycles", 0))
+        if cycles >= 50:
+            worst = max(worst, int(c.get("late_cycles", 0)) / cycles)
+    if worst <= LATE_SHARE:
+        return False
+    _err(f"warning: {worst:.0%} of some module's cycles start late; {_suggest_period(world)}")
+    return True
+
+
+def _write_log(path: Path, world: World, wrong: list[str]) -> None:
+    try:
+        with path.open("w", encoding="utf-8") as f:
+            for line in world.log:
+                f.write(line + "\n")
+            for v in world.views:
+                for e in v.errors:
+                    f.write(f"module {v.name}: {e}\n")
+            for line in wrong:
+                f.write(f"went wrong: {line}\n")
+    except OSError as exc:
+        _err(f"cannot write the log to {path}: {exc.strerror or exc}")
 
 
 def _write_trace(path: Path, records: list[dict[str, Any]]) -> None:
@@ -323,10 +406,12 @@ def _draw(world: World, out: IO[str], tty: bool) -> None:
     out.flush()
 
 
-def _summary(world: World, elapsed: float, out: IO[str], as_json: bool) -> None:
+def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path) -> None:
     rows = world.rows()
     if as_json:
         summary = {
+            "problems": wrong,
+            "log_file": str(log_path),
             "transport": world.spec,
             "stand_in": world.stand_in,
             "displacement_m": world.physics.displacement() if world.physics is not None else None,
@@ -364,8 +449,12 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool) -> None:
             f"physics: {world.physics.simulated_s:.1f} s simulated; moved {world.physics.displacement() * 100:+.1f} cm "
             f"forward; servos driven through dynamixel-sdk and emulators, {faults} module(s) with an actuator fault\n"
         )
+    faulted = [r["name"] for r in rows if r.get("actuator_fault") or int(r["counters"].get("engine_faults", 0))]
+    if faulted:
+        out.write(f"modules with a fault at the end: {', '.join(faulted)}\n")
     for line in world.log[-20:]:
         out.write(f"  {line}\n")
+    out.write(f"log: {log_path} ({len(world.log)} lines)\n")
     out.flush()
 
 

@@ -35,7 +35,7 @@ from typing import IO
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error
 from dh2rt.events import parse_hormone
-from dh2rt.runtime import ModuleRuntime
+from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.transport.registry import open_transport
 from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
@@ -135,7 +135,13 @@ class ModuleHost:
                 linked = rt.handshake(self.config.handshake, until=start_at)
                 if not linked:
                     self.report(Log("handshake: a peer is silent"))
-                rt.run(self.cycles, self.stop_event, self._on_cycle)
+                if start_at is not None and self.cycles is not None:
+                    # started at an agreed instant: stop at one too, so that no module runs on
+                    # after its neighbours stopped and takes their silence for a lost link
+                    until = start_at + self.cycles * self.config.cycle_period
+                    rt.run(None, self.stop_event, self._on_cycle, until=until)
+                else:
+                    rt.run(self.cycles, self.stop_event, self._on_cycle)
         except Exception as exc:  # report it to the world rather than die silently
             self.failed = True
             self.report(Failure(f"{type(exc).__name__}: {exc}"))
@@ -155,9 +161,21 @@ class ModuleHost:
             except queue.Empty:
                 break
             self._command(cmd)
+        if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == 0:
+            self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
             self._flush()
             self.report(Status(rt.status()))
+
+    def _reopen_servos(self, rt: ModuleRuntime) -> None:
+        """Servos that could not be opened are tried again (a bus that was busy or
+        unpowered at boot); the module says so when its body comes back."""
+        driver, fault = open_driver(self.config)
+        if driver is None:
+            rt.actuator_fault = fault
+            return
+        self.driver = driver
+        rt.attach_driver(driver, f"servos opened on {self.config.servo_port}")
 
     def _flush(self) -> None:
         rt = self.runtime

@@ -85,7 +85,12 @@ def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.C
     assert [m["T"] for m in summary["modules"]][:1] == [1]
     records = [json.loads(line) for line in trace.read_text().splitlines()]
     keys = [(r["cycle"], r["module"]) for r in records]
-    assert keys == sorted(keys) and len(keys) == 4 * 60
+    # modules stop together at the end instant (go + 60 periods): one that started a cycle
+    # late runs fewer cycles; every module's records are its cycles 0..n-1, as it reports
+    assert keys == sorted(keys)
+    for m in summary["modules"]:
+        assert [c for c, mod in keys if mod == m["module"]] == list(range(m["cycle"])), m["name"]
+        assert m["cycle"] >= 60 - m["counters"]["late_cycles"] - 1
     assert {"cycle", "module", "name", "type", "T", "timer", "actuators", "status", "received", "sent"} <= set(
         records[0]
     )
@@ -213,3 +218,39 @@ def test_default_stand_in_is_the_physics_world_through_the_servo_firmware_path(
     assert summary["stand_in"] == "pybullet"
     assert all(m["actuator_fault"] is None for m in summary["modules"])
     assert summary["displacement_m"] > 0.05  # forward, by a clear margin
+
+
+DIVIDING = """program dividing
+const ClockCycle = 10
+var x = 0
+hormone X(p: A | B | C | D)
+receptor divide when T == T1 and LocalTimer == 3 { V.x = 10 / V.x; keep_alive() }
+"""
+
+
+@pytest.mark.expect_faults  # the modules run as threads here: the suite's fault watch sees them
+def test_a_run_with_faults_exits_1_naming_them(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A receptor that faults in the loop: the launcher says which module, in the summary,
+    in the JSON and on stderr, writes the log where it says, and exits 1."""
+    program, log = tmp_path / "dividing.dh2", tmp_path / "run.log"
+    program.write_text(DIVIDING)
+    code = cli.main(
+        ["--transport", "inproc", "--program", str(program), "--module-count", "3", "--cycles", "40",
+         "--cycle-ms", "10", "--stand-in", "recording", "--json", "--log", str(log)]
+    )  # fmt: skip
+    out, err = capsys.readouterr()
+    assert code == 1
+    summary = json.loads(out)  # standard output holds the JSON object and nothing else
+    assert any("module m0" in p and "receptor fault" in p for p in summary["problems"])
+    assert "receptor divide: division by zero" in summary["modules"][0]["last_fault"]
+    assert summary["log_file"] == str(log) and "receptor fault" in log.read_text()
+    assert "module m0" in err and "went wrong" in err
+
+
+def test_a_clean_run_exits_0_with_no_problems(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(
+        ["--transport", "inproc", "--module-count", "3", "--cycles", "40", "--cycle-ms", "10",
+         "--stand-in", "recording", "--json", "--log", str(tmp_path / "run.log")]
+    )  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["problems"] == []
