@@ -18,7 +18,9 @@ One cycle (:meth:`ModuleRuntime.step`)::
               ConnectorStatus 0 (engine.send_failed)
     beacons   every attached connector that carried no hormone this cycle sends what the
               liveness machine says: a KeepAlive, or a Hello
-    driver    set_targets when DOF1/DOF2 changed; every HEALTH_EVERY cycles the driver's
+    driver    set_targets when DOF1/DOF2 changed; every HEALTH_EVERY cycles (at an offset
+              of the module's own, its LocalTimer phase, so that modules sharing a servo bus
+              or a processor do not all read their servos in the same cycle) the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
               while it lasts, recover() (if the driver has one) is tried on each check.
@@ -116,6 +118,7 @@ class ModuleRuntime:
         self.record = record
         self.module = module
         self.name = name or f"m{module}"
+        self.health_offset = timer_phase % HEALTH_EVERY
         self.digest = program_digest(program.image)
         self.liveness = Liveness(self.digest, silence_cycles)
         self.cycle = 0
@@ -263,7 +266,7 @@ class ModuleRuntime:
         if driver is None:
             return
         try:
-            if self.actuator_fault is not None or self.cycle % HEALTH_EVERY == 0:
+            if self.actuator_fault is not None or self.cycle % HEALTH_EVERY == self.health_offset:
                 self._check_health(driver)
             if (dof1, dof2) != self._commanded and self.actuator_fault is None:
                 driver.set_targets(dof1, dof2)

@@ -161,7 +161,7 @@ class ModuleHost:
             except queue.Empty:
                 break
             self._command(cmd)
-        if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == 0:
+        if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
             self._flush()
