@@ -70,6 +70,9 @@ class ModuleConfig:
     trace: bool = False
     status_every: int = STATUS_EVERY
     handshake: float = HANDSHAKE_S
+    #: Which life of the module this is (0 at the first start; each restart adds one), so
+    #: that the records of its lives, each counting cycles from 0, can be told apart.
+    life: int = 0
 
     def __post_init__(self) -> None:
         if self.driver not in DRIVERS:
@@ -133,6 +136,7 @@ class ModuleConfig:
             ("driver", str),
             ("trace", bool),
             ("status_every", int),
+            ("life", int),
         ):
             if name in obj:
                 kw[name] = _typed(obj, name, kind)

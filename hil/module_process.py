@@ -180,6 +180,7 @@ class ModuleHost:
     def _flush(self) -> None:
         rt = self.runtime
         for rec in rt.records:
+            rec["life"] = self.config.life
             self.report(TraceRecord(rec))
         rt.records.clear()
         for kind, args in rt.effects:

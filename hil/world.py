@@ -36,6 +36,7 @@ import queue
 import random
 import time
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from dh2rt import docking
@@ -141,6 +142,8 @@ class World:
             raise
         self.reports: Reports = queue.Queue()
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
+        #: how many times each module was started (a restart starts a new life)
+        self.lives = [0] * topology.size
         self.handles: list[ModuleHandle | None] = [None] * topology.size
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[int, Effect]] = []
@@ -181,7 +184,8 @@ class World:
         )
 
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
-        config = self.config(module, cycles, phase)
+        config = replace(self.config(module, cycles, phase), life=self.lives[module])
+        self.lives[module] += 1
         with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
             self.handles[module] = start_module(config, self.reports, thread=self.threads)
         v = self.views[module]

@@ -193,12 +193,19 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
     assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
 
 
-def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str]) -> None:
+def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    trace = tmp_path / "t.jsonl"
     code = cli.main(
         ["--transport", "serial", "--module-count", "4", "--cycles", "150", "--cycle-ms", "20",
-         "--event", "30:kill:m2", "--event", "70:restart:m2", "--json", "--stand-in", "recording"]
+         "--event", "30:kill:m2", "--event", "70:restart:m2", "--json", "--stand-in", "recording",
+         "--trace", str(trace)]
     )  # fmt: skip
     assert code == 0
+    lives: dict[str, set[int]] = {}
+    for line in trace.read_text().splitlines():
+        rec = json.loads(line)
+        lives.setdefault(rec["name"], set()).add(rec["life"])
+    assert lives == {"m0": {0}, "m1": {0}, "m2": {0, 1}, "m3": {0}}  # the restart is a second life
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     rows = {m["name"]: m for m in summary["modules"]}
     assert [rows[n]["state"] for n in ("m0", "m1", "m2", "m3")] == ["done"] * 4
