@@ -218,6 +218,14 @@ def _main(argv: list[str] | None) -> int:
         if ns.cycles is not None:
             check_events(events, topology, ns.cycles)
         kind, _ = parse_transport_spec(ns.transport)
+        for option, value in (("--frame-loss", ns.frame_loss), ("--bit-error", ns.bit_error)):
+            if not 0.0 <= value <= 1.0:
+                raise OptionError(f"{option} {value}: a probability, from 0 to 1")
+            if value and kind != "serial":
+                raise OptionError(
+                    f"{option} {value}: only the serial link emulator can lose or corrupt frames; "
+                    f"--transport {ns.transport} carries them as its medium does"
+                )
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE

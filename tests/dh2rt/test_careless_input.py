@@ -134,3 +134,20 @@ def test_long_source_lines_are_shown_around_the_error(tmp_path: Path, capsys: py
     source, caret = err.splitlines()[1:3]
     assert len(source) < 120 and source.strip().startswith("...")
     assert source[caret.index("^")] == "?"  # the caret still points at the culprit
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--transport", "inproc", "--frame-loss", "0.1"], ["--frame-loss 0.1", "serial link emulator"]),
+        (["--transport", "serial", "--bit-error", "2"], ["--bit-error 2.0", "probability"]),
+        (["--transport", "inproc", "--cycles", "50", "--event", "80:kill:m1"], ["80:kill:m1", "last cycle is 49"]),
+        (["--transport", "inproc", "--event", "5:cut:m0.front", "--cycles", "20"], ["5:cut:m0.front", "nothing"]),
+    ],
+)
+def test_launcher_careless_input(argv: list[str], words: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    for word in words:
+        assert word in err, (word, err)
+    assert "Traceback" not in err
