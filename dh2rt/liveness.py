@@ -86,12 +86,11 @@ class Liveness:
 
     # ------------------------------------------------------------ connectors
 
-    def attach(self, connector: int) -> Beacon:
-        """A connector was attached: announce this module's program through it at once.
-        This Hello does not count against the answer limit (the peer may not listen yet)."""
-        link = self._links[connector] = _Link()
-        link.hello_due = False
-        return Beacon(connector, Hello(self.digest))
+    def attach(self, connector: int) -> None:
+        """A connector was attached: its next beacon is a Hello announcing this module's
+        program. Not one at once: the peer may not listen yet, and a frame sent to nobody is
+        a frame nobody can account for."""
+        self._links[connector] = _Link()
 
     def detach(self, connector: int) -> None:
         self._links.pop(connector, None)

@@ -141,7 +141,7 @@ class ModuleRuntime:
             self.transport.attach(connector, end)  # type: ignore[arg-type]  # serial takes a URL
         else:
             self.transport.attach(connector, end)
-        self._send(self.liveness.attach(connector))
+        self.liveness.attach(connector)
 
     def detach(self, connector: int) -> None:
         """Detach ``connector``; the engine senses the link gone at once."""
@@ -370,6 +370,16 @@ class ModuleRuntime:
             deadline += period
             self._wait_until(deadline, sleep)
         return done
+
+    def drain(self, seconds: float) -> int:
+        """After the last cycle: take in what the neighbours sent in their last cycles, for
+        ``seconds``, without acting on it, so that every frame sent is counted received (or
+        corrupted) by someone. Returns how many frames came in."""
+        deadline = self.clock() + seconds
+        got = 0
+        while (left := deadline - self.clock()) > 0:
+            got += len(self.transport.poll(left))
+        return got
 
     def _wait_until(self, deadline: float, sleep: Callable[[float], None] | None) -> None:
         while True:

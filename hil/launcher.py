@@ -344,6 +344,12 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
                 f"module {v.name} started {late * 100 // cycles}% of its cycles late (more than "
                 f"{LATE_SHARE:.0%}): {_suggest_period(world)}"
             )
+    frames = world.frame_accounting()
+    if clean_links and not changes_links and frames["unaccounted"]:
+        out.append(
+            f"{frames['unaccounted']} frame(s) sent were counted nowhere: {frames['sent']} sent, "
+            f"{frames['received']} received, {frames['corrupted']} corrupted, {frames['dropped']} dropped"
+        )
     return out
 
 
@@ -420,6 +426,7 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: l
         summary = {
             "problems": wrong,
             "log_file": str(log_path),
+            "frames": world.frame_accounting(),
             "transport": world.spec,
             "stand_in": world.stand_in,
             "displacement_m": world.physics.displacement() if world.physics is not None else None,
@@ -451,6 +458,12 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: l
         ):
             totals[k] = totals.get(k, 0) + int(r["counters"].get(k, 0))
     out.write("totals: " + ", ".join(f"{k} {v}" for k, v in totals.items()) + "\n")
+    f = world.frame_accounting()
+    out.write(
+        f"frames: {f['sent']} sent = {f['received']} received + {f['corrupted']} corrupted + {f['dropped']} dropped "
+        f"+ {f['lost_on_link']} lost on the links"
+        + (f" + {f['unaccounted']} unaccounted\n" if f["unaccounted"] else " (every frame accounted for)\n")
+    )
     if world.physics is not None:
         faults = sum(1 for r in rows if r.get("actuator_fault"))
         out.write(

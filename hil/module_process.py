@@ -61,6 +61,8 @@ from hil.control import (
 )
 
 Reporter = Callable[[Report], None]
+#: Cycle periods a module keeps reading after its last cycle (see ModuleRuntime.drain).
+DRAIN_PERIODS = 3
 
 
 def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
@@ -140,6 +142,8 @@ class ModuleHost:
                     # after its neighbours stopped and takes their silence for a lost link
                     until = start_at + self.cycles * self.config.cycle_period
                     rt.run(None, self.stop_event, self._on_cycle, until=until)
+                    # what the neighbours sent in their last cycles is counted, not lost
+                    rt.drain(DRAIN_PERIODS * self.config.cycle_period)
                 else:
                     rt.run(self.cycles, self.stop_event, self._on_cycle)
         except Exception as exc:  # report it to the world rather than die silently

@@ -155,6 +155,7 @@ class World:
         self._pending: list[tuple[int, Callable[[], None]]] = []  # (world cycle, effect)
         self._go_at: float | None = None
         self._closed = False
+        self._lost_on_link: int | None = None
         for lk in topology.links:
             self.link_map.add(lk.a, lk.a_conn, lk.b, lk.b_conn)
 
@@ -412,6 +413,29 @@ class World:
         """One row per module for the status table and the summary (see hil.status)."""
         return status_rows(self.views)
 
+    def frame_accounting(self) -> dict[str, int]:
+        """Where every frame went, counted where it happened: sent by the modules' transports;
+        received, corrupted (failed COBS/CRC) or dropped (over-long) by their decoders; lost
+        on a serial link by the emulator. ``unaccounted`` is what none of those counted (0 on a
+        run whose modules stopped together and read their neighbours' last frames)."""
+        totals = {"sent": 0, "received": 0, "corrupted": 0, "dropped": 0, "lost_on_link": 0}
+        for v in self.views:
+            c = v.status.get("counters", {})
+            for key in ("sent", "received", "corrupted", "dropped"):
+                totals[key] += int(c.get(f"frames_{key}", 0))
+        totals["lost_on_link"] = self._frames_lost_on_link()
+        totals["unaccounted"] = totals["sent"] - sum(
+            totals[k] for k in ("received", "corrupted", "dropped", "lost_on_link")
+        )
+        return totals
+
+    def _frames_lost_on_link(self) -> int:
+        if self.emulator is None:
+            return 0
+        if self._lost_on_link is None:  # read once the links are closed: kept from stop()
+            return sum(self.emulator.stats(i).frames_lost for i in self.link_map.links)
+        return self._lost_on_link
+
     def sorted_records(self) -> list[dict[str, Any]]:
         """Trace records merged from the modules, by cycle then module."""
         return sorted(self.records, key=lambda r: (r["cycle"], r["module"]))
@@ -433,6 +457,7 @@ class World:
                 h.end(grace=1.0)
         self.poll()
         if self.emulator is not None:
+            self._lost_on_link = self._frames_lost_on_link()
             self.emulator.close()
         if self.physics is not None:
             self.physics.close()

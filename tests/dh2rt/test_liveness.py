@@ -31,8 +31,7 @@ class Cycle:
 
 def run_script(script: list[Cycle], silence: int = SILENCE_CYCLES) -> Liveness:
     lv = Liveness(MINE, silence)
-    first = lv.attach(1)
-    assert first == Beacon(1, Hello(MINE))
+    lv.attach(1)
     for n, cyc in enumerate(script):
         verdicts = [lv.receive(1, f, n) for f in cyc.frames]
         if cyc.verdicts is not None:
@@ -116,7 +115,7 @@ def test_reverification_after_redock() -> None:
     assert lv.receive(1, HELLO, 0) is Verdict.HEARD
     lv.detach(1)
     assert lv.receive(1, KEEP, 1) is Verdict.UNATTACHED
-    assert lv.attach(1) == Beacon(1, Hello(MINE))
+    lv.attach(1)  # announced by the next beacon, not at once: the peer may not listen yet
     assert lv.receive(1, KEEP, 2) is Verdict.IGNORED
     assert lv.beacons(set(), 2) == [Beacon(1, Hello(MINE))]
     assert lv.receive(1, HELLO, 3) is Verdict.HEARD

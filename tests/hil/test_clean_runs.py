@@ -39,3 +39,5 @@ def test_three_clean_runs_in_a_row(transport: str, tmp_path: Path) -> None:
         if transport != "serial":  # modules as threads: no servo read may fail at all
             assert not faults, faults
         assert summary["displacement_m"] > 0.2, run  # the snake crawled
+        frames = summary["frames"]  # every frame accounted for, where it happened
+        assert frames["unaccounted"] == 0 and frames["sent"] == frames["received"] > 4000, frames
