@@ -41,6 +41,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
+from dh2rt import docking
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import DriverError
 from dh2rt.hormone import Arrival, Emission, Hormone
@@ -78,6 +79,7 @@ class RuntimeCounters:
     keepalives_sent: int = 0
     hellos_sent: int = 0
     late_cycles: int = 0
+    lost_in_flight: int = 0
     hormones_sent: int = 0
     hormones_received: int = 0
     actuator_faults: int = 0
@@ -144,9 +146,13 @@ class ModuleRuntime:
         self.liveness.attach(connector)
 
     def detach(self, connector: int) -> None:
-        """Detach ``connector``; the engine senses the link gone at once."""
+        """Detach ``connector``; the engine senses the link gone at once, and what had come
+        in through it but was not yet taken in is lost in flight (dh2rt.docking's rule)."""
         self.transport.detach(connector)
         self.liveness.detach(connector)
+        self._pending, lost = docking.without_in_flight(self._pending, connector)
+        self._heard.discard(connector)
+        self.stats.lost_in_flight += lost
         if self.engine.status[connector - 1]:
             self.engine.link_down(connector)
 
@@ -413,6 +419,7 @@ class ModuleRuntime:
             "links_lost": lv.links_lost,
             "beacons_missed": lv.beacons_missed,
             "late_cycles": s.late_cycles,
+            "lost_in_flight": s.lost_in_flight,
             "hormones_sent": s.hormones_sent,
             "hormones_received": s.hormones_received,
             **{f"engine_{k}": v for k, v in self.engine.counters.items()},

@@ -186,3 +186,21 @@ def test_detach_drops_the_link_at_once(caterpillar: CompiledProgram, closing: li
     a.detach(BACK)
     assert a.engine.status[BACK - 1] == 0
     assert not a.transport.send(BACK, Hormone("X", ("A",)))
+
+
+def test_frames_waiting_at_a_detached_connector_are_lost_in_flight(caterpillar: CompiledProgram) -> None:
+    """What came in through a connector between two cycles and was not yet taken in dies
+    with the link when it is detached: it must not set ConnectorStatus back to the dead link."""
+    a, b = snake(caterpillar, 2)
+    try:
+        step_all([a, b], 3)  # Hellos exchanged: both verified
+        assert b.engine.status[FRONT - 1] == BACK
+        a.step()  # a beacons through its back
+        b._absorb(b.transport.poll(0.0))  # b waits between cycles: frames kept for its next one
+        b.detach(FRONT)
+        b.step()
+        assert b.engine.status[FRONT - 1] == 0
+        assert b.counters["lost_in_flight"] >= 1
+    finally:
+        a.close()
+        b.close()
