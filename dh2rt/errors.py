@@ -20,7 +20,8 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── EncodeError                     (local) a frame this side asked for breaks a wire limit
     │   │   └── FrameEncodeError (HormoneError)  a hormone frame breaks a wire limit
     │   ├── DecodeError                     (remote) bytes from a link or a file do not decode
-    │   │   └── FrameCorrupted              a frame failed its CRC or framing
+    │   │   ├── FrameCorrupted              a frame failed its CRC or framing
+    │   │   └── CaptureError                a capture file is not what it claims, or is cut short
     │   └── DxlProtocolError                Dynamixel Protocol 2.0 packets
     │       ├── DxlEncodeError (EncodeError)     values that make no valid packet
     │       └── DxlDecodeError (DecodeError)     bytes that are no valid packet
@@ -156,6 +157,11 @@ class DecodeError(CodecError):
 
 class FrameCorrupted(DecodeError):
     """A frame failed its CRC or its framing."""
+
+
+class CaptureError(DecodeError):
+    """A capture file is not what it claims, or is cut short; the message names the file and
+    the offset or record."""
 
 
 class DxlProtocolError(CodecError):

@@ -1,0 +1,158 @@
+"""`dh2rt dump`: a real capture of two module runtimes on python-can's virtual bus, taken by
+python-can's own Logger in several formats (and as pcap), shown in DH2 terms; long hormones
+reassembled; bad capture files end with an error naming the file and the offset."""
+
+from __future__ import annotations
+
+import json
+import struct
+import tracemalloc
+from pathlib import Path
+
+import can
+import pytest
+
+from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
+from dh2rt.runtime import ModuleRuntime
+from dh2rt.testing import FakeClock, contract_codec, long_hormone
+from dh2rt.transport.base import BusEnd
+from dh2rt.transport.registry import open_transport
+from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
+from dh2rt.wire.frame import FrameCodec
+from tools.capture_files import read_can
+from tools.dump import main
+from tools.pcap import CapturedFrame, write_pcap
+
+ROOT = Path(__file__).resolve().parents[2]
+CATERPILLAR = str(ROOT / "examples" / "caterpillar.dh2")
+FRONT, BACK = 1, 2
+
+
+def capture(program: CompiledProgram, tmp_path: Path, suffix: str) -> Path:
+    """A head and a tail on a virtual bus for 45 cycles, every frame logged by python-can."""
+    channel = f"dump-{suffix[1:]}-{id(tmp_path):x}"
+    path = tmp_path / f"robot{suffix}"
+    tap = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    logger = can.Logger(str(path))
+    codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+    mods = [
+        ModuleRuntime(program, open_transport(f"virtual:{channel}", codec), clock=FakeClock(0.001), module=i)
+        for i in range(2)
+    ]
+    try:
+        mods[0].attach(BACK, BusEnd(5, 0))
+        mods[1].attach(FRONT, BusEnd(5, 1))
+        for _ in range(45):
+            for m in mods:
+                m.step()
+            while (msg := tap.recv(0)) is not None:  # what a listener on the bus sees, in order
+                logger.on_message_received(msg)
+    finally:
+        for m in mods:
+            m.close()
+        logger.stop()
+        tap.shutdown()
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+def test_dump_shows_the_traffic_in_dh2_terms(
+    suffix: str, caterpillar: CompiledProgram, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = capture(caterpillar, tmp_path, suffix)
+    assert main([str(path), "--program", CATERPILLAR]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    kinds = [line.split()[5] for line in lines]
+    assert "hello" in kinds and "keepalive" in kinds and "hormone" in kinds
+    hormones = [line for line in lines if " hormone " in line]
+    # the head (side 0 of link 5) sends the caterpillar's phases through its back
+    assert all("link    5 side 0" in h and "via back" in h for h in hormones)
+    assert {h.split()[6] for h in hormones} <= {"X(A)", "X(B)", "X(C)", "X(D)"}
+    assert "!!" not in "\n".join(lines)
+    assert main([str(path), "--program", CATERPILLAR, "--kind", "hormone", "--json"]) == 0
+    objs = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [o["text"] for o in objs] == [h.split()[6] for h in hormones]
+
+
+def test_long_hormones_are_reassembled_and_garbage_is_marked(
+    caterpillar: CompiledProgram, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dh2rt.testing import CONTRACT_VOCABULARY
+    from dh2rt.wire.can_frames import segment
+
+    del caterpillar
+    codec = contract_codec()
+    routed = long_hormone(12)
+    segments = segment(codec.encode(3, routed), 9, 1)
+    frames = [CapturedFrame(1.0 + i / 100, f.arbitration_id, f.data) for i, f in enumerate(segments)]
+    frames.append(CapturedFrame(2.0, make_arbitration_id(0, SINGLE, 0, 9, 0), b"\xff\xff"))  # not a frame
+    frames.append(CapturedFrame(2.1, 0x123, b"\x01", is_extended_id=False))  # not dh2rt's
+    pcap = tmp_path / "long.pcap"
+    write_pcap(pcap, frames)
+    program = tmp_path / "contract.dh2"
+    program.write_text(
+        "program contract\nconst ClockCycle = 4\nhormone X(a: A | B)\nhormone N(n: int)\n"
+        "hormone P(n: int, m: int, d: up | down)\n"
+    )
+    assert [s.name for s in CONTRACT_VOCABULARY.by_index] == ["X", "N", "P"]
+    assert main([str(pcap), "--program", str(program)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sum(" segment " in line for line in lines) == len(frames) - 3
+    reassembled = [line for line in lines if " routed " in line]
+    assert len(reassembled) == 1 and "P(-123456, 2147483647, down) (reassembled)" in reassembled[0]
+    assert "route" in reassembled[0] and "path" in reassembled[0]
+    assert sum("!!" in line for line in lines) == 2
+
+
+def test_bad_captures_name_the_file_and_offset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    good = tmp_path / "good.pcap"
+    write_pcap(good, [CapturedFrame(1.0, 5, b"\x01\x02"), CapturedFrame(2.0, 6, b"\x03")])
+    raw = good.read_bytes()
+    cases = {
+        "cut.pcap": (raw[:-1], "offset 50: record cut short"),
+        "header.pcap": (raw[:30], "offset 24: record header cut short"),
+        "garbage.pcap": (b"\x00" * 40, "offset 0: not a pcap file"),
+        "ether.pcap": (raw[:20] + struct.pack("<I", 1) + raw[24:], "offset 20: link type 1"),
+        "notes.txt": (b"hello", "unknown capture format .txt"),
+        "garbage.blf": (b"\x01" * 100, "offset 0: not a BLF file"),
+    }
+    for name, (data, words) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(data)
+        assert main([str(path), "--program", CATERPILLAR]) == 2, name
+        err = capsys.readouterr().err
+        assert str(path) in err and words in err and "Traceback" not in err, (name, err)
+    assert main([str(tmp_path / "missing.pcap"), "--program", CATERPILLAR]) == 2
+    assert "no such capture file" in capsys.readouterr().err
+
+
+def test_reading_is_streaming(tmp_path: Path) -> None:
+    """200,000 frames read with the memory of a few: the reader holds one record at a time."""
+    path = tmp_path / "big.pcap"
+    hormone = Hormone("X", ("A",))
+    payload = contract_codec().encode(2, hormone)
+    can_id = make_arbitration_id(0, SINGLE, 0, 3, 0)
+    write_pcap(path, (CapturedFrame(i / 1000, can_id, payload) for i in range(200_000)))
+    tracemalloc.start()
+    count = sum(1 for _ in read_can(path))
+    _current, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert count == 200_000
+    assert peak < 1_000_000, peak  # bytes: constant, not proportional to the 5 MB file
+
+
+def test_a_capture_without_frames_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """python-can's text readers skip lines they cannot parse: a file of such lines has no
+    frames, and dump says that rather than printing nothing."""
+    path = tmp_path / "notes.asc"
+    path.write_text("this is not a log\nnor is this\n")
+    assert main([str(path), "--program", CATERPILLAR]) == 0
+    assert "no CAN frames" in capsys.readouterr().err
+
+
+def test_help_through_the_umbrella_command(capsys: pytest.CaptureFixture[str]) -> None:
+    from dh2rt.cli import main as dh2rt
+
+    assert dh2rt(["dump", "--help"]) == 0
+    assert "DH2 terms" in capsys.readouterr().out
