@@ -44,20 +44,25 @@ def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -
     target.write(struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN))
     count = 0
     for fr in frames:
-        can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
-        if fr.is_extended_id:
-            can_id |= CAN_EFF_FLAG
-        if fr.is_remote_frame:
-            can_id |= CAN_RTR_FLAG
-        if fr.is_error_frame:
-            can_id |= CAN_ERR_FLAG
-        fd_flags = (FD_FDF | (FD_BRS if fr.bitrate_switch else 0)) if fr.is_fd else 0
-        body = struct.pack(">IBBxx", can_id, len(fr.data), fd_flags) + bytes(fr.data)
-        sec = int(fr.timestamp)
-        usec = min(round((fr.timestamp - sec) * 1e6), 999_999)
-        target.write(struct.pack("<IIII", sec, usec, len(body), len(body)) + body)
+        target.write(_record(fr))
         count += 1
     return count
+
+
+def _record(fr: CapturedFrame) -> bytes:
+    """One pcap record: its 16-byte header, the 8-byte SocketCAN header, the data."""
+    can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
+    if fr.is_extended_id:
+        can_id |= CAN_EFF_FLAG
+    if fr.is_remote_frame:
+        can_id |= CAN_RTR_FLAG
+    if fr.is_error_frame:
+        can_id |= CAN_ERR_FLAG
+    fd_flags = (FD_FDF | (FD_BRS if fr.bitrate_switch else 0)) if fr.is_fd else 0
+    body = struct.pack(">IBBxx", can_id, len(fr.data), fd_flags) + bytes(fr.data)
+    sec = int(fr.timestamp)
+    usec = min(round((fr.timestamp - sec) * 1e6), 999_999)
+    return struct.pack("<IIII", sec, usec, len(body), len(body)) + body
 
 
 def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
@@ -108,3 +113,19 @@ def read_pcap(source: str | Path | BinaryIO) -> list[CapturedFrame]:
             )
         )
         index += 1
+
+
+class PcapWriter:
+    """A pcap file of link type 227 written frame by frame (a capture of any length)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self._fh: BinaryIO = open(path, "wb")  # noqa: SIM115 - closed by close()
+        self._fh.write(struct.pack("<IHHiIII", _PCAP_MAGIC_US, 2, 4, 0, 0, 0xFFFF, LINKTYPE_CAN_SOCKETCAN))
+        self.count = 0
+
+    def write(self, frame: CapturedFrame) -> None:
+        self._fh.write(_record(frame))
+        self.count += 1
+
+    def close(self) -> None:
+        self._fh.close()
