@@ -18,12 +18,18 @@ ROOT = Path(__file__).resolve().parents[2]
 #: their period with margin when the machine is also busy with other work (20 ms, the
 #: default, does on an idle machine: `make demo`).
 CYCLE_MS = 40
+#: A liveness bound of 6 cycles (240 ms): a module process that the scheduler leaves out for
+#: a quarter of a second on a machine busy with other work is not a lost link. The systematic
+#: losses this test found (synchronised servo reads, modules stopping one by one) showed at
+#: any bound.
+SILENCE = 6
 
 
 def launch(transport: str, tmp_path: Path, run: int) -> tuple[int, dict[str, Any], str]:
     cmd = [
         sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", "8",
-        "--cycles", "300", "--cycle-ms", str(CYCLE_MS), "--json", "--log", str(tmp_path / f"{transport}-{run}.log"),
+        "--cycles", "300", "--cycle-ms", str(CYCLE_MS), "--silence-cycles", str(SILENCE),
+        "--json", "--log", str(tmp_path / f"{transport}-{run}.log"),
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
     return proc.returncode, json.loads(proc.stdout), proc.stderr
