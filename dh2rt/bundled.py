@@ -5,20 +5,12 @@ from a plain ``pip install`` with no checkout around."""
 from __future__ import annotations
 
 from importlib.resources import as_file, files
-from importlib.resources.abc import Traversable
 
 from dh2rt.compiler import compile_file
 from dh2rt.program import CompiledProgram
 
 #: The programs shipped: the paper's caterpillar, legs-to-snake and one locomotion program.
 BUNDLED = ("caterpillar.dh2", "legs_to_snake.dh2", "locomotion.dh2")
-
-
-def bundled_program(name: str) -> Traversable:
-    """A shipped program's resource (read it with ``read_text``)."""
-    if name not in BUNDLED:
-        raise KeyError(f"no bundled program {name!r} (bundled: {', '.join(BUNDLED)})")
-    return files("dh2rt") / "programs" / name
 
 
 def compile_bundled(name: str) -> CompiledProgram:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
-from dh2rt.errors import DecodeError
+from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.wire.can_frames import CLASSIC_DATA, FD_DATA
 
 LINKTYPE_CAN_SOCKETCAN = 227
@@ -49,9 +49,23 @@ def write_pcap(target: str | Path | BinaryIO, frames: Iterable[CapturedFrame]) -
     return count
 
 
+def _check(fr: CapturedFrame) -> None:
+    """A frame the file cannot hold as given is our mistake (EncodeError), not something to
+    mask or truncate into a different frame."""
+    id_limit = 0x1FFFFFFF if fr.is_extended_id else 0x7FF
+    if not 0 <= fr.arbitration_id <= id_limit:
+        raise EncodeError(f"pcap: CAN id {fr.arbitration_id:#x} is outside 0..{id_limit:#x}")
+    data_limit = FD_DATA if fr.is_fd else CLASSIC_DATA
+    if len(fr.data) > data_limit:
+        raise EncodeError(f"pcap: {len(fr.data)} data bytes exceed {data_limit}")
+    if not 0 <= fr.timestamp < 2**32:
+        raise EncodeError(f"pcap: timestamp {fr.timestamp} is outside the format's 32-bit seconds")
+
+
 def _record(fr: CapturedFrame) -> bytes:
     """One pcap record: its 16-byte header, the 8-byte SocketCAN header, the data."""
-    can_id = fr.arbitration_id & (0x1FFFFFFF if fr.is_extended_id else 0x7FF)
+    _check(fr)
+    can_id = fr.arbitration_id
     if fr.is_extended_id:
         can_id |= CAN_EFF_FLAG
     if fr.is_remote_frame:

@@ -171,11 +171,10 @@ class Parser:
 
     def parse_into(self, d: _Decls) -> None:
         while self.tok.kind != "eof":
-            start = self.tok
             if self.accept("program"):
                 d.name = self.ident("a program name").text
             elif self.accept("include"):
-                self.include(d, start)
+                self.include(d)
             elif self.accept("const"):
                 name = self.ident("a constant name")
                 self.expect("=")
@@ -209,7 +208,7 @@ class Parser:
                 raise self.error(f"expected a declaration ({_DECL_WORDS}), found {self.describe(self.tok)}")
             self.accept(";")
 
-    def include(self, d: _Decls, start: Token) -> None:
+    def include(self, d: _Decls) -> None:
         tok = self.tok
         if tok.kind != "string":
             raise self.error(f"expected a quoted file name after include, found {self.describe(tok)}")

@@ -38,8 +38,6 @@ CLASSIC_DATA = 8
 FD_DATA = 64
 #: Low 19 bits of the id: link id and side, what a receiver filters on.
 LINK_END_MASK = (1 << 19) - 1
-#: Largest payload the reassembler accepts.
-MAX_CAN_PAYLOAD = MAX_SEGMENTS * CLASSIC_DATA
 
 
 class CanId(NamedTuple):
@@ -60,7 +58,7 @@ class CanFrame(NamedTuple):
 
 
 def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: int) -> int:
-    """Pack the fields into a 29-bit id; raises ValueError naming a field out of range."""
+    """Pack the fields into a 29-bit id; raises EncodeError naming a field out of range."""
     for name, value, limit in (
         ("kind", kind, 3),
         ("segment", segment, 3),

@@ -102,7 +102,7 @@ class FrameCodec:
 
     def __init__(self, vocabulary: Vocabulary, connector_count: int = 4) -> None:
         if not 1 <= connector_count <= MAX_CONNECTORS:
-            raise ValueError(f"connector_count {connector_count} is outside 1..{MAX_CONNECTORS}")
+            raise FrameEncodeError(f"connector_count {connector_count} is outside 1..{MAX_CONNECTORS}")
         self.vocabulary = vocabulary
         self.connector_count = connector_count
         #: Bits per connector index in paths and routes (3 for CONRO's 4 connectors).

@@ -112,7 +112,7 @@ def test_check_warns_about_angles_and_missing_natives(tmp_path: Path, capsys: py
     assert "DOF2" not in err
 
 
-def test_the_console_script_prints_no_traceback(tmp_path: Path) -> None:
+def test_the_console_script_prints_no_traceback() -> None:
     exe = Path(sys.executable).with_name("dh2rt")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
     proc = subprocess.run(

@@ -16,10 +16,6 @@ from dh2rt.topology import Link, Topology, parse_spec
 SHAPES = ("snake:1", "snake:7", "snake:61", "ring:6", "ring:40", "t-shape", "hexapod", "octopod", "dragon")
 
 
-def neighbours_of(robot: Robot) -> list[list[int]]:
-    return [sorted({t[0] for t in adj if t is not None}) for adj in robot._adjacent]
-
-
 def shuffled(topo: Topology, seed: int) -> Topology:
     """The same robot with its modules numbered at random (no locality in the numbering)."""
     perm = list(range(topo.size))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.errors import CodecError
+from dh2rt.errors import CodecError, EncodeError
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
 from tools.pcap import CapturedFrame, read_pcap, write_pcap
 
@@ -41,3 +41,19 @@ def test_read_pcap_errors() -> None:
     write_pcap(good, [CapturedFrame(1.0, 5, b"\x01\x02")])
     with pytest.raises(CodecError, match="record 0"):
         read_pcap(io.BytesIO(good.getvalue()[:-1]))
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        CapturedFrame(1.0, 0x800, b"", is_extended_id=False),
+        CapturedFrame(1.0, 1 << 29, b""),
+        CapturedFrame(1.0, 5, bytes(9)),
+        CapturedFrame(1.0, 5, bytes(65), is_fd=True),
+        CapturedFrame(-1.0, 5, b""),
+    ],
+)
+def test_write_pcap_refuses_frames_it_cannot_hold(frame: CapturedFrame) -> None:
+    """Local errors: never a masked id or a struct.error, always EncodeError (a ValueError)."""
+    with pytest.raises(EncodeError):
+        write_pcap(io.BytesIO(), [frame])
