@@ -19,10 +19,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err, load_program
-from dh2rt.errors import CaptureError, ProgramError
+from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
+from dh2rt.errors import CaptureError
 from tools.can_decode import KINDS, decode_can
 from tools.capture_files import read_can
+from tools.reading import options_and_program
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,15 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    try:
-        ns = parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
-    try:
-        program = load_program(ns.program)
-    except ProgramError as exc:
-        print(exc.render(), file=sys.stderr)
-        return EXIT_USAGE
+    started = options_and_program(parser, argv)
+    if isinstance(started, int):
+        return started
+    ns, program = started
     out = sys.stdout
     seen = 0
     try:

@@ -17,16 +17,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err, load_program
-from dh2rt.errors import CaptureError, ProgramError
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
+from dh2rt.errors import CaptureError
 from dh2rt.hormone import Path as HormonePath
 from tools.can_decode import Hop, decode_can
 from tools.capture_files import read_can
+from tools.reading import options_and_program
 
 
 @dataclass
@@ -88,15 +88,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--program", type=Path, required=True, help="the .dh2 program the robot ran")
     p.add_argument("--at", type=float, default=0.0, help="follow the first one sent at or after this time (s)")
     p.add_argument("--json", action="store_true", help="the journey as JSON")
-    try:
-        ns = p.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
-    try:
-        program = load_program(ns.program)
-    except ProgramError as exc:
-        print(exc.render(), file=sys.stderr)
-        return EXIT_USAGE
+    started = options_and_program(p, argv)
+    if isinstance(started, int):
+        return started
+    ns, program = started
     try:
         hops = [h for h in decode_can(read_can(ns.capture), program.vocabulary, program.profile) if h.hormone]
     except CaptureError as exc:

@@ -11,17 +11,17 @@ times and sizes.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err, load_program
-from dh2rt.errors import CaptureError, ProgramError
+from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
+from dh2rt.errors import CaptureError
 from tools.can_decode import decode_can
 from tools.capture_files import CanRecord, read_can
+from tools.reading import options_and_program
 
 
 def frame_bits(data_bytes: np.ndarray) -> np.ndarray:
@@ -43,15 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    try:
-        ns = parser.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
-    try:
-        program = load_program(ns.program)
-    except ProgramError as exc:
-        print(exc.render(), file=sys.stderr)
-        return EXIT_USAGE
+    started = options_and_program(parser, argv)
+    if isinstance(started, int):
+        return started
+    ns, program = started
     times: list[float] = []
     sizes: list[int] = []
     per: Counter[tuple[int | None, str]] = Counter()
