@@ -90,3 +90,11 @@ def test_stats_counts_links_kinds_load_and_errors(
     assert f"({bits:,} bits)" in out and f"{bits / 1_000_000:.1%}" in out
     assert "     2 hormone         101     101.0" in out
     assert "errors: 1 frame(s)" in out
+
+
+@pytest.mark.parametrize("command", ["capture", "stats", "follow"])
+def test_help_of_each_capture_command(command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from dh2rt.cli import main as dh2rt
+
+    assert dh2rt([command, "--help"]) == 0
+    assert f"usage: dh2rt {command}" in capsys.readouterr().out
