@@ -12,6 +12,7 @@ cannot be opened; the message names it).
 from __future__ import annotations
 
 import argparse
+import copy
 import signal
 import sys
 import threading
@@ -51,6 +52,8 @@ class _Sink:
     def __init__(self, path: Path) -> None:
         self.pcap: PcapWriter | None = None
         self.logger: Any = None
+        #: BLF and ASC number their channels; other formats keep python-can's channel as it is
+        self.numbered_channels = path.suffix.lower() in (".blf", ".asc")
         if path.suffix.lower() == ".pcap":
             self.pcap = PcapWriter(path)
         else:
@@ -72,6 +75,8 @@ class _Sink:
             )
             self.pcap.write(frame)
         else:
+            if self.numbered_channels:
+                msg = _numbered(msg)
             self.logger.on_message_received(msg)
 
     def close(self) -> None:
@@ -79,6 +84,20 @@ class _Sink:
             self.pcap.close()
         if self.logger is not None:
             self.logger.stop()
+
+
+def _numbered(msg: Any) -> Any:
+    """``msg`` with a channel BLF and ASC can number: python-can makes a number of the digits
+    in a channel's name (``vcan0`` is 0), and a name such as ``robot-2026`` would not fit the
+    formats' 16 bits; such a frame is logged with no channel rather than not at all."""
+    from can.util import channel2int
+
+    number = channel2int(msg.channel)
+    if number is not None and 0 <= number < 0xFFFF:
+        return msg
+    plain = copy.copy(msg)
+    plain.channel = None
+    return plain
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -31,7 +31,7 @@ FRONT, BACK = 1, 2
 
 def capture(program: CompiledProgram, tmp_path: Path, suffix: str) -> Path:
     """A head and a tail on a virtual bus for 45 cycles, every frame logged by python-can."""
-    channel = f"dump-{suffix[1:]}-{id(tmp_path):x}"
+    channel = f"dump-{suffix[1:]}-robot"  # no digits: BLF and ASC would make a channel number of them
     path = tmp_path / f"robot{suffix}"
     tap = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     logger = can.Logger(str(path))
