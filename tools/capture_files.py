@@ -1,21 +1,31 @@
-"""Reading CAN captures, streaming: pcap (link type 227, as Wireshark and ``tools.pcap``
-write it) and every log format python-can reads (candump ``.log``, ``.asc``, ``.blf``,
-``.csv``, ``.trc``, through ``can.LogReader``). Frames come one at a time, so memory stays
-constant whatever the length of the capture.
+"""Reading captures, streaming: pcapng (CAN frames and the serial links' frames, with the
+program images in its section header, as :mod:`tools.pcapng` writes it), pcap (link type
+227) and every log format python-can reads (candump ``.log``, ``.asc``, ``.blf``, ``.csv``,
+``.trc``, through ``can.LogReader``). Frames come one at a time, so memory stays constant
+whatever the length of the capture.
+
+A capture in a format with no room for program images has them in a sidecar file beside it,
+``CAPTURE.programs.json`` (:func:`write_sidecar`).
 
 A file that is not what it claims, or ends in the middle of a record, raises
-:class:`~dh2rt.errors.CaptureError` naming the file and the byte offset (pcap) or the record.
+:class:`~dh2rt.errors.CaptureError` naming the file and the byte offset (pcap, pcapng) or
+the record.
 """
 
 from __future__ import annotations
 
+import json
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO, NamedTuple
 
-from dh2rt.errors import CaptureError
+from dh2rt.errors import CaptureError, DecodeError
+from dh2rt.lang.image import MAGIC as IMAGE_MAGIC
+from tools import serial_records
 from tools.pcap import CAN_EFF_FLAG, LINKTYPE_CAN_SOCKETCAN
+from tools.pcapng import LINKTYPE_USER0, PcapngReader
+from tools.serial_records import SerialRecord
 
 _PCAP_MAGICS = {0xA1B2C3D4: 1e-6, 0xA1B23C4D: 1e-9}
 #: The suffixes python-can's LogReader knows (and what it makes of them).
@@ -31,8 +41,89 @@ class CanRecord(NamedTuple):
     is_extended_id: bool
 
 
+#: What a capture holds: CAN frames, and frames of the emulated serial links.
+Record = CanRecord | SerialRecord
+SIDECAR_SUFFIX = ".programs.json"
+SIDECAR_FORMAT = "dh2rt-capture-programs"
+
+
+def read_records(path: Path) -> Iterator[Record]:
+    """The frames of a capture file, in file order: CAN frames and serial link frames."""
+    if path.suffix.lower() == ".pcapng":
+        if not path.exists():
+            raise CaptureError(f"{path}: no such capture file")
+        with path.open("rb") as fh:
+            yield from _read_pcapng(fh, path)
+        return
+    yield from read_can(path)
+
+
+def _read_pcapng(fh: BinaryIO, path: Path) -> Iterator[Record]:
+    reader = PcapngReader(fh, path)
+    reader.read_header()
+    for packet in reader:
+        if packet.linktype == LINKTYPE_CAN_SOCKETCAN:
+            if len(packet.data) < 8:
+                raise CaptureError(f"{path}: offset {packet.offset}: CAN packet of {len(packet.data)} bytes")
+            can_id, length = struct.unpack(">IB", packet.data[:5])
+            if length > len(packet.data) - 8:
+                raise CaptureError(f"{path}: offset {packet.offset}: CAN frame claims {length} bytes")
+            extended = bool(can_id & CAN_EFF_FLAG)
+            can_id &= 0x1FFFFFFF if extended else 0x7FF
+            yield CanRecord(packet.timestamp, can_id, packet.data[8 : 8 + length], extended)
+        elif packet.linktype == LINKTYPE_USER0:
+            try:
+                yield serial_records.unpack(packet.timestamp, packet.data)
+            except DecodeError as exc:
+                raise CaptureError(f"{path}: offset {packet.offset}: {exc}") from None
+        else:
+            raise CaptureError(
+                f"{path}: offset {packet.offset}: link type {packet.linktype} is neither CAN (227) "
+                f"nor dh2rt serial ({LINKTYPE_USER0})"
+            )
+
+
+def capture_programs(path: Path) -> list[bytes]:
+    """The program images a capture carries: in a pcapng's section header, or in the sidecar."""
+    if path.suffix.lower() == ".pcapng":
+        if not path.exists():
+            raise CaptureError(f"{path}: no such capture file")
+        with path.open("rb") as fh:
+            reader = PcapngReader(fh, path)
+            reader.read_header()
+            return [c for c in reader.comments if c.startswith(IMAGE_MAGIC)]
+    sidecar = sidecar_path(path)
+    if not sidecar.exists():
+        return []
+    try:
+        doc = json.loads(sidecar.read_text(encoding="utf-8"))
+        if doc.get("format") != SIDECAR_FORMAT:
+            raise ValueError(f"format is {doc.get('format')!r}, expected {SIDECAR_FORMAT!r}")
+        return [str(p["image"]).encode("ascii") for p in doc["programs"]]
+    except (ValueError, KeyError, TypeError, AttributeError, UnicodeError) as exc:
+        raise CaptureError(f"{sidecar}: not a dh2rt programs file ({exc})") from None
+
+
+def sidecar_path(path: Path) -> Path:
+    return path.with_name(path.name + SIDECAR_SUFFIX)
+
+
+def write_sidecar(path: Path, programs: Sequence[bytes]) -> Path:
+    """Write the program images of the capture ``path`` beside it; returns the sidecar's path."""
+    from dh2rt.wire.frame import program_digest
+
+    doc = {
+        "format": SIDECAR_FORMAT,
+        "version": 1,
+        "programs": [{"digest": program_digest(p).hex(), "image": p.decode("ascii")} for p in programs],
+    }
+    target = sidecar_path(path)
+    target.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return target
+
+
 def read_can(path: Path) -> Iterator[CanRecord]:
-    """The frames of a capture file, in file order."""
+    """The CAN frames of a pcap or python-can log file, in file order."""
     if not path.exists():
         raise CaptureError(f"{path}: no such capture file")
     suffix = path.suffix.lower()
@@ -43,7 +134,7 @@ def read_can(path: Path) -> Iterator[CanRecord]:
     if suffix in PYTHON_CAN_SUFFIXES:
         yield from _read_python_can(path)
         return
-    known = ", ".join((".pcap", *PYTHON_CAN_SUFFIXES))
+    known = ", ".join((".pcapng", ".pcap", *PYTHON_CAN_SUFFIXES))
     raise CaptureError(f"{path}: unknown capture format {suffix or '(no suffix)'} (known: {known})")
 
 

@@ -1,11 +1,12 @@
-"""``dh2rt dump CAPTURE --program PROGRAM``: a robot's CAN traffic, one line per frame, like
-candump but in DH2 terms (link and side, kind, the hormone as text with its path; segments
-reassembled; frames that do not decode marked ``!!`` with the reason).
+"""``dh2rt dump CAPTURE``: a robot's traffic, one line per frame, like candump but in DH2
+terms (link and side, kind, the hormone as text with its path; segments reassembled; frames
+that do not decode, or that a serial link lost, marked ``!!`` with the reason).
 
-Reads pcap (link type 227) and every log format python-can reads (``.log``, ``.asc``,
-``.blf``, ``.csv``, ``.trc``), streaming. The program gives the hormones their names (the
-same vocabulary the robot ran). Filters: ``--link``, ``--kind``, ``--hormone``; ``--json``
-prints one JSON object per frame.
+Reads pcapng (CAN and serial link frames, as ``dh2rt --capture`` writes it), pcap (link type
+227) and every log format python-can reads (``.log``, ``.asc``, ``.blf``, ``.csv``,
+``.trc``), streaming. The programs the capture carries give the hormones their names;
+``--program`` names one for a capture that carries none. Filters: ``--link``, ``--kind``,
+``--hormone``; ``--json`` prints one JSON object per frame.
 
 Exit codes: 0 ok, 2 bad input (a capture or program that cannot be read: the message names
 the file and the offset or position), 130 interrupted.
@@ -21,19 +22,20 @@ from pathlib import Path
 
 from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
-from tools.can_decode import KINDS, decode_can
-from tools.capture_files import read_can
-from tools.reading import options_and_program
+from tools.decode import KINDS
+from tools.reading import PROGRAM_HELP, options_and_capture
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dh2rt dump",
-        description="Show a capture of a robot's CAN traffic in DH2 terms, one line per frame.",
-        epilog="Example: dh2rt dump robot.log --program examples/caterpillar.dh2 --kind hormone",
+        description="Show a capture of a robot's traffic in DH2 terms, one line per frame.",
+        epilog="Example: dh2rt dump robot.pcapng --kind hormone --link 3",
     )
-    p.add_argument("capture", type=Path, help="a pcap (link type 227) or a python-can log (.log .asc .blf ...)")
-    p.add_argument("--program", type=Path, required=True, help="the .dh2 program the robot ran (names its hormones)")
+    p.add_argument(
+        "capture", type=Path, help="a pcapng or pcap, or a python-can log (.log .asc .blf ...)"
+    )
+    p.add_argument("--program", type=Path, help=PROGRAM_HELP)
     p.add_argument("--link", type=int, action="append", help="only this link id (repeatable)")
     p.add_argument("--kind", choices=(*KINDS, "segment", "error"), action="append", help="only this kind (repeatable)")
     p.add_argument("--hormone", action="append", help="only hormones of this name (repeatable)")
@@ -43,14 +45,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    started = options_and_program(parser, argv)
+    started = options_and_capture(parser, argv)
     if isinstance(started, int):
         return started
-    ns, program = started
+    ns, capture = started
+    profile = capture.program.profile
     out = sys.stdout
     seen = 0
     try:
-        for hop in decode_can(read_can(ns.capture), program.vocabulary, program.profile):
+        for hop in capture.hops():
             seen += 1
             if ns.link and hop.link not in ns.link:
                 continue
@@ -58,7 +61,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 continue
             if ns.hormone and (hop.hormone is None or hop.hormone.name not in ns.hormone):
                 continue
-            out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(program.profile)) + "\n")
+            out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(profile)) + "\n")
     except CaptureError as exc:
         out.flush()
         err(str(exc))
@@ -69,5 +72,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # `dh2rt dump ... | head`: the reader has what it wanted
         return EXIT_OK
     if not seen:
-        err(f"{ns.capture}: no CAN frames in it")
+        err(f"{ns.capture}: no frames in it")
     return EXIT_OK

@@ -1,4 +1,4 @@
-"""``dh2rt follow CAPTURE HORMONE --program PROGRAM [--at TIME]``: one hormone's journey,
+"""``dh2rt follow CAPTURE HORMONE [--at TIME]``: one hormone's journey,
 hop by hop, and where it ended.
 
 A hormone's path grows by one (sent through, received at) pair per hop, newest first, and no
@@ -24,9 +24,8 @@ from pathlib import Path
 from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
 from dh2rt.hormone import Path as HormonePath
-from tools.can_decode import Hop, decode_can
-from tools.capture_files import read_can
-from tools.reading import options_and_program
+from tools.decode import Hop
+from tools.reading import PROGRAM_HELP, options_and_capture
 
 
 @dataclass
@@ -85,15 +84,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("capture", type=Path)
     p.add_argument("hormone", help="NAME or its content NAME(args), e.g. LTS or X(A)")
-    p.add_argument("--program", type=Path, required=True, help="the .dh2 program the robot ran")
+    p.add_argument("--program", type=Path, help=PROGRAM_HELP)
     p.add_argument("--at", type=float, default=0.0, help="follow the first one sent at or after this time (s)")
     p.add_argument("--json", action="store_true", help="the journey as JSON")
-    started = options_and_program(p, argv)
+    started = options_and_capture(p, argv)
     if isinstance(started, int):
         return started
-    ns, program = started
+    ns, capture = started
+    program = capture.program
     try:
-        hops = [h for h in decode_can(read_can(ns.capture), program.vocabulary, program.profile) if h.hormone]
+        hops = [h for h in capture.hops() if h.hormone]
     except CaptureError as exc:
         err(str(exc))
         return EXIT_USAGE
