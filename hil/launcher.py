@@ -34,13 +34,14 @@ from types import FrameType
 from typing import IO, Any
 
 from dh2rt.bundled import compile_bundled
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options
+from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options, output_path
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
 from dh2rt.events import Event, check_events, parse_event
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
 from hil.supervisor import reap_exited_children
 from hil.world import World
@@ -49,6 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Set in the environment of a launcher re-executed inside its private network namespace.
 NETNS_ENV = "DH2RT_HIL_NETNS"
 NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
+#: What --capture writes (tools.capture_sink.SUFFIXES: this layer does not import tools/).
+CAPTURE_SUFFIXES = (".pcapng", ".pcap", ".log", ".asc", ".blf", ".csv", ".trc")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -90,6 +93,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_STAND_IN,
         help="the modules' body: pybullet (default; each module drives emulated Dynamixel servos whose joints "
         "are PyBullet joints, the full firmware path), recording (each module records its angles), none",
+    )
+    p.add_argument(
+        "--capture",
+        type=Path,
+        metavar="FILE",
+        help="record every frame on the robot's links: .pcapng (CAN and serial, the program inside; "
+        "open it with dh2rt dump or Wireshark), or on a bus .pcap, .log (candump -L), .blf, .asc",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
     p.add_argument(
@@ -226,6 +236,9 @@ def _main(argv: list[str] | None) -> int:
                     f"{option} {value}: only the serial link emulator can lose or corrupt frames; "
                     f"--transport {ns.transport} carries them as its medium does"
                 )
+        if ns.capture is not None:
+            ns.capture = output_path(ns.capture, "--capture", CAPTURE_SUFFIXES)
+            check_capture(ns.capture, kind, serial_ok=ns.capture.suffix.lower() == ".pcapng")
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
@@ -251,6 +264,13 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     tty = progress.isatty()
     log_path = ns.log or Path(tempfile.gettempdir()) / f"dh2rt-hil-{os.getpid()}.log"
     late_warned = False
+    capture: CaptureSink | None = None
+    try:
+        if ns.capture is not None:
+            capture = open_capture_sink(ns.capture, [program.image])
+    except (DH2Error, OSError) as exc:
+        _err(f"cannot write the capture: {exc}")
+        return EXIT_USAGE
     try:
         world = World(
             program,
@@ -265,8 +285,11 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             bit_error=ns.bit_error,
             emulator_seed=ns.seed,
             stand_in=ns.stand_in,
+            capture=capture,
         )
     except (DH2Error, OSError, ValueError) as exc:
+        if capture is not None:
+            capture.close()
         _err(f"cannot start the world: {exc}")
         return EXIT_USAGE
     interrupted = False
@@ -297,7 +320,11 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             world.stop()
         except KeyboardInterrupt:
             world.stop()
+        if capture is not None:
+            capture.close()
     elapsed = time.monotonic() - started
+    if capture is not None:
+        progress.write(f"capture: {capture.count} frames in {ns.capture}\n")
     if ns.trace is not None:
         _write_trace(ns.trace, world.sorted_records())
     wrong = problems(world, events, clean_links=ns.frame_loss == 0 and ns.bit_error == 0)

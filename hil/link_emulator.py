@@ -12,6 +12,12 @@ slave path ``link.paths[0]`` as its connector's serial port, the module at side 
 
 Random choices come from one ``random.Random(seed)``. ``close()`` stops the thread and
 closes every pty; close the modules' ports first (a slave whose master is gone reads EIO).
+
+A ``tap`` (the launcher's ``--capture``) sees every frame on every link, cut at the
+delimiter as the relay cuts them: ``tap(time, link_id, side, wire, lost)`` with the wall-clock
+time the frame left its sender, the side that sent it, and the bytes as delivered (after bit
+errors and byte loss) or, for a frame the link lost or that was sent into an undocked link,
+the bytes as sent with ``lost=True``. It runs on the relay thread: keep it short.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import selectors
 import threading
 import time
 import tty
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 from dh2rt.closing import Closing
@@ -34,6 +40,9 @@ from dh2rt.topology import Topology
 
 #: Bytes held while waiting for a delimiter before they are relayed as they are.
 _MAX_PENDING = 2048
+
+#: What sees every frame: ``tap(time, link_id, side_that_sent, wire_bytes, lost)``.
+Tap = Callable[[float, int, int, bytes, bool], None]
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,8 +112,10 @@ class LinkEmulator(Closing):
         latency: float = 0.0,
         jitter: float = 0.0,
         seed: int | None = None,
+        tap: Tap | None = None,
     ) -> None:
         self.default = Impairments(frame_loss, byte_loss, bit_error, latency, jitter)
+        self.tap = tap
         self._rng = random.Random(seed)
         self._lock = threading.Lock()
         self._links: dict[int, EmulatedLink] = {}
@@ -243,29 +254,48 @@ class LinkEmulator(Closing):
             if entry is None:
                 return
             link, side_index = entry
+            side = link.sides[side_index]
             if not link.docked:
                 link.stats.bytes_discarded += len(data)
+                if self.tap is not None:  # sent into an undocked link: the capture shows it lost
+                    side.pending += data
+                    for frame in self._frames(side.pending):
+                        self._tapped(link, side_index, frame, lost=True)
                 return
-            side = link.sides[side_index]
             target = link.sides[1 - side_index].master
             side.pending += data
             imp = link.impairments
             now = time.monotonic()
-            while True:
-                idx = side.pending.find(0)
-                if idx < 0:
-                    if len(side.pending) > _MAX_PENDING:  # no framing: pass bytes through
-                        chunk = bytes(side.pending)
-                        side.pending.clear()
-                        self._schedule(link, target, self._impair(link, chunk, imp), now, imp)
-                    return
-                frame = bytes(side.pending[: idx + 1])
-                del side.pending[: idx + 1]
-                link.stats.frames += 1
-                if len(frame) > 1 and imp.frame_loss and self._rng.random() < imp.frame_loss:
-                    link.stats.frames_lost += 1
-                    continue
-                self._schedule(link, target, self._impair(link, frame, imp), now, imp)
+            for frame in self._frames(side.pending):
+                if frame[-1] == 0:
+                    link.stats.frames += 1
+                    if len(frame) > 1 and imp.frame_loss and self._rng.random() < imp.frame_loss:
+                        link.stats.frames_lost += 1
+                        self._tapped(link, side_index, frame, lost=True)
+                        continue
+                delivered = self._impair(link, frame, imp)
+                self._tapped(link, side_index, delivered, lost=False)
+                self._schedule(link, target, delivered, now, imp)
+
+    @staticmethod
+    def _frames(pending: bytearray) -> list[bytes]:
+        """Cut ``pending`` at each delimiter (each frame keeps its 0x00); bytes with no
+        delimiter stay pending, unless there are more than _MAX_PENDING of them (no framing:
+        they pass through as one chunk)."""
+        out: list[bytes] = []
+        while True:
+            idx = pending.find(0)
+            if idx < 0:
+                if len(pending) > _MAX_PENDING:
+                    out.append(bytes(pending))
+                    pending.clear()
+                return out
+            out.append(bytes(pending[: idx + 1]))
+            del pending[: idx + 1]
+
+    def _tapped(self, link: EmulatedLink, side: int, wire: bytes, *, lost: bool) -> None:
+        if self.tap is not None and wire and wire != b"\x00":
+            self.tap(time.time(), link.link_id, side, wire, lost)
 
     def _impair(self, link: EmulatedLink, data: bytes, imp: Impairments) -> bytes:
         if not imp.byte_loss and not imp.bit_error:

@@ -46,7 +46,9 @@ from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
+from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from hil.capture_tap import BusTap, CaptureSink
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ModuleConfig
 from hil.control import (
     Attach,
@@ -72,6 +74,10 @@ from hil.supervisor import ModuleHandle, ProcessModule, Reports, deferred_interr
 
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
+#: The bus transports' channels when the spec names none.
+_DEFAULT_CHANNELS = {
+    cls.name: cls.default_channel for cls in (VirtualCanTransport, UdpCanTransport, SocketCanTransport)
+}
 
 if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
@@ -98,6 +104,7 @@ class World:
         handshake: float = DEFAULTS.handshake,
         start_delay: float = 0.3,
         stand_in: str = DEFAULT_STAND_IN,
+        capture: CaptureSink | None = None,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -121,9 +128,22 @@ class World:
             self.transport_spec = f"{self.kind}:{channel}"
         else:
             self.transport_spec = transport
+        #: where ``--capture`` writes the robot's frames (see hil.capture_tap), and the tap on a bus
+        self.capture = capture
+        self.bus_tap: BusTap | None = None
+        self._bus_channel = options.get("channel") or _DEFAULT_CHANNELS.get(self.kind)
+        if self.threads:
+            self._bus_channel = self.transport_spec.partition(":")[2]
         self.emulator: LinkEmulator | None = None
         if self.kind == "serial":
-            self.emulator = LinkEmulator(frame_loss=frame_loss, bit_error=bit_error, seed=emulator_seed)
+            tap = None
+            if capture is not None:
+                sink = capture
+
+                def tap(t: float, link: int, side: int, wire: bytes, lost: bool) -> None:
+                    sink.serial_frame(t, link, side, wire, lost=lost)
+
+            self.emulator = LinkEmulator(frame_loss=frame_loss, bit_error=bit_error, seed=emulator_seed, tap=tap)
         #: The modules' body: "recording" (each module records its commanded angles),
         #: "pybullet" (the full firmware path: Dynamixel servos emulated on ptys whose joints
         #: are PyBullet joints; see hil.physics_stand_in) or "none".
@@ -194,6 +214,9 @@ class World:
 
     def start(self, ready_timeout: float = 30.0) -> None:
         """Start every module, wait until all have attached their links, then say ``go``."""
+        if self.capture is not None and self.kind in _DEFAULT_CHANNELS and self.bus_tap is None:
+            assert self._bus_channel is not None
+            self.bus_tap = BusTap(self.kind, self._bus_channel, self.capture)  # before any module speaks
         for m in range(self.topology.size):
             self._spawn(m, self.cycles, self.phases[m])
         deadline = time.monotonic() + ready_timeout
@@ -461,6 +484,8 @@ class World:
             self.emulator.close()
         if self.physics is not None:
             self.physics.close()
+        if self.bus_tap is not None:
+            self.bus_tap.close()
         self._closed = True
 
     def __enter__(self) -> World:

@@ -43,9 +43,8 @@ class Hop:
 
     def describe(self, profile: Profile = CONRO) -> str:
         """One line, like candump's but in DH2 terms."""
-        where = f"link {self.link:>4} side {self.side}" if self.link is not None else "link    ? side ?"
-        if self.medium == "serial":
-            where = "ir" + where[2:]
+        label = "ir  " if self.medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
+        where = f"{label} {self.link:>4} side {self.side}" if self.link is not None else f"{label}    ? side ?"
         through = f" via {self.sender}" if self.sender else ""
         line = f"{self.time:17.6f}  {where}  {self.kind:<9} {self.text}{through}"
         if self.hormone is not None and self.hormone.path:

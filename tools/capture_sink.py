@@ -1,0 +1,148 @@
+"""Where captured frames go: one file, its format chosen by its suffix.
+
+* ``.pcapng`` (the default): CAN frames and the serial links' frames, with the program images
+  in the section header (:mod:`tools.pcapng`);
+* ``.pcap``: CAN frames only (link type 227);
+* ``.log`` (candump -L), ``.blf``, ``.asc``, ``.csv``, ``.trc``: CAN frames only, written by
+  python-can's own writers.
+
+Formats other than pcapng get the program images in a sidecar file beside the capture
+(:func:`tools.capture_files.write_sidecar`), so every capture decodes with nothing else.
+
+:func:`open_sink` is what the launcher's ``--capture`` finds through the entry-point group
+``dh2rt.capture_sinks``: the launcher lives in ``hil/`` and does not import ``tools/``. The
+sink is thread-safe: the launcher's bus tap and its serial link tap write from their own
+threads.
+"""
+
+from __future__ import annotations
+
+import copy
+import struct
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dh2rt.errors import DecodeError, OptionError
+from dh2rt.wire.serial_framing import decode_serial
+from tools import serial_records
+from tools.capture_files import PYTHON_CAN_SUFFIXES, write_sidecar
+from tools.pcap import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, FD_BRS, FD_FDF, CapturedFrame, PcapWriter
+from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
+from tools.serial_records import SerialRecord
+
+#: Suffixes a capture can be written in; only pcapng holds the serial links' frames.
+SUFFIXES = (".pcapng", ".pcap", *(s for s in PYTHON_CAN_SUFFIXES if s != ".db"))
+SERIAL_SUFFIXES = (".pcapng",)
+
+
+class FileSink:
+    """Writes frames to ``path``; ``programs`` are the images the robot runs (see module docs)."""
+
+    def __init__(self, path: Path, programs: Sequence[bytes] = ()) -> None:
+        suffix = path.suffix.lower()
+        if suffix not in SUFFIXES:
+            raise OptionError(f"{path}: a capture is written as {', '.join(SUFFIXES)}, not {suffix or 'no suffix'}")
+        self.path = path
+        self.count = 0
+        self.serial = suffix in SERIAL_SUFFIXES
+        self._lock = threading.Lock()
+        self._pcapng: PcapngWriter | None = None
+        self._pcap: PcapWriter | None = None
+        self._logger: Any = None
+        #: BLF and ASC number their channels; other formats keep python-can's channel as it is
+        self._numbered_channels = suffix in (".blf", ".asc")
+        if suffix == ".pcapng":
+            self._pcapng = PcapngWriter(path, programs)
+        elif suffix == ".pcap":
+            self._pcap = PcapWriter(path)
+        else:
+            import can
+
+            self._logger = can.Logger(str(path))
+        if programs and self._pcapng is None:
+            write_sidecar(path, programs)
+
+    def write_message(self, msg: Any) -> None:
+        """One CAN frame as python-can received it (a ``can.Message``)."""
+        with self._lock:
+            if self._pcapng is not None:
+                self._pcapng.write(CAN_INTERFACE, float(msg.timestamp), _socketcan_packet(msg))
+            elif self._pcap is not None:
+                self._pcap.write(
+                    CapturedFrame(
+                        msg.timestamp,
+                        msg.arbitration_id,
+                        bytes(msg.data),
+                        is_extended_id=msg.is_extended_id,
+                        is_remote_frame=msg.is_remote_frame,
+                        is_error_frame=msg.is_error_frame,
+                        is_fd=msg.is_fd,
+                        bitrate_switch=msg.bitrate_switch,
+                    )
+                )
+            else:
+                self._logger.on_message_received(_numbered(msg) if self._numbered_channels else msg)
+            self.count += 1
+
+    def serial_frame(self, timestamp: float, link: int, side: int, wire: bytes, *, lost: bool = False) -> None:
+        """One frame on an emulated serial link, as the link emulator's tap saw it."""
+        if self._pcapng is None:
+            raise OptionError(f"{self.path}: serial link frames need a .pcapng capture")
+        try:
+            decode_serial(wire[:-1] if wire.endswith(b"\x00") else wire)
+            corrupted = False
+        except DecodeError:
+            corrupted = True
+        packet = serial_records.pack(SerialRecord(timestamp, link, side, wire, lost, corrupted))
+        with self._lock:
+            self._pcapng.write(SERIAL_INTERFACE, timestamp, packet)
+            self.count += 1
+
+    def flush(self) -> None:
+        with self._lock:
+            if self._pcapng is not None:
+                self._pcapng.flush()
+
+    def close(self) -> None:
+        with self._lock:
+            if self._pcapng is not None:
+                self._pcapng.close()
+            if self._pcap is not None:
+                self._pcap.close()
+            if self._logger is not None:
+                self._logger.stop()
+
+
+def open_sink(path: Path, programs: Sequence[bytes] = ()) -> FileSink:
+    """The ``dh2rt.capture_sinks`` entry point: a sink writing ``path``."""
+    return FileSink(path, programs)
+
+
+def _socketcan_packet(msg: Any) -> bytes:
+    """A frame as Linux SocketCAN hands it to a capture (link type 227)."""
+    can_id = int(msg.arbitration_id)
+    if msg.is_extended_id:
+        can_id |= CAN_EFF_FLAG
+    if msg.is_remote_frame:
+        can_id |= CAN_RTR_FLAG
+    if msg.is_error_frame:
+        can_id |= CAN_ERR_FLAG
+    fd_flags = (FD_FDF | (FD_BRS if msg.bitrate_switch else 0)) if msg.is_fd else 0
+    data = bytes(msg.data)
+    return struct.pack(">IBBxx", can_id, len(data), fd_flags) + data
+
+
+def _numbered(msg: Any) -> Any:
+    """``msg`` with a channel BLF and ASC can number: python-can makes a number of the digits
+    in a channel's name (``vcan0`` is 0), and a name such as ``robot-2026`` would not fit the
+    formats' 16 bits; such a frame is logged with no channel rather than not at all."""
+    from can.util import channel2int
+
+    number = channel2int(msg.channel)
+    if number is not None and 0 <= number < 0xFFFF:
+        return msg
+    plain = copy.copy(msg)
+    plain.channel = None
+    return plain
