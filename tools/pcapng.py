@@ -155,6 +155,8 @@ class PcapngReader:
         if len(head) < 8:
             raise self._fail(offset, f"block header cut short ({len(head)} of 8 bytes)")
         raw_type = struct.unpack("<I", head[:4])[0]
+        if offset == 0 and raw_type != SHB:
+            raise self._fail(0, f"not a pcapng file (starts with {head[:4].hex()}, not a section header block)")
         if raw_type == SHB:  # the byte order is the section's: read it from the magic
             magic = self._fh.read(4)
             if len(magic) < 4:

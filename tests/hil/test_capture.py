@@ -22,6 +22,7 @@ import pytest
 
 from dh2rt.bundled import compile_bundled
 from dh2rt.topology import parse_spec
+from dh2rt.transport.can_bus import socketcan_problem
 from dh2rt.wire.frame import program_digest
 from tools.capture_files import capture_programs
 from tools.reading import open_capture
@@ -61,10 +62,12 @@ def udp_possible() -> str | None:
     return None if probe.returncode == 0 else "this machine cannot create a private network namespace"
 
 
-@pytest.mark.parametrize("transport", ["serial", "virtual", "udp"])
+@pytest.mark.parametrize("transport", ["serial", "virtual", "udp", "vcan0"])
 def test_capture_of_a_loop_run_holds_every_frame(transport: str, tmp_path: Path) -> None:
     if transport == "udp" and (why := udp_possible()):
         pytest.skip(why)
+    if transport == "vcan0" and (why := socketcan_problem("vcan0")):
+        pytest.skip(f"SocketCAN vcan0: {why} (the same capture runs on virtual and udp above)")
     code, summary, err, capture_path, trace_path = launch(transport, tmp_path)
     assert code == 0, (summary.get("problems"), err[-2000:])
     assert "capture:" in err  # with --json, the capture's line goes to stderr

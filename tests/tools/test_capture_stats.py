@@ -33,7 +33,7 @@ def program(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("suffix", [".pcap", ".log", ".blf"])
+@pytest.mark.parametrize("suffix", [".pcapng", ".pcap", ".log", ".blf"])
 def test_capture_records_what_the_bus_carries(
     suffix: str, program: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -54,11 +54,12 @@ def test_capture_records_what_the_bus_carries(
     sender.start()
     out = tmp_path / f"cap{suffix}"
     try:
-        assert capture(["-o", str(out), "-i", "virtual", "-c", channel, "--count", "25", "--duration", "10"]) == 0
+        args = ["-o", str(out), "-i", "virtual", "-c", channel, "--count", "25", "--duration", "10"]
+        assert capture([*args, "--program", str(program)]) == 0
     finally:
         sender.join()
     assert f"{out}: 25 frames" in capsys.readouterr().out
-    assert dump([str(out), "--program", str(program)]) == 0
+    assert dump([str(out)]) == 0  # the program went with the capture (inside a pcapng, beside the others)
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 25 and all("link    4 side 1  hormone   N(7) via back" in line for line in lines)
 

@@ -21,8 +21,10 @@ from dh2rt.transport.registry import open_transport
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
 from dh2rt.wire.frame import FrameCodec
 from tools.capture_files import read_can
+from tools.capture_sink import FileSink
 from tools.dump import main
 from tools.pcap import CapturedFrame, write_pcap
+from tools.pcapng import CAN_INTERFACE, PcapngWriter
 
 ROOT = Path(__file__).resolve().parents[2]
 CATERPILLAR = str(ROOT / "examples" / "caterpillar.dh2")
@@ -125,6 +127,89 @@ def test_bad_captures_name_the_file_and_offset(tmp_path: Path, capsys: pytest.Ca
         assert str(path) in err and words in err and "Traceback" not in err, (name, err)
     assert main([str(tmp_path / "missing.pcap"), "--program", CATERPILLAR]) == 2
     assert "no such capture file" in capsys.readouterr().err
+
+
+def test_the_same_frames_from_pcapng_candump_asc_and_blf(
+    caterpillar: CompiledProgram, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One bus, four files written at once (ours and python-can's writers): dump reads the
+    same frames from each, and the pcapng and the sidecars carry the program."""
+    channel = "dump-all-formats"
+    tap = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    sinks = [
+        FileSink(tmp_path / f"robot{suffix}", [caterpillar.image]) for suffix in (".pcapng", ".log", ".asc", ".blf")
+    ]
+    codec = FrameCodec(caterpillar.vocabulary, caterpillar.profile.connector_count)
+    mods = [
+        ModuleRuntime(caterpillar, open_transport(f"virtual:{channel}", codec), clock=FakeClock(0.001), module=i)
+        for i in range(2)
+    ]
+    try:
+        mods[0].attach(BACK, BusEnd(5, 0))
+        mods[1].attach(FRONT, BusEnd(5, 1))
+        for _ in range(45):
+            for m in mods:
+                m.step()
+            while (msg := tap.recv(0)) is not None:
+                for sink in sinks:
+                    sink.write_message(msg)
+    finally:
+        for m in mods:
+            m.close()
+        for sink in sinks:
+            sink.close()
+        tap.shutdown()
+    seen = {}
+    for sink in sinks:
+        assert main([str(sink.path), "--json"]) == 0, sink.path  # the program comes with the capture
+        objs = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        seen[sink.path.suffix] = objs
+    reference = [(o["kind"], o["link"], o["side"], o.get("text")) for o in seen[".pcapng"]]
+    assert len(reference) > 80 and {"hello", "keepalive", "hormone"} <= {r[0] for r in reference}
+    for suffix, objs in seen.items():
+        assert [(o["kind"], o["link"], o["side"], o.get("text")) for o in objs] == reference, suffix
+        # ASC keeps times relative to its start: compare each frame's time since the first
+        times = [o["time"] - objs[0]["time"] for o in objs]
+        ref_times = [o["time"] - seen[".pcapng"][0]["time"] for o in seen[".pcapng"]]
+        assert max(abs(a - b) for a, b in zip(times, ref_times, strict=True)) < 1e-3, suffix
+
+
+def test_bad_pcapng_captures_name_the_file_and_offset(
+    caterpillar: CompiledProgram, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    good = tmp_path / "good.pcapng"
+    writer = PcapngWriter(good, [caterpillar.image])
+    for i in range(3):
+        writer.write(
+            CAN_INTERFACE,
+            1.0 + i,
+            struct.pack(">IBxxx", make_arbitration_id(2, SINGLE, 0, 1, 0) | 0x80000000, 2) + b"\x12\x01",
+        )
+    writer.close()
+    raw = good.read_bytes()
+    last = len(raw) - 44  # each packet block here is 44 bytes: 12 + 20 + 10 data padded to 12
+    cases = {
+        "cut.pcapng": (raw[:-1], f"offset {last}: block cut short"),
+        "head.pcapng": (raw[: last + 5], f"offset {last}: block header cut short"),
+        "garbage.pcapng": (b"\x01" * 64, "offset 0: not a pcapng file"),
+        "order.pcapng": (raw[:8] + b"\x00\x01\x02\x03" + raw[12:], "offset 8: bad byte-order magic"),
+        "length.pcapng": (
+            raw[: last + 4] + struct.pack("<I", 13) + raw[last + 8 :],
+            f"offset {last}: block of type 0x6 claims 13 bytes",
+        ),
+        "trailer.pcapng": (raw[:-4] + struct.pack("<I", 40), f"offset {last}: block's trailing length"),
+        "short.pcapng": (raw[:4], "offset 0: block header cut short"),
+    }
+    for name, (data, words) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(data)
+        assert main([str(path)]) == 2, name
+        err = capsys.readouterr().err
+        assert str(path) in err and words in err and "Traceback" not in err, (name, err)
+    bare = tmp_path / "bare.pcapng"
+    PcapngWriter(bare).close()
+    assert main([str(bare)]) == 2
+    assert "carries no program image" in capsys.readouterr().err and main([str(bare), "--program", CATERPILLAR]) == 0
 
 
 def test_reading_is_streaming(tmp_path: Path) -> None:
