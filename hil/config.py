@@ -17,6 +17,7 @@ from typing import Any
 from dh2rt.errors import ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
+from drivers.dxl_table import MODEL_XM430_W350
 
 #: Cycle period of a module (seconds): 50 Hz.
 CYCLE_PERIOD_S = 0.02
@@ -30,8 +31,12 @@ STAND_INS = ("pybullet", "recording", "none")
 DEFAULT_STAND_IN = "pybullet"
 #: A module's own driver when it has no servo port: record the angles, or drive nothing.
 DRIVERS = ("recording", "none")
-#: Dynamixel ids of DOF1 (pitch) and DOF2 (yaw).
+#: Dynamixel ids of DOF1 (pitch) and DOF2 (yaw), their bus's baud rate and model.
 DEFAULT_SERVO_IDS = (1, 2)
+DEFAULT_SERVO_BAUD = 1_000_000
+DEFAULT_SERVO_MODEL = MODEL_XM430_W350
+#: How a module is controlled: by the HIL world over stdin/stdout, or by nothing (on a robot).
+CONTROLS = ("stdio", "none")
 
 
 def end_to_json(end: LinkEnd) -> dict[str, Any]:
@@ -67,6 +72,17 @@ class ModuleConfig:
     driver: str = "recording"
     servo_port: str | None = None
     servo_ids: tuple[int, int] = DEFAULT_SERVO_IDS
+    servo_baud: int = DEFAULT_SERVO_BAUD
+    #: the model number every servo must answer a PING with (None: any model)
+    servo_model: int | None = DEFAULT_SERVO_MODEL
+    #: python-can options of the ``can`` transport: interface, channel, bitrate, fd, data_bitrate
+    bus_options: Mapping[str, Any] = field(default_factory=dict)
+    #: "stdio": commands from the HIL world on stdin, reports on stdout; "none": on its own
+    control: str = "stdio"
+    #: where JSON log lines go when there is no control channel (None: standard error)
+    log_file: str | None = None
+    #: a file rewritten (atomically) with the module's status every status_every cycles
+    status_file: str | None = None
     trace: bool = False
     status_every: int = STATUS_EVERY
     handshake: float = HANDSHAKE_S
@@ -85,6 +101,8 @@ class ModuleConfig:
             raise ModuleConfigError(f"config status_every {self.status_every}: must be 1 or more")
         if self.cycles is not None and self.cycles < 0:
             raise ModuleConfigError(f"config cycles {self.cycles}: must be 0 or more")
+        if self.control not in CONTROLS:
+            raise ModuleConfigError(f"config control {self.control!r}: expected one of {', '.join(CONTROLS)}")
 
     @property
     def label(self) -> str:
@@ -100,6 +118,8 @@ class ModuleConfig:
                 value = {str(c): end_to_json(e) for c, e in sorted(value.items())}
             elif f.name == "servo_ids":
                 value = list(value)
+            elif f.name == "bus_options":
+                value = dict(value)
             out[f.name] = value
         return out
 
@@ -137,6 +157,8 @@ class ModuleConfig:
             ("trace", bool),
             ("status_every", int),
             ("life", int),
+            ("servo_baud", int),
+            ("control", str),
         ):
             if name in obj:
                 kw[name] = _typed(obj, name, kind)
@@ -145,8 +167,13 @@ class ModuleConfig:
                 kw[name] = float(_typed(obj, name, (int, float)))
         if obj.get("cycles") is not None:
             kw["cycles"] = _typed(obj, "cycles", int)
-        if obj.get("servo_port") is not None:
-            kw["servo_port"] = _typed(obj, "servo_port", str)
+        for name in ("servo_port", "log_file", "status_file"):
+            if obj.get(name) is not None:
+                kw[name] = _typed(obj, name, str)
+        if "servo_model" in obj:
+            kw["servo_model"] = None if obj["servo_model"] is None else _typed(obj, "servo_model", int)
+        if "bus_options" in obj:
+            kw["bus_options"] = dict(_typed(obj, "bus_options", Mapping))
         if "servo_ids" in obj:
             ids = obj["servo_ids"]
             if not (isinstance(ids, list | tuple) and len(ids) == 2 and all(_is_int(i) for i in ids)):

@@ -1,8 +1,18 @@
-"""One module process: ``python -m hil.module_process --config JSON``.
+"""The program a module runs, from power-up to power-off: ``dh2rt module --config module.toml``.
 
-The world starts one of these per module (or runs :class:`ModuleHost` in a thread for the
-in-process transports). The config is a :class:`~hil.config.ModuleConfig` as JSON (inline or
-``@file``); every field, its type and its default are there.
+A physical module boots it (``docs/firmware.md``: a systemd unit on a Raspberry Pi-class
+processor), and the HIL world starts the very same program for each of its modules, with a
+config file of the same form plus a ``[hil]`` table (:mod:`hil.module_toml`); for the
+in-process transports the world runs :class:`ModuleHost` in a thread. The config is checked
+before anything starts (every error names the key; ``--check-config`` checks and exits).
+
+On its own (no ``[hil]`` control), the module exchanges Hellos with its neighbours for the
+handshake time, then cycles at its period until SIGTERM or SIGINT, which end it cleanly with a
+final status line. Its log is JSON Lines (one object a line: ``time``, ``module`` (its name,
+for people), ``event`` (``status``, ``log``, ``error``, ``effect``, ``final``) and the
+event's fields) on standard error or in ``[log] file``; ``[log] status_file`` holds the last
+status, rewritten atomically. Under systemd it says READY once cycling, pings the watchdog
+with each status and says STOPPING at the end (``sd_notify``).
 
 Actuators: with ``servo_port`` the module drives its DOF1/DOF2 Dynamixel servos (ids
 ``servo_ids``) through dynamixel-sdk; without one it takes the stand-in (``driver``:
@@ -16,21 +26,27 @@ a number of cycles; ``attach``, ``detach``, ``inject``, ``status``, ``stop``); r
 as JSON lines on stdout (``ready``, ``status`` every ``status_every`` cycles, ``trace``,
 ``effect``, ``log``, ``error``, and ``final`` at exit). A malformed command is refused with
 a log report naming the field. SIGTERM and SIGINT end the loop cleanly with a final report.
-Exit 0 after a clean stop, 1 after a failure, 2 for a bad config.
+Exit codes: 0 after a clean stop (a signal, or the end of a run of ``[hil] cycles``), 1
+after a failure while running, 2 for a config that is wrong or names something that is not
+there (a program image, a bus, a port).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import queue
 import signal
+import socket
 import sys
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import IO
+from typing import IO, Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error
@@ -76,7 +92,11 @@ def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
 
     dof1, dof2 = config.servo_ids
     try:
-        return DynamixelDriver(config.servo_port, dof1_id=dof1, dof2_id=dof2), None
+        driver = DynamixelDriver(
+            config.servo_port, dof1_id=dof1, dof2_id=dof2, baudrate=config.servo_baud,
+            expected_model=config.servo_model,
+        )  # fmt: skip
+        return driver, None
     except DH2Error as exc:
         return None, str(exc)
 
@@ -96,7 +116,7 @@ class ModuleHost:
         self.cycles = config.cycles
         self.driver, driver_fault = open_driver(config)
         codec = FrameCodec(self.program.vocabulary, self.program.profile.connector_count)
-        transport = open_transport(config.transport, codec)
+        transport = open_transport(config.transport, codec, **config.bus_options)
         self.runtime = ModuleRuntime(
             self.program,
             transport,
@@ -229,6 +249,80 @@ def _stdout_report(stream: IO[str]) -> Reporter:
     return report
 
 
+class JsonLog:
+    """A module on its own: reports as JSON log lines, the last status in a file, and
+    systemd told how it goes (see the module docs)."""
+
+    def __init__(self, config: ModuleConfig, stream: IO[str]) -> None:
+        self.name = config.label
+        self.stream = stream
+        self.status_file = Path(config.status_file) if config.status_file else None
+        self.notify = SystemdNotify.from_environment()
+        self._lock = threading.Lock()
+        self._cycling = False
+
+    def __call__(self, rep: Report) -> None:
+        body = report_to_json(rep)
+        if body.get("event") == "trace":
+            return  # a module on its own keeps no trace; the HIL world asks for one
+        now = time.time()
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(now)) + f"{now % 1:.3f}Z"[1:]
+        body.pop("module", None)  # the world's index: a module on its own has none, only a name
+        body.pop("name", None)
+        line = json.dumps({"time": stamp, "module": self.name, **body}, separators=(",", ":"))
+        with self._lock:
+            try:
+                self.stream.write(line + "\n")
+                self.stream.flush()
+            except (BrokenPipeError, ValueError, OSError):
+                pass  # a closed log must not stop the module
+        if isinstance(rep, Status):
+            self._status(rep, body)
+
+    def _status(self, rep: Status, body: dict[str, Any]) -> None:
+        if self.status_file is not None:
+            write_atomically(self.status_file, json.dumps({**body, "module": self.name}, indent=1) + "\n")
+        if rep.final:
+            self.notify.send("STOPPING=1")
+            return
+        if not self._cycling:
+            self._cycling = True
+            self.notify.send("READY=1")
+        cycle = rep.status.get("cycle")
+        self.notify.send(f"WATCHDOG=1\nSTATUS=cycle {cycle}, type {rep.status.get('type')}")
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Replace ``path`` with ``text`` so that a reader never sees half of it."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+
+
+class SystemdNotify:
+    """``sd_notify`` without libsystemd: datagrams to ``$NOTIFY_SOCKET`` (nothing without it)."""
+
+    def __init__(self, address: str | None) -> None:
+        self.address = address
+        self._sock: socket.socket | None = None
+        if address:
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+
+    @classmethod
+    def from_environment(cls) -> SystemdNotify:
+        return cls(os.environ.get("NOTIFY_SOCKET"))
+
+    def send(self, state: str) -> None:
+        if self._sock is None or self.address is None:
+            return
+        target = "\0" + self.address[1:] if self.address.startswith("@") else self.address
+        with contextlib.suppress(OSError):  # systemd gone (or never there): the module runs on
+            self._sock.sendto(state.encode(), target)
+
+
 def _read_commands(stream: IO[str], commands: queue.Queue[Command], report: Reporter) -> None:
     for line in stream:
         line = line.strip()
@@ -241,30 +335,110 @@ def _read_commands(stream: IO[str], commands: queue.Queue[Command], report: Repo
     commands.put(Stop())  # the world closed the channel
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hil.module_process", description="Run one dh2rt module.")
-    parser.add_argument("--config", required=True, help="module config: a JSON object, or @FILE")
-    ns = parser.parse_args(argv)
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dh2rt module",
+        description="Run one dh2rt module: its program over its links, driving its servos, until stopped.",
+        epilog="Example: dh2rt module --config /etc/dh2rt/module.toml   (see docs/firmware.md)",
+    )
+    p.add_argument("--config", required=True, help="module.toml (or, from the HIL world, a JSON object or @FILE.json)")
+    p.add_argument("--check-config", action="store_true", help="check the config, print what it sets up, and exit")
+    return p
+
+
+def load_config(text: str) -> ModuleConfig:
+    """The config named on the command line: a TOML file, a JSON object, or @FILE.json."""
+    from hil.module_toml import load_toml
+
+    if text.startswith("{"):
+        return ModuleConfig.from_json(json.loads(text))
+    if text.startswith("@"):
+        return ModuleConfig.from_json(json.loads(Path(text[1:]).read_text(encoding="utf-8")))
+    return load_toml(Path(text))
+
+
+def describe(config: ModuleConfig) -> str:
+    """What a config sets up, one line each (``--check-config``)."""
+    program = load_image(config.image)
+    links = ", ".join(f"{program.profile.connector_name(c)}: {e}" for c, e in sorted(config.attach.items()))
+    if config.servo_port:
+        body = f"Dynamixel servos on {config.servo_port} at {config.servo_baud} baud, ids {config.servo_ids}"
+    else:
+        body = f"stand-in {config.driver}"
+    bus = ", ".join(f"{k}={v}" for k, v in config.bus_options.items())
+    return "\n".join(
+        [
+            f"module {config.label}: program {program.name} ({len(config.image)} bytes, sha256 {program.hash[:16]})",
+            f"transport {config.transport}" + (f" ({bus})" if bus else "") + (f"; links {links}" if links else ""),
+            f"cycle {config.cycle_period * 1000:g} ms, liveness bound {config.silence_cycles} cycles",
+            f"body: {body}",
+            f"log: {config.log_file or 'standard error'}"
+            + (f", status in {config.status_file}" if config.status_file else ""),
+        ]
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ns = build_parser().parse_args(argv)
+    try:
+        config = load_config(ns.config)
+        if ns.check_config:
+            print(f"{ns.config}: ok\n" + describe(config))
+            return 0
+    except (OSError, ValueError, DH2Error) as exc:
+        print(f"dh2rt module: {exc}", file=sys.stderr)
+        return 2
+    if config.control == "stdio":
+        return _run_controlled(config)
+    return _run_alone(config)
+
+
+def _run_controlled(config: ModuleConfig) -> int:
+    """Under the HIL world: commands on stdin, reports on stdout."""
     report = _stdout_report(sys.stdout)
     try:
-        text = ns.config
-        if text.startswith("@"):
-            text = Path(text[1:]).read_text(encoding="utf-8")
-        config = ModuleConfig.from_json(json.loads(text))
         commands: queue.Queue[Command] = queue.Queue()
         host = ModuleHost(config, commands, report)
     except (OSError, ValueError, DH2Error) as exc:
         report(Failure(f"bad config: {exc}"))
-        print(f"module_process: bad config: {exc}", file=sys.stderr)
+        print(f"dh2rt module: {exc}", file=sys.stderr)
         return 2
+    _stop_on_signals(host)
+    threading.Thread(target=_read_commands, args=(sys.stdin, commands, report), daemon=True).start()
+    return host.serve()
 
+
+def _run_alone(config: ModuleConfig) -> int:
+    """On a robot: start cycling after the handshake, stop on SIGTERM or SIGINT."""
+    try:
+        stream: IO[str] = open(config.log_file, "a", encoding="utf-8") if config.log_file else sys.stderr  # noqa: SIM115
+    except OSError as exc:
+        print(f"dh2rt module: [log] file {config.log_file}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    log = JsonLog(config, stream)
+    try:
+        commands: queue.Queue[Command] = queue.Queue()
+        commands.put(Go(at=None))
+        host = ModuleHost(config, commands, log)
+    except (OSError, ValueError, DH2Error) as exc:
+        log(Failure(f"cannot start: {exc}"))
+        print(f"dh2rt module: {exc}", file=sys.stderr)
+        return 2
+    _stop_on_signals(host)
+    log(Log(f"started: {describe(config).splitlines()[0]}"))
+    try:
+        return host.serve()
+    finally:
+        if stream is not sys.stderr:
+            stream.close()
+
+
+def _stop_on_signals(host: ModuleHost) -> None:
     def on_signal(_sig: int, _frame: FrameType | None) -> None:
         host.stop_event.set()
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    threading.Thread(target=_read_commands, args=(sys.stdin, commands, report), daemon=True).start()
-    return host.serve()
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from typing import Protocol
 from dh2rt.errors import ControlProtocolError
 from hil.config import ModuleConfig
 from hil.control import Command, Exited, Log, Report, command_to_json, report_from_json
+from hil.module_toml import dump_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,12 +55,18 @@ class ProcessModule:
     """One module as an OS process in a process group of its own; commands on its stdin,
     reports from its stdout."""
 
-    def __init__(self, config: ModuleConfig, reports: Reports) -> None:
+    def __init__(self, config: ModuleConfig, reports: Reports, workdir: Path) -> None:
         self.module = config.module
         env = dict(os.environ)
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        # the module boots as a robot's module does: `dh2rt module --config module.toml`, its
+        # program in a flash directory; [hil] adds the world's control channel
+        folder = workdir / f"{config.label}-life{config.life}"
+        path = folder / "module.toml"
+        folder.mkdir(parents=True, exist_ok=True)
+        path.write_text(dump_toml(config, folder / "flash"), encoding="utf-8")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hil.module_process", "--config", json.dumps(config.to_json())],
+            [sys.executable, "-m", "dh2rt", "module", "--config", str(path)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -204,8 +211,9 @@ def reap_exited_children() -> list[int]:
         reaped.append(pid)
 
 
-def start_module(config: ModuleConfig, reports: Reports, *, thread: bool) -> ModuleHandle:
-    """Start one module as a thread (in-process buses) or as a process."""
+def start_module(config: ModuleConfig, reports: Reports, *, thread: bool, workdir: Path) -> ModuleHandle:
+    """Start one module as a thread (in-process buses) or as a process whose config and
+    flash are written under ``workdir``."""
     if thread:
         return ThreadModule(config, reports)
-    return ProcessModule(config, reports)
+    return ProcessModule(config, reports, workdir)

@@ -34,9 +34,12 @@ from __future__ import annotations
 import os
 import queue
 import random
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dh2rt import docking
@@ -161,6 +164,8 @@ class World:
                 self.emulator.close()
             raise
         self.reports: Reports = queue.Queue()
+        #: each module process's module.toml and flash (removed by stop())
+        self.workdir = Path(tempfile.mkdtemp(prefix="dh2rt-hil-"))
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
@@ -208,7 +213,7 @@ class World:
         config = replace(self.config(module, cycles, phase), life=self.lives[module])
         self.lives[module] += 1
         with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
-            self.handles[module] = start_module(config, self.reports, thread=self.threads)
+            self.handles[module] = start_module(config, self.reports, thread=self.threads, workdir=self.workdir)
         v = self.views[module]
         v.alive, v.ready, v.finished, v.failed, v.killed = True, False, False, False, False
 
@@ -486,6 +491,7 @@ class World:
             self.physics.close()
         if self.bus_tap is not None:
             self.bus_tap.close()
+        shutil.rmtree(self.workdir, ignore_errors=True)
         self._closed = True
 
     def __enter__(self) -> World:

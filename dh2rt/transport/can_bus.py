@@ -55,10 +55,13 @@ def socketcan_problem(channel: str) -> str | None:
 
 
 class CanTransport(Transport):
-    """A module's links on one python-can bus. Subclasses fix the python-can interface."""
+    """A module's links on one python-can bus, on any python-can ``interface`` (``slcan``,
+    ``pcan``, ``kvaser``, ``gs_usb``, ...; the registry's ``can``); subclasses fix it
+    (``virtual``, ``udp``, ``socketcan``). ``bus_options`` go to ``can.Bus`` as they are
+    (``bitrate``, ``data_bitrate``, ...)."""
 
     name = "can"
-    interface: ClassVar[str] = "virtual"
+    interface: str = "virtual"
     default_channel: ClassVar[str] = "dh2rt"
 
     def __init__(
@@ -68,9 +71,14 @@ class CanTransport(Transport):
         channel: str | None = None,
         fd: bool = False,
         send_timeout: float = 0.2,
+        interface: str | None = None,
         **bus_options: Any,
     ) -> None:
         super().__init__(codec)
+        if interface is not None:
+            if type(self) is not CanTransport and interface != self.interface:
+                raise TransportError(f"the {self.name} transport is python-can's {self.interface}, not {interface!r}")
+            self.interface = interface
         self.channel = channel or self.default_channel
         self.fd = fd
         self.send_timeout = send_timeout

@@ -8,6 +8,7 @@ chosen, so ``import dh2rt.transport`` never imports python-can or pyserial.
 ``virtual``    python-can ``virtual`` bus, one process
 ``udp``        python-can ``udp_multicast``, across processes (private netns for tests)
 ``socketcan``  a kernel SocketCAN interface: ``vcan0``, ``can0``, ...
+``can``        any python-can interface, named by the ``interface`` option (``slcan``, ``pcan``, ...)
 ``serial``     one pyserial port per connector, COBS + CRC-16 framing
 =============  =====================================================================
 
@@ -28,6 +29,7 @@ from dh2rt.wire.frame import FrameCodec
 
 TRANSPORTS: dict[str, str] = {
     "inproc": "dh2rt.transport.inproc:InprocTransport",
+    "can": "dh2rt.transport.can_bus:CanTransport",
     "virtual": "dh2rt.transport.can_bus:VirtualCanTransport",
     "udp": "dh2rt.transport.can_bus:UdpCanTransport",
     "socketcan": "dh2rt.transport.can_bus:SocketCanTransport",

@@ -1,0 +1,406 @@
+"""``module.toml``: the configuration a physical module boots with (``dh2rt module --config``),
+read into the same typed :class:`~hil.config.ModuleConfig` the HIL world gives its modules.
+
+Every key is checked before anything starts; an error names the file and the key
+(``module.toml: [servos] dof1_id: expected an integer 0..252, got 'one'``), and a file that
+is not TOML names the line and column. Relative paths are relative to the file's folder.
+
+::
+
+    name = "spine0"                  # in logs only, never in a program
+
+    [program]
+    flash = "flash"                  # the module's flash: it boots flash/program.img
+    image = "program.img"            # the image's file name in the flash (default)
+
+    [cycle]
+    period_ms = 20                   # 50 Hz
+    silence_cycles = 3               # liveness bound: a link silent this long is lost
+    handshake_s = 1.0                # Hellos before the first cycle
+    # timer_phase = 0                # LocalTimer at start (default: drawn at random)
+
+    [transport]
+    kind = "can"                     # can, serial (or inproc, virtual, udp for tests)
+    interface = "socketcan"          # any python-can interface: slcan, pcan, kvaser, gs_usb, ...
+    channel = "can0"
+    bitrate = 1000000
+    fd = false
+    # data_bitrate = 2000000         # CAN FD's data phase
+
+    [transport.links]                # can: links wired by hand (the negotiation issue removes this)
+    back = { link_id = 4, side = 0 }
+
+    # kind = "serial": one UART per connector, like CONRO's infrared pairs
+    # [transport.connectors]
+    # front = "/dev/ttyAMA1"
+    # back = { device = "/dev/ttyAMA2", baud = 115200 }
+
+    [servos]
+    port = "/dev/ttyUSB0"            # a USB-to-Dynamixel adapter (U2D2)
+    baud = 1000000
+    dof1_id = 1                      # pitch
+    dof2_id = 2                      # yaw
+    model = "XM430-W350"             # every servo must answer with it ("any": no check)
+    # stand_in = "recording"         # instead of port: record the angles ("none": drive nothing)
+
+    [log]
+    file = "-"                       # JSON lines; "-" is standard error
+    status_every = 50                # cycles between status lines
+    # status_file = "/run/dh2rt/status.json"   # rewritten atomically with each status
+
+``[hil]`` is written by the HIL world only (control over stdin, trace records, the module's
+index and life, a cycle count). :func:`dump_toml` writes a config back, so the world starts
+each of its modules with a file like the one a robot's module boots with.
+"""
+
+from __future__ import annotations
+
+import random
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dh2rt.errors import ModuleConfigError
+from dh2rt.profile import CONRO, Profile
+from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
+from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from drivers.dxl_table import MODEL_NAMES
+from hil.config import DEFAULTS, STAND_INS, ModuleConfig
+
+IMAGE_NAME = "program.img"
+TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
+MAX_SERVO_ID = 252
+SECTIONS = ("name", "program", "cycle", "transport", "servos", "log", "hil")
+
+
+@dataclass(frozen=True)
+class _Table:
+    """One table of the file, with the file and the table's name for error messages."""
+
+    source: str
+    name: str
+    data: Mapping[str, Any]
+
+    def where(self, key: str) -> str:
+        return f"{self.source}: [{self.name}] {key}" if self.name else f"{self.source}: {key}"
+
+    def fail(self, key: str, message: str) -> ModuleConfigError:
+        return ModuleConfigError(f"{self.where(key)}: {message}")
+
+    def only(self, *keys: str) -> None:
+        unknown = sorted(set(self.data) - set(keys))
+        if unknown:
+            raise self.fail(unknown[0], f"unknown key (known: {', '.join(keys)})")
+
+    def table(self, key: str, required: bool = False) -> _Table:
+        value = self.data.get(key)
+        full = f"{self.name}.{key}" if self.name else key
+        if value is None:
+            if required:
+                raise ModuleConfigError(f"{self.source}: [{full}]: missing table")
+            return _Table(self.source, full, {})
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"expected a table, got {value!r}")
+        return _Table(self.source, full, value)
+
+    def get_str(self, key: str, default: str | None = None, choices: tuple[str, ...] = ()) -> str | None:
+        value = self.data.get(key, default)
+        if value is None:
+            return None
+        if not isinstance(value, str) or not value:
+            raise self.fail(key, f"expected a non-empty string, got {value!r}")
+        if choices and value not in choices:
+            raise self.fail(key, f"expected one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    def get_int(self, key: str, default: int | None, low: int, high: int | None = None) -> int | None:
+        value = self.data.get(key, default)
+        if value is None:
+            return None
+        top = "" if high is None else str(high)
+        if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+            raise self.fail(key, f"expected an integer {low}..{top}, got {value!r}")
+        return value
+
+    def get_number(self, key: str, default: float, positive: bool = True) -> float:
+        value = self.data.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or (positive and value <= 0):
+            raise self.fail(key, f"expected a {'positive ' if positive else ''}number, got {value!r}")
+        return float(value)
+
+    def get_bool(self, key: str, default: bool) -> bool:
+        value = self.data.get(key, default)
+        if not isinstance(value, bool):
+            raise self.fail(key, f"expected true or false, got {value!r}")
+        return value
+
+    def get_path(self, key: str, base: Path, default: str | None = None) -> Path | None:
+        value = self.get_str(key, default)
+        if value is None:
+            return None
+        return Path(value) if Path(value).is_absolute() else base / value
+
+
+def load_toml(path: Path, profile: Profile = CONRO) -> ModuleConfig:
+    """Read and check ``path``; ModuleConfigError names the key (or line and column)."""
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ModuleConfigError(f"{source}: cannot read it ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ModuleConfigError(f"{source}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModuleConfigError(f"{source}: not valid TOML: {exc}") from None
+    return parse_toml(data, source, path.resolve().parent, profile)
+
+
+def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profile = CONRO) -> ModuleConfig:
+    """The config in parsed TOML ``data``; ``base`` is the folder relative paths start from."""
+    top = _Table(source, "", data)
+    top.only(*SECTIONS)
+    kw: dict[str, Any] = {"name": top.get_str("name") or ""}
+    kw["image"] = _image(top.table("program", required=True), base)
+    kw.update(_cycle(top.table("cycle")))
+    kw.update(_transport(top.table("transport", required=True), base, profile))
+    kw.update(_servos(top.table("servos"), base))
+    kw.update(_log(top.table("log"), base))
+    kw.update(_hil(top.table("hil"), profile))
+    try:
+        return ModuleConfig(**kw)
+    except ModuleConfigError as exc:
+        raise ModuleConfigError(f"{source}: {exc}") from None
+
+
+def _image(t: _Table, base: Path) -> bytes:
+    t.only("flash", "image")
+    flash = t.get_path("flash", base)
+    if flash is None:
+        raise t.fail("flash", "missing: the directory the module boots its program from")
+    name = t.get_str("image", IMAGE_NAME) or IMAGE_NAME
+    image = flash / name
+    if not flash.is_dir():
+        raise t.fail("flash", f"{flash} is not a directory")
+    try:
+        return image.read_bytes()
+    except OSError as exc:
+        raise t.fail(
+            "image", f"cannot read {image} ({exc.strerror or exc}); write one with: dh2rt image PROGRAM -o {image}"
+        ) from None
+
+
+def _cycle(t: _Table) -> dict[str, Any]:
+    t.only("period_ms", "silence_cycles", "handshake_s", "timer_phase")
+    out: dict[str, Any] = {
+        "cycle_period": t.get_number("period_ms", DEFAULTS.cycle_period * 1000) / 1000.0,
+        "silence_cycles": t.get_int("silence_cycles", DEFAULTS.silence_cycles, 1),
+        "handshake": t.get_number("handshake_s", DEFAULTS.handshake, positive=False),
+    }
+    phase = t.get_int("timer_phase", None, 0)
+    out["timer_phase"] = random.SystemRandom().randrange(1 << 16) if phase is None else phase
+    return out
+
+
+def _connector(t: _Table, key: str, profile: Profile) -> int:
+    for c in range(1, profile.connector_count + 1):
+        if key in (profile.connector_name(c), str(c)):
+            return c
+    names = ", ".join(profile.connectors)
+    raise t.fail(key, f"no such connector (this profile's: {names})")
+
+
+def _transport(t: _Table, base: Path, profile: Profile) -> dict[str, Any]:
+    kind = t.get_str("kind", None, TRANSPORT_KINDS)
+    if kind is None:
+        raise t.fail("kind", f"missing: one of {', '.join(TRANSPORT_KINDS)}")
+    if kind == "serial":
+        t.only("kind", "connectors", "baud")
+        baud = t.get_int("baud", 115_200, 1) or 115_200
+        ports = t.table("connectors", required=True)
+        attach: dict[int, LinkEnd] = {}
+        for key, value in ports.data.items():
+            c = _connector(ports, key, profile)
+            if isinstance(value, str):
+                attach[c] = PortEnd(value, baud)
+                continue
+            one = ports.table(key)
+            one.only("device", "baud")
+            device = one.get_str("device")
+            if device is None:
+                raise one.fail("device", "missing")
+            attach[c] = PortEnd(device, one.get_int("baud", baud, 1) or baud)
+        return {"transport": "serial", "attach": attach}
+    t.only("kind", "interface", "channel", "bitrate", "fd", "data_bitrate", "links")
+    out: dict[str, Any] = {"attach": _links(t.table("links"), profile)}
+    channel = t.get_str("channel")
+    if kind == "can":
+        interface = t.get_str("interface")
+        if interface is None:
+            raise t.fail("interface", "missing: a python-can interface (socketcan, slcan, pcan, ...)")
+        options: dict[str, Any] = {"interface": interface, "fd": t.get_bool("fd", False)}
+        if channel is None:
+            raise t.fail("channel", "missing: the python-can channel (can0, /dev/ttyACM0, PCAN_USBBUS1, ...)")
+        options["channel"] = channel
+        for key in ("bitrate", "data_bitrate"):
+            value = t.get_int(key, None, 10_000, 12_000_000)
+            if value is not None:
+                options[key] = value
+        if "data_bitrate" in options and not options["fd"]:
+            raise t.fail("data_bitrate", "is CAN FD's data phase: set fd = true as well")
+        out.update(transport="can", bus_options=options)
+    else:
+        for key in ("interface", "bitrate", "fd", "data_bitrate"):
+            if key in t.data:
+                raise t.fail(key, f'only for kind = "can" (kind {kind!r} has its own)')
+        out["transport"] = f"{kind}:{channel}" if channel else kind
+    return out
+
+
+def _links(t: _Table, profile: Profile) -> dict[int, LinkEnd]:
+    ends: dict[int, LinkEnd] = {}
+    for key in t.data:
+        c = _connector(t, key, profile)
+        one = t.table(key)
+        one.only("link_id", "side")
+        link_id = one.get_int("link_id", None, 0, (1 << 18) - 2)
+        side = one.get_int("side", None, 0, 1)
+        if link_id is None or side is None:
+            raise one.fail("link_id" if link_id is None else "side", "missing")
+        ends[c] = BusEnd(link_id, side)
+    return ends
+
+
+def _servos(t: _Table, base: Path) -> dict[str, Any]:
+    t.only("port", "baud", "dof1_id", "dof2_id", "model", "stand_in")
+    port = t.get_str("port")
+    stand_in = t.get_str("stand_in", None, tuple(s for s in STAND_INS if s != "pybullet"))
+    if port is not None and stand_in is not None:
+        raise t.fail("stand_in", "a module has servos on a port or a stand-in, not both")
+    if port is None:
+        for key in ("baud", "dof1_id", "dof2_id", "model"):
+            if key in t.data:
+                raise t.fail(key, "only with a servo port")
+        return {"driver": stand_in or "recording"}
+    dof1 = t.get_int("dof1_id", 1, 0, MAX_SERVO_ID)
+    dof2 = t.get_int("dof2_id", 2, 0, MAX_SERVO_ID)
+    if dof1 == dof2:
+        raise t.fail("dof2_id", f"DOF1 and DOF2 need two servos, both are id {dof1}")
+    return {
+        "servo_port": port,
+        "servo_ids": (dof1, dof2),
+        "servo_baud": t.get_int("baud", DEFAULTS.servo_baud, 9600),
+        "servo_model": _model(t),
+        "driver": "none",
+    }
+
+
+def _model(t: _Table) -> int | None:
+    value = t.data.get("model", DEFAULTS.servo_model)
+    if value == "any":
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and value in MODEL_NAMES:
+        return value
+    for number, name in MODEL_NAMES.items():
+        if isinstance(value, str) and value.upper() == name.upper():
+            return number
+    known = ", ".join(sorted(MODEL_NAMES.values()))
+    raise t.fail("model", f'unknown Dynamixel model {value!r} (known: {known}, or "any")')
+
+
+def _log(t: _Table, base: Path) -> dict[str, Any]:
+    t.only("file", "status_every", "status_file")
+    target = t.get_path("file", base, "-")
+    status = t.get_path("status_file", base)
+    log_file = None if target is None or target.name == "-" else str(target)
+    return {
+        "log_file": log_file,
+        "status_every": t.get_int("status_every", 50, 1),
+        "status_file": None if status is None else str(status),
+        "control": "none",
+    }
+
+
+def _hil(t: _Table, profile: Profile) -> dict[str, Any]:
+    if not t.data:
+        return {}
+    t.only("control", "module", "life", "trace", "cycles", "attach")
+    out: dict[str, Any] = {
+        "control": t.get_str("control", "stdio", ("stdio", "none")),
+        "module": t.get_int("module", 0, 0),
+        "life": t.get_int("life", 0, 0),
+        "trace": t.get_bool("trace", False),
+        "cycles": t.get_int("cycles", None, 0),
+    }
+    if "attach" in t.data:
+        out["attach"] = _links(t.table("attach"), profile)
+    return out
+
+
+def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO) -> str:
+    """``config`` as a module.toml whose program is ``flash/program.img`` (written here)."""
+    flash.mkdir(parents=True, exist_ok=True)
+    (flash / IMAGE_NAME).write_bytes(config.image)
+    name = profile.connector_name
+    lines = [f"name = {_q(config.label)}", "", "[program]", f"flash = {_q(str(flash))}", ""]
+    lines += [
+        "[cycle]",
+        f"period_ms = {config.cycle_period * 1000!r}",
+        f"silence_cycles = {config.silence_cycles}",
+        f"handshake_s = {config.handshake!r}",
+        f"timer_phase = {config.timer_phase}",
+        "",
+        "[transport]",
+    ]
+    ports = {c: e for c, e in config.attach.items() if isinstance(e, PortEnd)}
+    links = {c: e for c, e in config.attach.items() if isinstance(e, BusEnd)}
+    kind, options = parse_transport_spec(config.transport)
+    channel = options.get("channel")
+    lines.append(f"kind = {_q(kind)}")
+    if kind == "can":
+        lines += [f"{k} = {_value(v)}" for k, v in config.bus_options.items()]
+    elif channel:
+        lines.append(f"channel = {_q(channel)}")
+    if ports:
+        lines += ["", "[transport.connectors]"]
+        lines += [f"{name(c)} = {{ device = {_q(e.url)}, baud = {e.baudrate} }}" for c, e in sorted(ports.items())]
+    lines += ["", "[servos]"]
+    if config.servo_port:
+        model = "any" if config.servo_model is None else MODEL_NAMES[config.servo_model]
+        lines += [
+            f"port = {_q(config.servo_port)}",
+            f"baud = {config.servo_baud}",
+            f"dof1_id = {config.servo_ids[0]}",
+            f"dof2_id = {config.servo_ids[1]}",
+            f"model = {_q(model)}",
+        ]
+    else:
+        lines.append(f"stand_in = {_q(config.driver)}")
+    lines += ["", "[log]", f"file = {_q(config.log_file or '-')}", f"status_every = {config.status_every}"]
+    if config.status_file:
+        lines.append(f"status_file = {_q(config.status_file)}")
+    lines += ["", "[hil]", f"control = {_q(config.control)}", f"module = {config.module}", f"life = {config.life}"]
+    lines.append(f"trace = {_value(config.trace)}")
+    if config.cycles is not None:
+        lines.append(f"cycles = {config.cycles}")
+    if links:
+        lines += ["", "[hil.attach]"]
+        lines += [f"{name(c)} = {{ link_id = {e.link_id}, side = {e.side} }}" for c, e in sorted(links.items())]
+    return "\n".join(lines) + "\n"
+
+
+def _q(text: str) -> str:
+    """A TOML basic string."""
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"')
+    return f'"{escaped}"'
+
+
+def _value(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    return _q(str(value))

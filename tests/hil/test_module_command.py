@@ -1,0 +1,238 @@
+"""`dh2rt module --config module.toml`: the program a module runs on its own processor.
+
+Its config is checked before anything starts (each error names its key and exits 2), it
+starts cycling with no controller, SIGTERM stops it with a final status line, it imports only
+what its config needs, and modules started with nothing but their config files (ports of
+the link emulator, which plays the infrared pairs) find each other, type themselves and run
+Table I's wave, as a capture of their links shows."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dh2rt.bundled import compile_bundled
+from hil.link_emulator import LinkEmulator
+from hil.servo_emulator import ServoEmulator
+from tools.capture_sink import FileSink
+from tools.reading import open_capture
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def module_dir(tmp_path: Path, name: str, body: str) -> Path:
+    """A module's folder: module.toml and a flash holding the caterpillar."""
+    folder = tmp_path / name
+    (folder / "flash").mkdir(parents=True)
+    (folder / "flash" / "program.img").write_bytes(compile_bundled("caterpillar.dh2").image)
+    (folder / "module.toml").write_text(f'name = "{name}"\n[program]\nflash = "flash"\n' + body)
+    return folder / "module.toml"
+
+
+def run_module(config: Path, *args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "dh2rt", "module", "--config", str(config), *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def start_module(config: Path, **env: str) -> subprocess.Popen[str]:
+    cmd = [sys.executable, "-m", "dh2rt", "module", "--config", str(config)]
+    return subprocess.Popen(
+        cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, **env}, start_new_session=True
+    )
+
+
+def stop(proc: subprocess.Popen[str]) -> tuple[int, list[dict[str, Any]]]:
+    """SIGTERM, as systemd stops a unit; the exit code and the JSON log lines."""
+    proc.send_signal(signal.SIGTERM)
+    _out, err = proc.communicate(timeout=20)
+    return proc.returncode, [json.loads(line) for line in err.splitlines() if line.startswith("{")]
+
+
+INPROC = '[transport]\nkind = "inproc"\n'
+
+BAD = [
+    ("", '[program]\nflash = "flash"\n', "[transport]: missing table"),
+    ('[transport]\nkind = "radio"\n', "", "[transport] kind: expected one of can, serial"),
+    ('[transport]\nkind = "can"\nchannel = "can0"\n', "", "[transport] interface: missing"),
+    (
+        '[transport]\nkind = "can"\ninterface = "slcan"\nchannel = "/dev/ttyACM0"\nbitrate = "fast"\n',
+        "",
+        "[transport] bitrate: expected an integer",
+    ),
+    (
+        '[transport]\nkind = "can"\ninterface = "pcan"\nchannel = "PCAN_USBBUS1"\ndata_bitrate = 2000000\n',
+        "",
+        "[transport] data_bitrate: is CAN FD's data phase",
+    ),
+    (
+        '[transport]\nkind = "serial"\n[transport.connectors]\nnose = "/dev/ttyAMA1"\n',
+        "",
+        "[transport.connectors] nose: no such connector",
+    ),
+    ('[transport]\nkind = "serial"\n', "", "[transport.connectors]: missing table"),
+    (INPROC + '[servos]\nport = "/dev/ttyUSB0"\ndof1_id = 1\ndof2_id = 1\n', "", "[servos] dof2_id: DOF1 and DOF2"),
+    (INPROC + '[servos]\nport = "/dev/ttyUSB0"\ndof1_id = 300\n', "", "[servos] dof1_id: expected an integer 0..252"),
+    (INPROC + '[servos]\nport = "/dev/ttyUSB0"\nmodel = "XL999"\n', "", "[servos] model: unknown Dynamixel model"),
+    (INPROC + '[servos]\nstand_in = "robot"\n', "", "[servos] stand_in: expected one of recording, none"),
+    (INPROC + "[servos]\nbaud = 57600\n", "", "[servos] baud: only with a servo port"),
+    (INPROC + "[cycle]\nperiod_ms = 0\n", "", "[cycle] period_ms: expected a positive number"),
+    (INPROC + "[cycle]\nsilence_cycles = true\n", "", "[cycle] silence_cycles: expected an integer"),
+    (INPROC + "[log]\nstatus_every = 0\n", "", "[log] status_every: expected an integer 1.."),
+    (INPROC + 'colour = "red"\n', "", "[transport] colour: unknown key"),
+    (INPROC + "[cycles]\n", "", "cycles: unknown key"),
+    (INPROC + "[cycle\n", "", "not valid TOML: Expected ']' at the end of a table declaration (at line"),
+]
+
+
+@pytest.mark.parametrize(("body", "program", "words"), BAD)
+def test_every_config_error_names_its_key_and_exits_2(body: str, program: str, words: str, tmp_path: Path) -> None:
+    config = module_dir(tmp_path, "m", body)
+    if program:  # a [program] table written twice is itself an error: replace the whole file
+        config.write_text(program + body)
+    proc = run_module(config, "--check-config")
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert str(config) in proc.stderr and words in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_a_flash_without_a_program_says_how_to_write_one(tmp_path: Path) -> None:
+    config = module_dir(tmp_path, "m", INPROC)
+    (config.parent / "flash" / "program.img").unlink()
+    proc = run_module(config, "--check-config")
+    assert proc.returncode == 2 and "[program] image: cannot read" in proc.stderr and "dh2rt image" in proc.stderr
+
+
+def test_check_config_says_what_it_sets_up(tmp_path: Path) -> None:
+    body = (
+        '[transport]\nkind = "can"\ninterface = "slcan"\nchannel = "/dev/ttyACM0"\nbitrate = 1000000\n'
+        "[transport.links]\nback = { link_id = 4, side = 0 }\n"
+        '[servos]\nport = "/dev/ttyUSB0"\ndof1_id = 3\ndof2_id = 4\nmodel = "XM430-W210"\n'
+    )
+    proc = run_module(module_dir(tmp_path, "spine0", body), "--check-config")
+    assert proc.returncode == 0, proc.stderr
+    assert (
+        "program caterpillar" in proc.stdout and "interface=slcan" in proc.stdout and "bitrate=1000000" in proc.stdout
+    )
+    assert "back: BusEnd(link_id=4, side=0)" in proc.stdout and "ids (3, 4)" in proc.stdout
+
+
+def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
+    config = module_dir(tmp_path, "solo", INPROC + '[log]\nstatus_every = 10\nstatus_file = "status.json"\n')
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)  # systemd's end of sd_notify
+    notify_path = str(tmp_path / "notify.sock")
+    notify.bind(notify_path)
+    notify.settimeout(10)
+    try:
+        proc = start_module(config, NOTIFY_SOCKET=notify_path)
+        messages = [notify.recv(4096).decode() for _ in range(3)]
+        code, lines = stop(proc)
+        while True:
+            try:
+                messages.append(notify.recv(4096).decode())
+            except TimeoutError:
+                break
+            notify.settimeout(0.5)
+    finally:
+        notify.close()
+    assert code == 0
+    assert messages[0] == "READY=1" and messages[1].startswith("WATCHDOG=1\nSTATUS=cycle ") and "STOPPING=1" in messages
+    assert lines[0]["event"] == "log" and lines[0]["message"].startswith("started: module solo")
+    assert all(line["module"] == "solo" and line["time"].endswith("Z") for line in lines)
+    final = lines[-1]
+    assert final["event"] == "final" and final["failed"] is False and final["cycle"] >= 10
+    assert json.loads((config.parent / "status.json").read_text())["event"] == "final"
+
+
+def test_a_module_with_servos_imports_no_pybullet(tmp_path: Path) -> None:
+    with ServoEmulator((1, 2)) as emulator:
+        emulator.start()
+        config = module_dir(tmp_path, "m", INPROC + f'[servos]\nport = "{emulator.port_path}"\n')
+        code = (
+            "import os, signal, sys, threading\n"
+            "from hil.module_process import main\n"
+            "threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
+            f"rc = main(['--config', {str(config)!r}])\n"
+            "print(sorted(m for m in ('pybullet', 'matplotlib', 'PIL', 'numpy', 'sim') if m in sys.modules))\n"
+            "sys.exit(rc)\n"
+        )
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "[]", proc.stdout
+    lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
+    assert lines[-1]["event"] == "final" and lines[-1]["actuator_fault"] is None  # the servos were driven
+
+
+@pytest.mark.parametrize("count", [2, 8])
+def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: int, tmp_path: Path) -> None:
+    """A snake of `count` modules: each given only its module.toml naming its connectors'
+    UARTs (the link emulator's ptys: the infrared pairs). Nobody tells them their neighbours,
+    their types or when to start."""
+    program = compile_bundled("caterpillar.dh2")
+    sink = FileSink(tmp_path / "snake.pcapng", [program.image])
+
+    def tap(t: float, link: int, side: int, wire: bytes, lost: bool) -> None:
+        sink.serial_frame(t, link, side, wire, lost=lost)
+
+    procs: list[subprocess.Popen[str]] = []
+    with LinkEmulator(tap=tap) as links:
+        ports: dict[tuple[int, str], str] = {}
+        for i in range(count - 1):  # module i's back to module i+1's front
+            pair = links.add_link(i)
+            ports[(i, "back")], ports[(i + 1, "front")] = pair.paths
+        try:
+            for m in range(count):
+                connectors = "".join(f'{c} = "{ports[(m, c)]}"\n' for c in ("front", "back") if (m, c) in ports)
+                body = (
+                    '[transport]\nkind = "serial"\n[transport.connectors]\n' + connectors + "[cycle]\nperiod_ms = 30\n"
+                    '[log]\nstatus_every = 10\nstatus_file = "status.json"\n'
+                )
+                procs.append(start_module(module_dir(tmp_path, f"m{m}", body)))
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and not _cycled(tmp_path, count, 120):
+                time.sleep(0.2)
+            results = [stop(p) for p in procs]
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    sink.close()
+    assert all(code == 0 for code, _ in results), [lines[-3:] for _, lines in results]
+    finals = [lines[-1] for _, lines in results]
+    assert [f["type"] for f in finals] == ["head"] + ["body"] * (count - 2) + ["tail"]
+    assert all(f["counters"]["links_lost"] == 0 and f["counters"]["refused"] == 0 for f in finals)
+    # Table I on the wire: the head's X(A) goes down link 0, the next module answers with X(B)
+    # on link 1 within a cycle or two, and so on down the snake
+    hormones = [h for h in open_capture(tmp_path / "snake.pcapng").hops() if h.kind == "hormone"]
+    assert all(h.side == 0 and h.sender == "back" for h in hormones)  # head to tail, through backs
+    phases = "ABCD"
+    for start in [h for h in hormones if h.link == 0][2:6]:  # a few waves after the start
+        assert start.hormone is not None
+        phase = phases.index(str(start.hormone.args[0]))
+        t = start.time
+        for link in range(1, count - 1):
+            phase = (phase + 1) % 4
+            nxt = next(h for h in hormones if h.link == link and h.time > t)
+            assert nxt.text == f"X({phases[phase]})", (link, nxt.text)
+            assert nxt.time - t < 0.1, (link, nxt.time - t)
+            t = nxt.time
+
+
+def _cycled(tmp_path: Path, count: int, cycles: int) -> bool:
+    for m in range(count):
+        try:
+            status = json.loads((tmp_path / f"m{m}" / "status.json").read_text())
+        except (OSError, ValueError):
+            return False
+        if status.get("cycle", 0) < cycles:
+            return False
+    return True
