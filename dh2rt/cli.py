@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
+import re
 import sys
 from collections.abc import Callable, Sequence
 from importlib.metadata import EntryPoint, entry_points
@@ -72,8 +73,15 @@ def _summary_line(ep: EntryPoint) -> str:
         module = importlib.import_module(ep.module)
     except ImportError as exc:
         return f"(not available: {exc})"
-    doc = (module.__doc__ or "").strip()
-    return doc.splitlines()[0] if doc else ep.value
+    doc = " ".join((module.__doc__ or "").strip().split("\n\n")[0].split())
+    if not doc:
+        return ep.value
+    # "``dh2rt dump CAPTURE``: a robot's traffic, one line per frame, ..." -> "a robot's traffic"
+    doc = re.sub(r"^``[^`]*``:\s*", "", doc)
+    first = re.split(r"(?<=[.:;])\s", doc)[0].rstrip(".:;")
+    if len(first) > 80:
+        first = first[: first.rfind(" ", 0, 77)].rstrip(",") + " ..."
+    return first[:1].upper() + first[1:]
 
 
 def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.ArgumentParser:
