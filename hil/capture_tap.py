@@ -25,8 +25,8 @@ from dh2rt.errors import HilWorldError, OptionError, TransportUnavailable
 
 SINK_GROUP = "dh2rt.capture_sinks"
 #: Transports whose frames a capture can see (``inproc`` passes objects, not frames).
-CAPTURABLE = ("serial", "virtual", "udp", "socketcan")
-#: python-can's name for each bus transport, and its default channel (as dh2rt.transport has it).
+CAPTURABLE = ("serial", "virtual", "udp", "socketcan", "can")
+#: python-can's interface of each bus transport (``can`` names its own).
 PYTHON_CAN = {"virtual": "virtual", "udp": "udp_multicast", "socketcan": "socketcan"}
 
 
@@ -70,12 +70,11 @@ def check_capture(path: Path, transport_kind: str, serial_ok: bool) -> None:
 class BusTap(Closing):
     """Every frame on one python-can bus, handed to ``sink`` from a thread of its own."""
 
-    def __init__(self, transport_kind: str, channel: str, sink: CaptureSink) -> None:
+    def __init__(self, interface: str, channel: str, sink: CaptureSink, **options: Any) -> None:
         import can
 
-        interface = PYTHON_CAN[transport_kind]
         try:
-            self._bus: Any = can.Bus(interface=interface, channel=channel)
+            self._bus: Any = can.Bus(interface=interface, channel=channel, **options)
         except (can.CanError, OSError, ImportError, ValueError) as exc:
             raise TransportUnavailable(f"--capture: cannot open python-can {interface} on {channel!r}: {exc}") from exc
         self._can: Any = can

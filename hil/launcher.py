@@ -34,7 +34,15 @@ from types import FrameType
 from typing import IO, Any
 
 from dh2rt.bundled import compile_bundled
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_run_options, output_path
+from dh2rt.cmdline import (
+    EXIT_FAIL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    PLOT_SUFFIXES,
+    add_run_options,
+    output_path,
+)
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
 from dh2rt.events import Event, check_events, parse_event
@@ -43,7 +51,9 @@ from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
+from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.supervisor import reap_exited_children
+from hil.visuals import RunVisuals
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,7 +80,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--transport",
         default="serial",
-        help="vcan0, can0 (any SocketCAN name), udp, serial, virtual, inproc (default: serial)",
+        help="vcan0, can0 (any SocketCAN name), can (any python-can interface: see --interface), udp, serial, "
+        "virtual, inproc (default: serial)",
+    )
+    can = p.add_argument_group("--transport can: any python-can bus, named as python-can's own tools name it")
+    can.add_argument("-i", "--interface", help="python-can interface: socketcan, slcan, pcan, kvaser, gs_usb, ...")
+    can.add_argument("-c", "--channel", help="its channel: can0, /dev/ttyACM0, PCAN_USBBUS1, ...")
+    can.add_argument("-b", "--bitrate", type=int, help="bitrate in bit/s, where the interface sets one")
+    can.add_argument("--fd", action="store_true", help="CAN FD frames (up to 64 data bytes)")
+    can.add_argument("--data-bitrate", type=int, help="CAN FD's data phase bitrate")
+    p.add_argument(
+        "--hardware-map",
+        type=Path,
+        metavar="FILE",
+        help="real ports per module (TOML): servo port and ids, a UART per connector, a CAN channel; "
+        "see docs/firmware.md",
     )
     p.add_argument("--module-count", type=int, default=8, help="modules of the default snake:N (default: 8)")
     p.add_argument(
@@ -90,10 +114,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--stand-in",
         choices=STAND_INS,
-        default=DEFAULT_STAND_IN,
+        default=None,
         help="the modules' body: pybullet (default; each module drives emulated Dynamixel servos whose joints "
-        "are PyBullet joints, the full firmware path), recording (each module records its angles), none",
+        "are PyBullet joints, the full firmware path), recording (each module records its angles; the default "
+        "with --hardware-map, for modules it names no servos for), none",
     )
+    view = p.add_argument_group("with --stand-in pybullet, as dh2rt run --sim pybullet")
+    view.add_argument("--record", type=Path, metavar="GIF", help="write an animation of the robot (.gif)")
+    view.add_argument("--plot", type=Path, metavar="FILE", help="plot joint angles and displacement (.png .svg .pdf)")
+    view.add_argument("--gui", action="store_true", help="open PyBullet's window (needs a display)")
     p.add_argument(
         "--capture",
         type=Path,
@@ -236,16 +265,26 @@ def _main(argv: list[str] | None) -> int:
                     f"{option} {value}: only the serial link emulator can lose or corrupt frames; "
                     f"--transport {ns.transport} carries them as its medium does"
                 )
+        hardware = load_hardware_map(ns.hardware_map, topology) if ns.hardware_map is not None else None
+        ns.stand_in = ns.stand_in or ("recording" if hardware is not None else DEFAULT_STAND_IN)
+        ns.bus_options = bus_options(ns, kind, hardware, topology.size)
+        check_hardware(hardware, kind, events)
+        check_views(ns)
         if ns.capture is not None:
             ns.capture = output_path(ns.capture, "--capture", CAPTURE_SUFFIXES)
             check_capture(ns.capture, kind, serial_ok=ns.capture.suffix.lower() == ".pcapng")
+            if hardware is not None and any(h.can_channel for h in hardware.modules.values()):
+                raise OptionError(
+                    "--capture: each module has a CAN channel of its own; capture on the bus itself "
+                    "with dh2rt capture -i INTERFACE -c CHANNEL"
+                )
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
     except (DH2Error, OSError, ValueError) as exc:
         _err(str(exc))
         return EXIT_USAGE
-    problem = transport_problem(ns.transport)
+    problem = transport_problem(ns.transport) or bus_problem(ns.bus_options, hardware)
     if problem is not None:
         _err(problem)
         return EXIT_USAGE
@@ -254,10 +293,93 @@ def _main(argv: list[str] | None) -> int:
     if kind == "udp" and not _namespace_only_loopback():
         _err("--transport udp: refusing to send multicast outside a loopback-only network namespace")
         return EXIT_USAGE
-    return _run(ns, program, topology, events)
+    return _run(ns, program, topology, events, hardware)
 
 
-def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event]) -> int:
+def bus_options(ns: argparse.Namespace, kind: str, hardware: HardwareMap | None, modules: int) -> dict[str, Any]:
+    """python-can options of ``--transport can`` (and refuse them with any other)."""
+    given = {
+        "--interface": ns.interface, "--channel": ns.channel, "--bitrate": ns.bitrate,
+        "--fd": ns.fd or None, "--data-bitrate": ns.data_bitrate,
+    }  # fmt: skip
+    if kind != "can":
+        used = [option for option, value in given.items() if value is not None]
+        if used:
+            raise OptionError(f"{used[0]}: only with --transport can (any python-can interface)")
+        return {}
+    if ns.interface is None:
+        raise OptionError("--transport can needs --interface (socketcan, slcan, pcan, kvaser, gs_usb, ...)")
+    per_module = hardware is not None and all(hardware.get(m).can_channel for m in range(modules))
+    if ns.channel is None and not per_module:
+        raise OptionError("--transport can needs --channel, or a can_channel per module in --hardware-map")
+    if ns.data_bitrate is not None and not ns.fd:
+        raise OptionError("--data-bitrate is CAN FD's data phase: add --fd")
+    options: dict[str, Any] = {"interface": ns.interface, "fd": ns.fd}
+    for key, value in (("channel", ns.channel), ("bitrate", ns.bitrate), ("data_bitrate", ns.data_bitrate)):
+        if value is not None:
+            options[key] = value
+    return options
+
+
+def bus_problem(options: dict[str, Any], hardware: HardwareMap | None) -> str | None:
+    """Why a ``--transport can`` bus cannot be opened here, found before any module starts."""
+    if not options:
+        return None
+    import can
+
+    channels = {options.get("channel")}
+    if hardware is not None:
+        channels |= {h.can_channel for h in hardware.modules.values() if h.can_channel}
+    channels.discard(None)
+    rest = {k: v for k, v in options.items() if k != "channel"}
+    for channel in sorted(str(c) for c in channels):
+        if options["interface"] == "socketcan":
+            problem = socketcan_problem(channel)
+            if problem:
+                return f"--interface socketcan --channel {channel}: {problem}. {VCAN_SETUP}"
+            continue
+        if channel.startswith("/"):  # a serial adapter (slcan, ...): opening it is the module's job
+            if not os.path.exists(channel):
+                return (
+                    f"--interface {options['interface']} --channel {channel}: no such device; "
+                    f"transports that need no hardware: {FALLBACKS}"
+                )
+            continue
+        try:
+            can.Bus(channel=channel, **rest).shutdown()
+        except Exception as exc:  # python-can raises what each interface raises: name the bus
+            return (
+                f"--interface {options['interface']} --channel {channel}: cannot open it ({type(exc).__name__}: "
+                f"{exc}); transports that need no hardware: {FALLBACKS}"
+            )
+    return None
+
+
+def check_hardware(hardware: HardwareMap | None, kind: str, events: list[Event]) -> None:
+    if hardware is None:
+        return
+    if hardware.has_connectors and kind != "serial":
+        raise OptionError(f"--hardware-map {hardware.path}: maps UARTs to connectors; that needs --transport serial")
+    if any(h.can_channel for h in hardware.modules.values()) and kind != "can":
+        raise OptionError(f"--hardware-map {hardware.path}: names CAN channels; that needs --transport can")
+    moving = [ev.text or ev.kind for ev in events if ev.kind in ("cut", "dock")]
+    if hardware.has_connectors and moving:
+        raise OptionError(f"--event {moving[0]}: real UARTs cannot be undocked by the launcher; undock the modules")
+
+
+def check_views(ns: argparse.Namespace) -> None:
+    wanted = [o for o, v in (("--record", ns.record), ("--plot", ns.plot), ("--gui", ns.gui or None)) if v is not None]
+    if wanted and ns.stand_in != "pybullet":
+        raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
+    if ns.record is not None:
+        ns.record = output_path(ns.record, "--record", (".gif",))
+    if ns.plot is not None:
+        ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
+    if ns.gui and not os.environ.get("DISPLAY"):
+        raise OptionError("--gui opens PyBullet's window and needs a display (DISPLAY is not set)")
+
+
+def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event], hardware: HardwareMap | None) -> int:
     out = sys.stdout
     # with --json, standard output holds the JSON object only: progress goes to stderr
     progress = sys.stderr if ns.json else out
@@ -286,6 +408,9 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             emulator_seed=ns.seed,
             stand_in=ns.stand_in,
             capture=capture,
+            hardware=hardware,
+            bus_options=ns.bus_options,
+            gui=ns.gui,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:
@@ -295,6 +420,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     interrupted = False
     failed = False
     started = time.monotonic()
+    views = RunVisuals(world.physics, ns.record, ns.plot) if world.physics is not None else None
     try:
         world.start()
         applied: set[int] = set()
@@ -302,6 +428,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         while not world.done():
             world.run_events(events, applied)
             world.tick()
+            if views is not None:
+                views.after_tick()
             now = time.monotonic()
             if now - last_draw >= (0.5 if tty else 2.0):
                 last_draw = now
@@ -332,6 +460,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         wrong.insert(0, "the world failed (see above)")
     _write_log(log_path, world, wrong)
     _summary(world, elapsed, out, ns.json, wrong, log_path)
+    if views is not None:
+        views.finish(f"{program.name} on {topology.spec} over {ns.transport}", progress)
     if interrupted:
         _err(f"interrupted at world cycle {world.cycle}")
         return EXIT_INTERRUPTED

@@ -4,6 +4,7 @@ a CAN link id and side on a bus, or one pty end of the link emulator on serial l
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from dh2rt.docking import End
@@ -25,8 +26,12 @@ class WorldLink:
 class LinkMap:
     """The docked links, by id and by either end."""
 
-    def __init__(self, emulator: LinkEmulator | None = None) -> None:
+    def __init__(
+        self, emulator: LinkEmulator | None = None, ports: Mapping[End, PortEnd] | None = None
+    ) -> None:
         self.emulator = emulator
+        #: real serial ports per (module, connector) (a hardware map): no emulator link then
+        self.ports = dict(ports or {})
         self.links: dict[int, WorldLink] = {}
         self.peer: dict[End, WorldLink] = {}
         self._ids = itertools.count()
@@ -57,6 +62,8 @@ class LinkMap:
     def end(self, link: WorldLink, module: int, connector: int) -> LinkEnd:
         """The link end ``module`` attaches at ``connector``: side 0 is the link's ``a``."""
         side = 0 if (module, connector) == (link.a, link.a_conn) else 1
+        if (module, connector) in self.ports:
+            return self.ports[(module, connector)]
         if self.emulator is not None:
             return PortEnd(self.emulator.link(link.link_id).paths[side])
         return BusEnd(link.link_id, side)

@@ -57,14 +57,14 @@ class _LockedDriver(ModuleDriver):
 class PhysicsStandIn(Closing):
     """One PyBullet world and one servo emulator (a pty) per module of ``topology``."""
 
-    def __init__(self, topology: Topology, *, seed: int = 0) -> None:
+    def __init__(self, topology: Topology, *, seed: int = 0, gui: bool = False) -> None:
         # everything close() reads exists before anything can fail (or be interrupted)
         self.lock = threading.Lock()
         self.emulators: list[ServoEmulator] = []
         self._t0: float | None = None
         self._steps = 0
         self._final: tuple[float, float] | None = None  # (displacement, simulated s) once closed
-        self.world = PhysicsWorld(topology, seed=seed)
+        self.world = PhysicsWorld(topology, seed=seed, gui=gui)
         try:
             for m in range(topology.size):
                 emulator = ServoEmulator.for_module(_LockedDriver(self.world.driver(m), self.lock))
@@ -106,6 +106,12 @@ class PhysicsStandIn(Closing):
     def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
         with self.lock:
             return self.world.dock(a, a_conn, b, b_conn, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG)
+
+    def sample(self) -> tuple[float, list[tuple[float, float]], tuple[float, float, float]]:
+        """(simulated s, each module's (DOF1, DOF2) in degrees, the centroid): a plot's sample."""
+        with self.lock:
+            w = self.world
+            return w.time, [w.joint_angles(m) for m in range(w.topology.size)], w.centroid()
 
     def displacement(self) -> float:
         """Metres the robot moved along the direction its head faced at the start."""

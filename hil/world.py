@@ -37,7 +37,7 @@ import random
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -51,7 +51,7 @@ from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from hil.capture_tap import BusTap, CaptureSink
+from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ModuleConfig
 from hil.control import (
     Attach,
@@ -69,6 +69,7 @@ from hil.control import (
     Stop,
     TraceRecord,
 )
+from hil.hardware_map import HardwareMap
 from hil.link_emulator import LinkEmulator
 from hil.link_map import LinkMap
 from hil.status import ModuleView
@@ -108,6 +109,9 @@ class World:
         start_delay: float = 0.3,
         stand_in: str = DEFAULT_STAND_IN,
         capture: CaptureSink | None = None,
+        hardware: HardwareMap | None = None,
+        bus_options: Mapping[str, Any] | None = None,
+        gui: bool = False,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -125,8 +129,10 @@ class World:
         self.status_every = status_every
         self.handshake = handshake
         self.start_delay = start_delay
-        self.threads = self.kind in THREAD_TRANSPORTS
-        if self.threads:
+        # python-can's virtual bus reaches only its own process: its modules are threads
+        in_process = self.kind == "can" and (bus_options or {}).get("interface") == "virtual"
+        self.threads = self.kind in THREAD_TRANSPORTS or in_process
+        if self.threads and not in_process:
             channel = options.get("channel") or f"dh2rt-hil-{os.getpid()}-{id(self):x}"
             self.transport_spec = f"{self.kind}:{channel}"
         else:
@@ -135,10 +141,15 @@ class World:
         self.capture = capture
         self.bus_tap: BusTap | None = None
         self._bus_channel = options.get("channel") or _DEFAULT_CHANNELS.get(self.kind)
-        if self.threads:
+        if self.threads and not in_process:
             self._bus_channel = self.transport_spec.partition(":")[2]
+        #: real ports per module (--hardware-map), and the python-can options of --transport can
+        self.hardware = hardware
+        self.bus_options = dict(bus_options or {})
+        if self.kind == "can":
+            self._bus_channel = self.bus_options.get("channel")
         self.emulator: LinkEmulator | None = None
-        if self.kind == "serial":
+        if self.kind == "serial" and not (hardware is not None and hardware.has_connectors):
             tap = None
             if capture is not None:
                 sink = capture
@@ -156,7 +167,7 @@ class World:
             if stand_in == "pybullet":
                 from hil.physics_stand_in import PhysicsStandIn
 
-                self.physics = PhysicsStandIn(topology, seed=seed)
+                self.physics = PhysicsStandIn(topology, seed=seed, gui=gui)
             elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         except BaseException:  # a failed or interrupted start leaves no pty or thread behind
@@ -176,7 +187,10 @@ class World:
         #: (event text, monotonic time it was carried out): CLOCK_MONOTONIC is system-wide,
         #: so these compare with the ``t`` of the modules' trace records.
         self.event_times: list[tuple[str, float]] = []
-        self.link_map = LinkMap(self.emulator)
+        ports = {}
+        if hardware is not None:
+            ports = {(m, c): end for m, h in hardware.modules.items() for c, end in h.connectors.items()}
+        self.link_map = LinkMap(self.emulator, ports)
         self._pending: list[tuple[int, Callable[[], None]]] = []  # (world cycle, effect)
         self._go_at: float | None = None
         self._closed = False
@@ -192,7 +206,18 @@ class World:
     # ------------------------------------------------------------ modules
 
     def config(self, module: int, cycles: int | None, phase: int) -> ModuleConfig:
+        real = self.hardware.get(module) if self.hardware is not None else None
+        servo_port = self.physics.port(module) if self.physics is not None else None
+        servos: dict[str, Any] = {}
+        if real is not None and real.servo_port:
+            servo_port = real.servo_port
+            servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
+        bus_options = dict(self.bus_options)
+        if real is not None and real.can_channel:
+            bus_options["channel"] = real.can_channel
         return ModuleConfig(
+            **servos,
+            bus_options=bus_options,
             module=module,
             name=self.topology.names[module],
             image=self.program.image,
@@ -203,7 +228,7 @@ class World:
             cycles=cycles,
             silence_cycles=self.silence_cycles,
             driver="none" if self.stand_in == "none" else "recording",
-            servo_port=self.physics.port(module) if self.physics is not None else None,
+            servo_port=servo_port,
             trace=self.trace,
             status_every=self.status_every,
             handshake=self.handshake,
@@ -219,9 +244,8 @@ class World:
 
     def start(self, ready_timeout: float = 30.0) -> None:
         """Start every module, wait until all have attached their links, then say ``go``."""
-        if self.capture is not None and self.kind in _DEFAULT_CHANNELS and self.bus_tap is None:
-            assert self._bus_channel is not None
-            self.bus_tap = BusTap(self.kind, self._bus_channel, self.capture)  # before any module speaks
+        if self.capture is not None and self.bus_tap is None and self.kind != "serial":
+            self.bus_tap = self._open_bus_tap(self.capture)  # before any module speaks
         for m in range(self.topology.size):
             self._spawn(m, self.cycles, self.phases[m])
         deadline = time.monotonic() + ready_timeout
@@ -239,6 +263,13 @@ class World:
         for h in self.handles:
             if h is not None:
                 h.send(Go(at=self._go_at))
+
+    def _open_bus_tap(self, sink: CaptureSink) -> BusTap:
+        if self.kind == "can":
+            options = {k: v for k, v in self.bus_options.items() if k not in ("interface", "channel")}
+            return BusTap(str(self.bus_options["interface"]), str(self.bus_options["channel"]), sink, **options)
+        assert self._bus_channel is not None
+        return BusTap(PYTHON_CAN[self.kind], self._bus_channel, sink)
 
     def _exited(self, module: int) -> bool:
         h = self.handles[module]
