@@ -35,8 +35,10 @@ machine's; this module only does the I/O they call for.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
@@ -57,6 +59,8 @@ __all__ = ["SILENCE_CYCLES", "Driver", "ModuleRuntime", "RuntimeCounters"]
 LATE_TOLERANCE = 0.5
 #: Cycles between two reads of the driver's health (servo faults show on reads).
 HEALTH_EVERY = 25
+#: Cycles whose start lateness the status reports percentiles of.
+LATENESS_WINDOW = 4096
 
 
 class Driver(Protocol):
@@ -125,6 +129,9 @@ class ModuleRuntime:
         self.liveness = Liveness(self.digest, silence_cycles)
         self.cycle = 0
         self.stats = RuntimeCounters()
+        #: how late each recent cycle started (seconds after its deadline), and when the first did
+        self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)
+        self.first_cycle_at: float | None = None
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[str, tuple[Any, ...]]] = []
         #: The last receptor fault, as ``cycle N: receptor R: message`` (None: none yet).
@@ -366,6 +373,9 @@ class ModuleRuntime:
             if last_start is not None and deadline >= last_start:
                 break
             now = self.clock()
+            self.lateness.append(now - deadline)
+            if self.first_cycle_at is None:
+                self.first_cycle_at = now
             if now - deadline > LATE_TOLERANCE * period:
                 self.stats.late_cycles += 1
                 deadline = now
@@ -425,6 +435,19 @@ class ModuleRuntime:
             **{f"engine_{k}": v for k, v in self.engine.counters.items()},
         }
 
+    def lateness_ms(self) -> dict[str, float] | None:
+        """How late the last LATENESS_WINDOW cycles started after their deadline, in ms:
+        median, 99th percentile (nearest rank) and worst; None before the first cycle."""
+        if not self.lateness:
+            return None
+        ordered = sorted(self.lateness)
+        n = len(ordered)
+
+        def rank(q: float) -> float:
+            return round(ordered[min(n - 1, max(0, math.ceil(q * n) - 1))] * 1000, 3)
+
+        return {"p50": rank(0.50), "p99": rank(0.99), "max": round(ordered[-1] * 1000, 3)}
+
     def status(self) -> dict[str, Any]:
         """A status line: type, T, DOF1/DOF2, ConnectorStatus, counters."""
         e = self.engine
@@ -438,6 +461,8 @@ class ModuleRuntime:
             "DOF1": e.dof[0],
             "DOF2": e.dof[1],
             "status": list(e.status),
+            "lateness_ms": self.lateness_ms(),
+            "first_cycle_at": self.first_cycle_at,
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,
             "last_fault": self.last_fault,

@@ -266,7 +266,7 @@ def _main(argv: list[str] | None) -> int:
                     f"--transport {ns.transport} carries them as its medium does"
                 )
         hardware = load_hardware_map(ns.hardware_map, topology) if ns.hardware_map is not None else None
-        ns.stand_in = ns.stand_in or ("recording" if hardware is not None else DEFAULT_STAND_IN)
+        ns.stand_in = stand_in_for(ns.stand_in, hardware)
         ns.bus_options = bus_options(ns, kind, hardware, topology.size)
         check_hardware(hardware, kind, events)
         check_views(ns)
@@ -294,6 +294,12 @@ def _main(argv: list[str] | None) -> int:
         _err("--transport udp: refusing to send multicast outside a loopback-only network namespace")
         return EXIT_USAGE
     return _run(ns, program, topology, events, hardware)
+
+
+def stand_in_for(chosen: str | None, hardware: HardwareMap | None) -> str:
+    """The modules' body: as chosen, else PyBullet; with a hardware map, recording (the
+    modules it names servos for drive those, and no PyBullet is started)."""
+    return chosen or ("recording" if hardware is not None else DEFAULT_STAND_IN)
 
 
 def bus_options(ns: argparse.Namespace, kind: str, hardware: HardwareMap | None, modules: int) -> dict[str, Any]:

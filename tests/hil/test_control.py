@@ -127,7 +127,7 @@ def test_one_source_for_every_default() -> None:
     ns = launcher.build_parser().parse_args([])
     assert ns.silence_cycles == DEFAULTS.silence_cycles == SILENCE_CYCLES
     assert ns.cycle_ms / 1000 == DEFAULTS.cycle_period
-    assert ns.stand_in == DEFAULT_STAND_IN == "pybullet"
+    assert launcher.stand_in_for(ns.stand_in, None) == DEFAULT_STAND_IN == "pybullet"
     world_defaults = World.__init__.__kwdefaults__ or {}
     assert world_defaults["silence_cycles"] == DEFAULTS.silence_cycles
     assert world_defaults["handshake"] == DEFAULTS.handshake
