@@ -488,7 +488,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         slack = ns.slack if a.unit == "cycles" else ns.slack * ns.cycle_ms / 1000
         results, divergences = compare(a, b, slack)
     except ProgramError as exc:
-        print(exc.render(), file=sys.stderr)  # noqa: T201 - a command's error output
+        print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
     except (TraceError, CaptureError, BadInput) as exc:
         err(str(exc))
@@ -504,7 +504,7 @@ def _print(
     ns: argparse.Namespace, results: Sequence[StreamResult], divergences: Sequence[Divergence], a: Run, b: Run
 ) -> None:
     if ns.json:
-        print(json.dumps(to_json(results, divergences, ns.all)))  # noqa: T201 - the command's output
+        print(json.dumps(to_json(results, divergences, ns.all)))
         return
     lines: list[str] = []
     if not divergences:
@@ -512,4 +512,4 @@ def _print(
     for d in divergences if ns.all else divergences[:1]:
         lines += describe(d, a, b)
     lines += summary(results, a, b)
-    print("\n".join(lines))  # noqa: T201 - the command's output
+    print("\n".join(lines))
