@@ -1,0 +1,408 @@
+"""The Wireshark dissector (``tools/wireshark/dh2rt.lua``): the real tshark, loading it, reads
+a capture of real frames (CAN, segmented and not, and serial links, lost and corrupted) and
+shows each frame as ``dh2rt dump`` does, and so it does for random frames, broken or not, and
+with two passes as with one; the committed Lua is what the generator writes from
+the codec's layout, and a codec whose layout moved would make it differ.
+
+tshark is installed here when missing (as root, with apt-get); the tests skip, saying why,
+only where that is impossible.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from dh2rt.compiler import compile_file, compile_source
+from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
+from dh2rt.wire import can_frames
+from dh2rt.wire.can_frames import FIRST, LAST, make_arbitration_id, parse_arbitration_id, segment
+from dh2rt.wire.frame import FrameCodec, FrameKind, Hello, KeepAlive, program_digest
+from dh2rt.wire.serial_framing import encode_serial
+from tools import serial_records
+from tools.decode import Hop
+from tools.pcap import CAN_EFF_FLAG
+from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
+from tools.reading import open_capture
+from tools.wireshark import layout
+from tools.wireshark.command import main
+from tools.wireshark.generate import dissector, lua, lua_string, template
+
+ROOT = Path(__file__).resolve().parents[2]
+COMMITTED = ROOT / "tools" / "wireshark" / "dh2rt.lua"
+FRONT, BACK, LEFT, RIGHT = 1, 2, 3, 4
+COUNTERS = """program counters
+const ClockCycle = 4
+hormone GROW(by: int)
+hormone W(phase: A | B, n: int, opposite: A | B)
+hormone LTS
+receptor grow when T == T1 and H == GROW(?n) { emit LTS via back }
+"""
+FIELDS = ("frame.number", "dh2rt.medium", "dh2rt.link", "dh2rt.side", "dh2rt.kind", "dh2rt.text", "_ws.col.Info")
+
+
+# -- tshark ------------------------------------------------------------------------------
+
+
+def _apt_install() -> str:
+    """Install tshark with apt-get (refreshing the lists if the first try fails); the output
+    of the last try."""
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    install = ["apt-get", "install", "-y", "--no-install-recommends", "tshark"]
+    out = ""
+    for commands in ([install], [["apt-get", "update"], install]):
+        for command in commands:
+            done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=900, check=False)
+            out = done.stdout[-1000:] + done.stderr[-1000:]
+        if shutil.which("tshark"):
+            break
+    return out
+
+
+@pytest.fixture(scope="module")
+def tshark() -> str:
+    """The tshark to run: the installed one, or one apt-get installs now."""
+    found = shutil.which("tshark")
+    if found is None:
+        if os.geteuid() != 0:
+            pytest.skip("tshark is not installed, and installing it (apt-get install tshark) needs root")
+        if shutil.which("apt-get") is None:
+            pytest.skip("tshark is not installed, and this machine has no apt-get to install it")
+        out = _apt_install()
+        found = shutil.which("tshark")
+        if found is None:
+            pytest.skip(f"tshark is not installed, and apt-get install tshark failed: {out}")
+    version = subprocess.run([found, "-v"], capture_output=True, text=True, timeout=60, check=False).stdout
+    if not re.search(r"with Lua|Lua \d", version):
+        pytest.skip(f"this tshark has no Lua: {version.splitlines()[0] if version else 'no version'}")
+    return found
+
+
+def run_tshark(tshark: str, script: Path, capture: Path, home: Path, *options: str) -> list[list[str]]:
+    """tshark with ``script`` over ``capture``: per frame, the values of FIELDS. HOME is a
+    fresh folder, so no personal plugin or preference interferes."""
+    home.mkdir(exist_ok=True)
+    env = {**os.environ, "HOME": str(home), "XDG_CONFIG_HOME": str(home / ".config")}
+    command = [tshark, "-n", *options, "-X", f"lua_script:{script}", "-r", str(capture)]
+    command += ["-T", "fields", "-E", "separator=/t"]
+    for field in FIELDS:
+        command += ["-e", field]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=env, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "Lua" not in done.stderr, done.stderr  # a script that fails to load leaves tshark running without it
+    return [line.split("\t") for line in done.stdout.splitlines()]
+
+
+# -- the capture -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def programs() -> tuple[CompiledProgram, CompiledProgram]:
+    return compile_file(str(ROOT / "examples" / "caterpillar.dh2")), compile_source(COUNTERS, "counters.dh2")
+
+
+class Recorder:
+    """Writes frames into a pcapng, each on the CAN bus or on a serial link."""
+
+    def __init__(self, path: Path, programs: tuple[CompiledProgram, ...]) -> None:
+        self.writer = PcapngWriter(path, [p.image for p in programs])
+        self.time = 10.0
+
+    def _write(self, interface: int, data: bytes) -> None:
+        self.writer.write(interface, self.time, data)
+        self.time += 0.000250
+
+    def can_raw(self, can_id: int, data: bytes, extended: bool = True) -> None:
+        head = struct.pack(">IB3x", can_id | (CAN_EFF_FLAG if extended else 0), len(data))
+        self._write(CAN_INTERFACE, head + data)
+
+    def can(self, payload: bytes, link: int, side: int) -> int:
+        """Send ``payload`` as the transport does (segmented when long); how many frames."""
+        frames = segment(payload, link, side)
+        for frame in frames:
+            self.can_raw(frame.arbitration_id, frame.data)
+        return len(frames)
+
+    def serial(self, wire: bytes, link: int, side: int, *, lost: bool = False, corrupted: bool = False) -> None:
+        record = serial_records.SerialRecord(self.time, link, side, wire, lost, corrupted)
+        self._write(SERIAL_INTERFACE, serial_records.pack(record))
+
+
+def flip(wire: bytes, index: int) -> bytes:
+    """``wire`` with one bit of byte ``index`` flipped: a bit error on the line."""
+    return wire[:index] + bytes((wire[index] ^ 0x10,)) + wire[index + 1 :]
+
+
+def record_traffic(rec: Recorder, caterpillar: CompiledProgram, counters: CompiledProgram) -> None:
+    """A caterpillar and a second program on one CAN bus and two serial links, with every
+    kind of frame and the ways a frame goes wrong."""
+    cat = FrameCodec(caterpillar.vocabulary, 4)
+    cnt = FrameCodec(counters.vocabulary, 4)
+    long_path = tuple((FRONT, BACK) for _ in range(14))
+    # CAN link 5: the caterpillar's head (side 0) and its neighbour (side 1)
+    rec.can(cat.encode(BACK, Hello(program_digest(caterpillar.image))), 5, 0)
+    rec.can(cat.encode(BACK, Hormone("X", ("A",))), 5, 0)
+    rec.can(cat.encode(FRONT, KeepAlive(7)), 5, 1)
+    assert rec.can(cat.encode(BACK, Hormone("X", ("B",), long_path)), 5, 0) == 2
+    rec.can(cat.encode(FRONT, Hormone("X", ("D",), ((BACK, FRONT), (LEFT, RIGHT)), (BACK, RIGHT))), 5, 1)
+    rec.can(cat.encode(FRONT, Hormone("X", ("C",), (), ())), 5, 1)  # routed, nothing left to go
+    # a three-segment hormone whose middle segment the bus lost
+    parts = segment(cat.encode(BACK, Hormone("X", ("A",), ((FRONT, BACK),) * 20)), 5, 0)
+    assert [parse_arbitration_id(p.arbitration_id).segment for p in parts] == [FIRST, 2, LAST]
+    rec.can_raw(parts[0].arbitration_id, parts[0].data)
+    rec.can_raw(parts[2].arbitration_id, parts[2].data)
+    # CAN link 9: a module of the second program, named by its Hello
+    rec.can(cnt.encode(LEFT, Hello(program_digest(counters.image))), 9, 1)
+    rec.can(cnt.encode(LEFT, Hormone("GROW", (-5,))), 9, 1)
+    rec.can(cnt.encode(LEFT, Hormone("GROW", (2**31 - 1,))), 9, 1)
+    assert rec.can(cnt.encode(LEFT, Hormone("W", ("B", -(2**31), "A"), ((RIGHT, LEFT),))), 9, 1) == 2
+    rec.can(cnt.encode(LEFT, Hormone("LTS", (), ((FRONT, BACK),), (RIGHT,))), 9, 1)
+    # CAN link 11: a Hello of a program the capture does not carry; 11-bit frames are not dh2rt's
+    rec.can(cat.encode(RIGHT, Hello(bytes.fromhex("abcdef012345"))), 11, 0)
+    rec.can(cat.encode(RIGHT, Hormone("X", ("C",))), 11, 0)
+    rec.can_raw(0x123, b"\x40\x00\x00", extended=False)
+    # serial link 3: the caterpillar over infrared, with a lost and two corrupted frames
+    rec.serial(encode_serial(cat.encode(BACK, Hello(program_digest(caterpillar.image)))), 3, 0)
+    hormone = encode_serial(cat.encode(BACK, Hormone("X", ("C",), ((BACK, FRONT),))))
+    rec.serial(hormone, 3, 0)
+    rec.serial(hormone, 3, 0, lost=True)
+    rec.serial(flip(hormone, 1), 3, 0, corrupted=True)  # a bit error in the header: fails the CRC
+    rec.serial(hormone[:4] + b"\x00" + hormone[5:], 3, 0, corrupted=True)  # a zero inside: bad COBS
+    rec.serial(encode_serial(cat.encode(FRONT, KeepAlive(200))), 3, 1)
+    rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",), (), (BACK, BACK)))), 3, 1)
+    # frames that pass the CRC and still do not decode: the codec's own errors
+    rec.serial(encode_serial(b"\x82\x00"), 3, 1)  # wire version 2
+    rec.serial(encode_serial(bytes((0x41, 0, 7, 0))), 3, 1)  # hormone index 7
+    rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",))) + b"\x99"), 3, 1)  # trailing byte
+    # serial link 4: the second program
+    rec.serial(encode_serial(cnt.encode(RIGHT, Hello(program_digest(counters.image)))), 4, 1)
+    rec.serial(encode_serial(cnt.encode(RIGHT, Hormone("W", ("A", 300, "B")))), 4, 1, lost=True)
+
+
+@pytest.fixture(scope="module")
+def capture(programs: tuple[CompiledProgram, CompiledProgram], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("wireshark") / "robot.pcapng"
+    rec = Recorder(path, programs)
+    try:
+        record_traffic(rec, *programs)
+    finally:
+        rec.writer.close()
+    return path
+
+
+def dump_hops(capture: Path) -> list[Hop]:
+    return list(open_capture(capture).hops())
+
+
+def dump_line(hop: Hop, capture: Path) -> str:
+    """The line ``dh2rt dump`` prints for ``hop``, without its time."""
+    line = hop.describe(open_capture(capture).program.profile)
+    assert line[17:19] == "  ", line
+    return line[19:]
+
+
+# -- the dissector against dump ----------------------------------------------------------
+
+
+def test_the_dissector_shows_every_frame_as_dump_does(tshark: str, capture: Path, tmp_path: Path) -> None:
+    script = tmp_path / "dh2rt.lua"
+    assert main(["--capture", str(capture), "-o", str(script)]) == 0
+    rows = run_tshark(tshark, script, capture, tmp_path / "home")
+    hops = dump_hops(capture)
+    assert len(rows) == len(hops) == 30
+    kinds = {h.kind for h in hops}
+    assert kinds == {"hello", "hormone", "routed", "keepalive", "segment", "error"}
+    not_ours = [int(row[0]) for row in rows if row[1] == ""]
+    assert not_ours == [18]  # the 11-bit frame, which dump marks as not dh2rt's
+    assert hops[17].kind == "error" and "11-bit" in (hops[17].error or "")
+    for row, hop in zip(rows, hops, strict=True):
+        if int(row[0]) in not_ours:
+            continue
+        number, medium, link, side, kind, text, info = row
+        shown = (medium, int(link), int(side), kind, text)
+        assert shown == (hop.medium, hop.link, hop.side, hop.kind, hop.text), number
+        assert info == dump_line(hop, capture), number
+    # two passes (as Wireshark's GUI, which dissects a frame again when it is clicked) show the same
+    assert run_tshark(tshark, script, capture, tmp_path / "home", "-2") == rows
+
+
+def test_what_the_capture_shows(tshark: str, capture: Path, tmp_path: Path) -> None:
+    """A few of the lines in full: names from the right program, segments reassembled."""
+    script = tmp_path / "dh2rt.lua"
+    assert main(["--capture", str(capture), "-o", str(script)]) == 0
+    info = {int(row[0]): row[-1] for row in run_tshark(tshark, script, capture, tmp_path / "home")}
+    assert info[2] == "link    5 side 0  hormone   X(A) via back"
+    assert info[4] == "link    5 side 0  segment   #0"
+    assert info[5].startswith("link    5 side 0  hormone   X(B) (reassembled) via back  path front>back front>back")
+    assert info[6] == "link    5 side 1  routed    X(D) via front  path back>front left>right  route back right"
+    assert info[9] == "link    5 side 0  error       !! segment 2 out of order: lost"
+    assert info[12] == "link    9 side 1  hormone   GROW(2147483647) via left"
+    assert info[14] == "link    9 side 1  hormone   W(B, -2147483648, A) (reassembled) via left  path right>left"
+    assert info[16].endswith("hello     abcdef012345 (a program this capture does not carry) via right")
+    assert info[22] == "ir      3 side 0  error       !! corrupted on the link: serial frame failed its CRC"
+    assert info[30] == "ir      4 side 1  hormone   W(A, 300, B) via right  !! lost on the link (never delivered)"
+
+
+def test_the_generic_dissector_shows_indices(tshark: str, capture: Path, tmp_path: Path) -> None:
+    """The committed file knows no program: a hormone is #INDEX and its argument bytes; all
+    else (kinds, links, sides, paths, routes) as dump shows it."""
+    rows = run_tshark(tshark, COMMITTED, capture, tmp_path / "home")
+    hops = dump_hops(capture)
+    generic = re.compile(r"#\d+\((0x[0-9a-f]+)?\)")
+    compared = 0
+    for row, hop in zip(rows, hops, strict=True):
+        if hop.kind not in ("hormone", "routed", "keepalive", "segment"):
+            continue
+        _, medium, link, side, kind, text, info = row
+        assert (medium, int(link), int(side), kind) == (hop.medium, hop.link, hop.side, hop.kind)
+        expected = dump_line(hop, capture)
+        if hop.hormone is not None:
+            content = text.removesuffix(" (reassembled)")
+            assert generic.fullmatch(content), text
+            expected = expected.replace(hop.hormone.content(), content, 1)
+        assert info == expected
+        compared += 1
+    assert compared >= 15
+    assert rows[1][5] == "#0(0x00)" and rows[10][5] == "#0(0x09)"  # X(A); GROW(-5) zig-zags to 9
+
+
+def random_frame(rng: random.Random, codec: FrameCodec) -> bytes:
+    """A frame of the second program, valid or with one byte changed, cut or added."""
+    args: dict[str, tuple[str | int, ...]] = {
+        "GROW": (rng.randint(-(2**31), 2**31 - 1),),
+        "W": (rng.choice("AB"), rng.choice((0, -1, 63, -64, 8191, rng.randint(-(2**31), 2**31 - 1))), rng.choice("AB")),
+        "LTS": (),
+    }
+    name = rng.choice(sorted(args))
+    path = tuple((rng.randint(1, 4), rng.randint(1, 4)) for _ in range(rng.choice((0, 1, 2, 5, 13))))
+    route = rng.choice((None, (), tuple(rng.randint(1, 4) for _ in range(rng.randint(1, 6)))))
+    frame = codec.encode(rng.randint(1, 4), Hormone(name, args[name], path, route))
+    damage = rng.random()
+    if damage < 0.2:
+        at = rng.randrange(len(frame))
+        frame = frame[:at] + bytes((rng.randrange(256) if at else 0x40 | rng.randrange(64),)) + frame[at + 1 :]
+    elif damage < 0.3:
+        frame = frame[: rng.randrange(1, len(frame))]
+    elif damage < 0.4:
+        frame += bytes((rng.randrange(256),))
+    return frame
+
+
+def test_random_frames_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Frames of every shape, and broken in every way, read as dump reads them: the same
+    hormones, the same reassembly, the same errors."""
+    rng = random.Random(12)
+    codec = FrameCodec(programs[1].vocabulary, 4)
+    path = tmp_path / "random.pcapng"
+    rec = Recorder(path, (programs[1], programs[0]))  # the second program names them by default
+    try:
+        for _ in range(300):
+            frame = random_frame(rng, codec)
+            link, side = rng.randrange(3), rng.randrange(2)
+            if rng.random() < 0.5:
+                rec.can(frame, link, side)
+            else:
+                rec.serial(encode_serial(frame), link, side, lost=rng.random() < 0.1)
+    finally:
+        rec.writer.close()
+    script = tmp_path / "dh2rt.lua"
+    assert main(["--capture", str(path), "-o", str(script)]) == 0
+    rows = run_tshark(tshark, script, path, tmp_path / "home")
+    hops = dump_hops(path)
+    assert [row[-1] for row in rows] == [dump_line(hop, path) for hop in hops]
+    kinds = [hop.kind for hop in hops]
+    assert min(kinds.count(k) for k in ("hormone", "routed", "segment", "error")) >= 20, kinds
+
+
+# -- the layout check --------------------------------------------------------------------
+
+
+def test_the_committed_dissector_is_what_the_codec_gives() -> None:
+    assert COMMITTED.read_text(encoding="utf-8") == template()
+    assert dissector(base=template()) == template()
+    assert main(["--check"]) == 0
+
+
+def test_a_codec_whose_layout_moved_fails_the_check(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def moved(kind: int, segment: int, seq: int, link_id: int, side: int) -> int:
+        return (side << 28) | (kind << 26) | (segment << 24) | (seq << 18) | link_id
+
+    monkeypatch.setattr(can_frames, "make_arbitration_id", moved)
+    assert main(["--check"]) == 1
+    assert "dh2rt.lua differs" in capsys.readouterr().err
+
+
+def test_the_layout_reads_what_the_codec_writes() -> None:
+    fields = layout.can_id_fields()
+    for values in ((3, 2, 63, 0x3FFFF, 1), (1, 0, 5, 12345, 0), (0, 3, 0, 1, 1)):
+        can_id = make_arbitration_id(*values)
+        assert tuple(layout.extract(can_id, fields[n]) for n in ("kind", "segment", "seq", "link", "side")) == values
+        assert tuple(parse_arbitration_id(can_id)) == values
+    header = layout.header_fields()
+    codec = FrameCodec(compile_source(COUNTERS).vocabulary, 4)
+    for sender, frame, kind in (
+        (LEFT, Hormone("LTS"), FrameKind.HORMONE),
+        (RIGHT, Hormone("LTS", route=(FRONT,)), FrameKind.ROUTED),
+        (FRONT, KeepAlive(3), FrameKind.KEEPALIVE),
+    ):
+        head = codec.encode(sender, frame)[0]
+        assert [layout.extract(head, header[n]) for n in ("version", "kind", "sender")] == [1, kind, sender]
+
+
+def test_bit_fields_must_be_one_run() -> None:
+    assert layout.bit_field(0b0111_0000) == {"shift": 4, "width": 3}
+    for mask in (0, 0b1010):
+        with pytest.raises(layout.LayoutError):
+            layout.bit_field(mask)
+
+
+# -- the generator -----------------------------------------------------------------------
+
+
+def test_lua_literals() -> None:
+    assert lua_string('a"b\\c\n') == '"a\\034b\\092c\\010"'
+    assert lua_string("é") == '"\\195\\169"'
+    assert lua({"x": [1, True], 0: "y"}) == '{ x = { 1, true }, [0] = "y" }'
+    assert lua([]) == "{}"
+    with pytest.raises(TypeError):
+        lua(1.5)
+
+
+def test_a_program_names_the_hormones(programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path) -> None:
+    source = tmp_path / "counters.dh2"
+    source.write_text(COUNTERS, encoding="utf-8")
+    out = tmp_path / "counters.lua"
+    assert main(["--program", str(source), "-o", str(out)]) == 0
+    text = out.read_text(encoding="utf-8")
+    digest = program_digest(programs[1].image).hex()
+    assert f'name = "counters",\n        digest = "{digest}",' in text
+    assert '{ name = "phase", domain = { "A", "B" } },\n' in text and '{ name = "n" },\n' in text
+    assert '[2] = { name = "LTS", params = {} },' in text
+    assert text.replace(_block(text), "") == template().replace(_block(template()), "")
+
+
+def _block(text: str) -> str:
+    return text[text.index("-- BEGIN GENERATED") : text.index("-- END GENERATED")]
+
+
+def test_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bare = tmp_path / "bare.pcapng"
+    PcapngWriter(bare).close()
+    assert main(["--capture", str(bare)]) == 2
+    assert "carries no program image" in capsys.readouterr().err
+    broken = tmp_path / "broken.dh2"
+    broken.write_text("hormone X(\n", encoding="utf-8")
+    assert main(["--program", str(broken)]) == 2
+    assert "broken.dh2" in capsys.readouterr().err

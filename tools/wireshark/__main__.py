@@ -1,0 +1,7 @@
+"""``python -m tools.wireshark``: see :mod:`tools.wireshark.command`."""
+
+import sys
+
+from tools.wireshark.command import main
+
+sys.exit(main())

@@ -1,0 +1,80 @@
+"""``python -m tools.wireshark``: write the Wireshark dissector for dh2rt frames.
+
+Frames carry hormone indices; the program gives them names. With ``--capture`` the dissector
+knows the programs the capture carries (the images in its section header, each matched to a
+link end by the digest its Hellos carry, as ``dh2rt dump`` does); with ``--program`` the ones
+named; with neither it is the generic ``tools/wireshark/dh2rt.lua`` (hormones as
+``#INDEX``). ``--check`` compares the committed generic file with what this writes.
+
+Exit codes: 0 ok, 1 ``--check`` found the committed file out of date, 2 bad input (a program
+that does not compile, a capture with no program image).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err, load_program
+from dh2rt.errors import CaptureError, ProgramError
+from dh2rt.program import CompiledProgram
+from tools.reading import open_capture
+from tools.wireshark.generate import dissector, template
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m tools.wireshark",
+        description="Write the Wireshark Lua dissector for dh2rt frames, knowing a program's hormone names.",
+        epilog="Example: python -m tools.wireshark --capture robot.pcapng -o ~/.local/lib/wireshark/plugins/dh2rt.lua",
+    )
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--capture", type=Path, help="name hormones with the program images this pcapng carries")
+    source.add_argument(
+        "--program", type=Path, action="append", help="name hormones with this .dh2 program (repeatable)"
+    )
+    p.add_argument("-o", "--output", type=Path, help="write here (default: standard output)")
+    p.add_argument(
+        "--check", action="store_true", help="exit 1 unless the committed generic dh2rt.lua is what this writes"
+    )
+    return p
+
+
+def programs_for(ns: argparse.Namespace) -> tuple[CompiledProgram, ...]:
+    """The programs the options name; raises ProgramError or CaptureError."""
+    if ns.capture is not None:
+        return open_capture(ns.capture).programs
+    return tuple(load_program(path) for path in ns.program or ())
+
+
+def check_committed() -> int:
+    """EXIT_OK when the committed generic dissector is what the generator writes."""
+    committed = template()
+    if dissector(base=committed) != committed:
+        err("tools/wireshark/dh2rt.lua differs from what the codec's layout gives: run python -m tools.wireshark -o it")
+        return EXIT_FAIL
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        ns = build_parser().parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
+    if ns.check:
+        return check_committed()
+    try:
+        text = dissector(programs_for(ns))
+    except ProgramError as exc:
+        print(exc.render(), file=sys.stderr)  # noqa: T201 - a command's error output
+        return EXIT_USAGE
+    except CaptureError as exc:
+        err(str(exc))
+        return EXIT_USAGE
+    if ns.output is None or str(ns.output) == "-":
+        sys.stdout.write(text)
+    else:
+        ns.output.write_text(text, encoding="utf-8")
+    return EXIT_OK

@@ -1,0 +1,760 @@
+-- dh2rt.lua: a Wireshark dissector for dh2rt frames (the DH2 hormone runtime's wire format).
+--
+-- It reads both halves of a dh2rt capture (docs/capture.md):
+--   * CAN frames in SocketCAN captures (link type 227): a heuristic dissector on "can", since
+--     a dh2rt link id lives in the 29-bit arbitration id (kind, segment, seq, link id, side);
+--     segments of a long hormone are reassembled per link end, as a module's transport does;
+--   * the emulated infrared serial links (link type 147, USER0): the 8-byte "D2" record
+--     (side, lost, corrupted, link id), then the frame as on the wire: COBS, CRC-32, 0x00.
+-- The Info column is the line `dh2rt dump` prints for the frame, without its time.
+--
+-- Frames carry hormone indices, not names. This file, as committed, knows no program: it
+-- shows a hormone as #INDEX with its argument bytes. `python -m tools.wireshark --capture
+-- robot.pcapng -o dh2rt.lua` (or `--program caterpillar.dh2`) writes it with the names.
+--
+-- Load: tshark -X lua_script:dh2rt.lua -r robot.pcapng, or copy it into Wireshark's
+-- personal Lua plugins folder (Help > About Wireshark > Folders).
+--
+-- The block below is written by tools/wireshark/generate.py from dh2rt's codec modules
+-- (dh2rt/wire/frame.py, dh2rt/wire/can_frames.py, dh2rt/wire/serial_framing.py,
+-- tools/serial_records.py): a test checks that this file is what the generator writes, so
+-- the dissector and the codec cannot drift apart. Edit the generator, not the block.
+
+-- BEGIN GENERATED
+-- Written by `python -m tools.wireshark`; do not edit.
+-- Profile conro; programs: none.
+local LAYOUT = {
+    wire_version = 1,
+    header = {
+        version = { shift = 6, width = 2 },
+        kind = { shift = 4, width = 2 },
+        sender = { shift = 0, width = 4 },
+    },
+    kinds = { hormone = 0, routed = 1, keepalive = 2, hello = 3 },
+    kind_names = { [0] = "hormone", [1] = "routed", [2] = "keepalive", [3] = "hello" },
+    keepalive_bytes = 2,
+    hello_digest_bytes = 6,
+    connector_bits = 3,
+    can = {
+        kind = { shift = 27, width = 2 },
+        segment = { shift = 25, width = 2 },
+        seq = { shift = 19, width = 6 },
+        link = { shift = 1, width = 18 },
+        side = { shift = 0, width = 1 },
+    },
+    segments = { single = 0, first = 1, middle = 2, last = 3 },
+    segment_names = { [0] = "single", [1] = "first", [2] = "middle", [3] = "last" },
+    max_segments = 64,
+    serial = {
+        magic = "D2",
+        version = 1,
+        header_bytes = 8,
+        flag_side = 1,
+        flag_lost = 2,
+        flag_corrupted = 4,
+        crc_bytes = 4,
+        delimiter = 0,
+    },
+}
+local CONNECTORS = { "front", "back", "left", "right" }
+local PROGRAMS = {}
+-- END GENERATED
+
+local FRAME_KINDS = LAYOUT.kind_names
+local SEGMENTS = LAYOUT.segment_names
+local INT_MIN, INT_MAX = -2147483648, 2147483647
+local TWO32 = 4294967296
+
+-- ------------------------------------------------------------------------------------------
+-- Bits and bytes (arithmetic, so any Lua version Wireshark embeds will do)
+
+-- The ``width``-bit field at ``shift`` of ``value``.
+local function bits(value, field)
+    return math.floor(value / 2 ^ field.shift) % 2 ^ field.width
+end
+
+-- Bit ``index`` (0 = most significant bit of the first byte) of a byte string.
+local function bit_at(data, index)
+    local byte = data:byte(math.floor(index / 8) + 1)
+    return math.floor(byte / 2 ^ (7 - index % 8)) % 2
+end
+
+-- ``count`` fields of ``width`` bits, MSB first, from bit ``start`` of a byte string.
+local function unpack_fields(data, start, count, width)
+    local values = {}
+    for i = 0, count - 1 do
+        local v = 0
+        for j = 0, width - 1 do
+            v = v * 2 + bit_at(data, start + i * width + j)
+        end
+        values[#values + 1] = v
+    end
+    return values
+end
+
+local function tohex(data)
+    return (data:gsub(".", function(c) return string.format("%02x", c:byte()) end))
+end
+
+-- CRC-32/ISO-HDLC (binascii.crc32): reflected polynomial 0xEDB88320, init and final XOR all ones.
+local bitlib = bit32 or bit
+local CRC_TABLE = {}
+for i = 0, 255 do
+    local c = i
+    for _ = 1, 8 do
+        if c % 2 == 1 then
+            c = bitlib.bxor(math.floor(c / 2), 0xEDB88320) % TWO32
+        else
+            c = math.floor(c / 2)
+        end
+    end
+    CRC_TABLE[i] = c
+end
+
+local function crc32(data)
+    local crc = 0xFFFFFFFF
+    for i = 1, #data do
+        local index = bitlib.bxor(crc % 256, data:byte(i)) % 256
+        crc = bitlib.bxor(CRC_TABLE[index], math.floor(crc / 256)) % TWO32
+    end
+    return bitlib.bxor(crc, 0xFFFFFFFF) % TWO32
+end
+
+-- COBS decoding as dh2rt.wire.serial_framing.cobs_decode: the bytes, or nil and the reason.
+local function cobs_decode(data)
+    local out = {}
+    local pos, n = 1, #data
+    while pos <= n do
+        local code = data:byte(pos)
+        if code == 0 then
+            return nil, "COBS: zero byte inside a frame"
+        end
+        local stop = pos + code
+        if stop > n + 1 then
+            return nil, "COBS: code byte runs past the end of the frame"
+        end
+        local block = data:sub(pos + 1, stop - 1)
+        if block:find("\0", 1, true) then
+            return nil, "COBS: zero byte inside a frame"
+        end
+        out[#out + 1] = block
+        pos = stop
+        if code ~= 0xFF and pos <= n then
+            out[#out + 1] = "\0"
+        end
+    end
+    return table.concat(out)
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Programs and connectors
+
+local KNOWN_DIGESTS = {}
+for i, program in ipairs(PROGRAMS) do
+    KNOWN_DIGESTS[program.digest] = i
+end
+
+local function connector_name(index)
+    if index == 0 then
+        return "0"
+    end
+    return CONNECTORS[index] or ("#" .. index)
+end
+
+-- ------------------------------------------------------------------------------------------
+-- The protocol and its fields
+
+local dh2rt = Proto("dh2rt", "dh2rt hormone frames")
+
+local F = {
+    kind = ProtoField.string("dh2rt.kind", "Kind (hormone, routed, keepalive, hello, segment, error)"),
+    medium = ProtoField.string("dh2rt.medium", "Medium (can, serial)"),
+    link = ProtoField.uint32("dh2rt.link", "Link id"),
+    side = ProtoField.uint8("dh2rt.side", "Side that sent it"),
+    text = ProtoField.string("dh2rt.text", "Text (as dh2rt dump prints it)"),
+    error = ProtoField.string("dh2rt.error", "Error"),
+    lost = ProtoField.bool("dh2rt.lost", "Lost on the link"),
+    -- CAN arbitration id
+    can_kind = ProtoField.uint8("dh2rt.can.kind", "Kind (id)", base.DEC, FRAME_KINDS),
+    segment = ProtoField.uint8("dh2rt.can.segment", "Segment", base.DEC, SEGMENTS),
+    seq = ProtoField.uint8("dh2rt.can.seq", "Segment number"),
+    segment_frames = ProtoField.string("dh2rt.can.segment_frames", "Reassembled from frames"),
+    -- serial record
+    magic = ProtoField.string("dh2rt.serial.magic", "Magic"),
+    record_version = ProtoField.uint8("dh2rt.serial.version", "Record version"),
+    flags = ProtoField.uint8("dh2rt.serial.flags", "Flags", base.HEX),
+    flag_side = ProtoField.uint8("dh2rt.serial.flags.side", "Side", base.DEC, nil, LAYOUT.serial.flag_side),
+    flag_lost = ProtoField.bool("dh2rt.serial.flags.lost", "Lost", 8, nil, LAYOUT.serial.flag_lost),
+    flag_corrupted = ProtoField.bool("dh2rt.serial.flags.corrupted", "Corrupted", 8, nil, LAYOUT.serial.flag_corrupted),
+    wire = ProtoField.bytes("dh2rt.serial.wire", "Wire bytes (COBS, CRC-32, 0x00)"),
+    crc = ProtoField.uint32("dh2rt.serial.crc", "CRC-32", base.HEX),
+    crc_status = ProtoField.string("dh2rt.serial.crc.status", "CRC-32 status"),
+    -- the frame
+    version = ProtoField.uint8("dh2rt.frame.version", "Wire version", base.DEC, nil,
+        (2 ^ LAYOUT.header.version.width - 1) * 2 ^ LAYOUT.header.version.shift),
+    frame_kind = ProtoField.uint8("dh2rt.frame.kind", "Frame kind", base.DEC, FRAME_KINDS,
+        (2 ^ LAYOUT.header.kind.width - 1) * 2 ^ LAYOUT.header.kind.shift),
+    sender = ProtoField.uint8("dh2rt.sender", "Sent through connector", base.DEC, CONNECTORS,
+        (2 ^ LAYOUT.header.sender.width - 1) * 2 ^ LAYOUT.header.sender.shift),
+    hop_count = ProtoField.uint8("dh2rt.hops", "Hop count"),
+    index = ProtoField.uint8("dh2rt.hormone.index", "Hormone index"),
+    hormone = ProtoField.string("dh2rt.hormone", "Hormone"),
+    arg = ProtoField.string("dh2rt.arg", "Argument"),
+    arg_bytes = ProtoField.bytes("dh2rt.arg.bytes", "Argument bytes (no program to read them)"),
+    content = ProtoField.string("dh2rt.content", "Content"),
+    path = ProtoField.string("dh2rt.path", "Path (sent through>received at, newest first)"),
+    route_length = ProtoField.uint8("dh2rt.route.length", "Route length"),
+    route = ProtoField.string("dh2rt.route", "Route still to go"),
+    keepalive_seq = ProtoField.uint8("dh2rt.keepalive.seq", "Keep-alive sequence number"),
+    digest = ProtoField.bytes("dh2rt.hello.digest", "Program digest"),
+    program = ProtoField.string("dh2rt.program", "Program naming the hormones"),
+}
+local field_list = {}
+for _, field in pairs(F) do
+    field_list[#field_list + 1] = field
+end
+dh2rt.fields = field_list
+
+local E = {
+    error = ProtoExpert.new("dh2rt.error.expert", "dh2rt frame does not decode", expert.group.MALFORMED,
+        expert.severity.ERROR),
+    lost = ProtoExpert.new("dh2rt.lost.expert", "Lost on the link (never delivered)", expert.group.SEQUENCE,
+        expert.severity.WARN),
+}
+dh2rt.experts = { E.error, E.lost }
+
+local can_id_field = Field.new("can.id")
+local can_xtd_field = Field.new("can.flags.xtd")
+
+-- ------------------------------------------------------------------------------------------
+-- State: what the first dissection of a frame learnt, kept per frame number so that any later
+-- one (Wireshark's GUI dissects a frame again when it is clicked) shows the same. The first
+-- dissection is the one with no entry yet, not the one with pinfo.visited unset: `tshark -2`
+-- without a filter marks frames visited that its first pass never dissected.
+
+local state = {}
+
+local function reset()
+    state = {
+        frames = {},   -- frame number -> what its first dissection decided (program, payload, ...)
+        programs = {}, -- "medium:link:side" -> index in PROGRAMS its last Hello named
+        partial = {},  -- "link:side" -> a CAN payload being reassembled
+        ends = {},     -- "link:side" -> true: a CAN link end that sent a dh2rt frame
+    }
+end
+reset()
+dh2rt.init = reset
+
+-- ------------------------------------------------------------------------------------------
+-- Decoding one frame (FrameCodec.decode), filling the tree; returns a hop as dump has it:
+-- { kind, sender, text, path, route, error, digest }
+
+local Decode = {}
+Decode.__index = Decode
+
+local function decode_error(message)
+    error({ dh2rt = message }, 0)
+end
+
+-- A reader over one frame's bytes (a Tvb) that adds what it reads to a subtree.
+function Decode.new(tvb, tree, program)
+    local self = setmetatable({}, Decode)
+    self.tvb, self.tree, self.program = tvb, tree, program
+    self.data = tvb:len() > 0 and tvb:range(0):raw() or ""
+    self.count = #CONNECTORS
+    return self
+end
+
+function Decode:range(pos, length)
+    return self.tvb:range(pos, length)
+end
+
+function Decode:unpack(pos, count, what)
+    local width = LAYOUT.connector_bits
+    local nbytes = math.ceil(count * width / 8)
+    if pos + nbytes > #self.data then
+        decode_error(string.format("frame: %s truncated (%d connectors need %d bytes)", what, count, nbytes))
+    end
+    local values = unpack_fields(self.data, pos * 8, count, width)
+    for i = count * width, nbytes * 8 - 1 do
+        if bit_at(self.data, pos * 8 + i) ~= 0 then
+            decode_error(string.format("frame: %s padding bits are not zero", what))
+        end
+    end
+    for _, v in ipairs(values) do
+        if v < 1 or v > self.count then
+            decode_error(string.format("frame: %s connector %d is outside 1..%d", what, v, self.count))
+        end
+    end
+    return values, pos + nbytes, nbytes
+end
+
+function Decode:varint(pos)
+    local result, scale = 0, 1
+    for _ = 1, 5 do
+        if pos >= #self.data then
+            decode_error("varint truncated")
+        end
+        local b = self.data:byte(pos + 1)
+        pos = pos + 1
+        result = result + (b % 128) * scale
+        if b < 128 then
+            return result, pos
+        end
+        scale = scale * 128
+    end
+    decode_error("varint longer than 5 bytes")
+end
+
+-- Vocabulary.decode_content: name, argument texts, the offset after the content.
+function Decode:content(pos)
+    if pos >= #self.data then
+        decode_error("hormone content: no bytes")
+    end
+    local index = self.data:byte(pos + 1)
+    self.tree:add(F.index, self:range(pos, 1))
+    local spec = self.program.hormones[index]
+    if spec == nil then
+        decode_error(string.format("hormone content: unknown hormone index %d", index))
+    end
+    self.tree:add(F.hormone, self:range(pos, 1), spec.name)
+    pos = pos + 1
+    local args = {}
+    for _, param in ipairs(spec.params) do
+        if pos >= #self.data then
+            decode_error(string.format("hormone %s: content truncated at parameter %s", spec.name, param.name))
+        end
+        local start, value = pos, nil
+        if param.domain ~= nil then
+            local atom = self.data:byte(pos + 1)
+            pos = pos + 1
+            value = param.domain[atom + 1]
+            if value == nil then
+                decode_error(string.format("hormone %s.%s: atom index %d out of range", spec.name, param.name, atom))
+            end
+        else
+            local raw
+            raw, pos = self:varint(pos)
+            local n = raw % 2 == 0 and raw / 2 or -(raw + 1) / 2
+            if n < INT_MIN or n > INT_MAX then
+                decode_error(string.format("hormone %s.%s: integer out of range", spec.name, param.name))
+            end
+            value = string.format("%d", n)
+        end
+        self.tree:add(F.arg, self:range(start, pos - start), value):set_text("Argument " .. param.name .. ": " .. value)
+        args[#args + 1] = value
+    end
+    return spec.name, args, pos
+end
+
+-- Whether a route (its length, then its connectors) at ``at`` ends the frame exactly.
+function Decode:route_fits(at)
+    local ok, _, after = pcall(self.unpack, self, at + 1, self.data:byte(at + 1), "route")
+    return ok and after == #self.data
+end
+
+-- Without a program: the content is what the path (and route) leave; its arguments unread.
+-- A routed hormone's content ends where a valid route follows the path to the frame's end.
+function Decode:raw_content(pos, kind, path_bytes)
+    local length = #self.data - pos - path_bytes
+    if kind == LAYOUT.kinds.routed then
+        length = nil
+        for l = 1, #self.data - pos - path_bytes - 1 do
+            if self:route_fits(pos + l + path_bytes) then
+                length = l
+                break
+            end
+        end
+        if length == nil then
+            decode_error("hormone frame: no program names its hormones, and content and route do not part")
+        end
+    end
+    if length < 1 then
+        decode_error("hormone content: no bytes")
+    end
+    local index = self.data:byte(pos + 1)
+    self.tree:add(F.index, self:range(pos, 1))
+    local name = "#" .. index
+    self.tree:add(F.hormone, self:range(pos, 1), name)
+    local args = {}
+    if length > 1 then
+        self.tree:add(F.arg_bytes, self:range(pos + 1, length - 1))
+        args[1] = "0x" .. tohex(self.data:sub(pos + 2, pos + length))
+    end
+    return name, args, pos + length
+end
+
+local function names(connectors)
+    local out = {}
+    for i, c in ipairs(connectors) do
+        out[i] = connector_name(c)
+    end
+    return out
+end
+
+function Decode:hormone(kind)
+    if #self.data < 2 then
+        decode_error("hormone frame: truncated before the hop count")
+    end
+    local hops = self.data:byte(2)
+    self.tree:add(F.hop_count, self:range(1, 1))
+    local name, args, pos
+    if self.program ~= nil then
+        name, args, pos = self:content(2)
+    else
+        local path_bytes = math.ceil(2 * hops * LAYOUT.connector_bits / 8)
+        name, args, pos = self:raw_content(2, kind, path_bytes)
+    end
+    local text = name .. "(" .. table.concat(args, ", ") .. ")"
+    self.tree:add(F.content, self:range(2, pos - 2), text)
+    local flat, after, nbytes = self:unpack(pos, 2 * hops, "path")
+    local path = {}
+    for i = 1, #flat, 2 do
+        path[#path + 1] = connector_name(flat[i]) .. ">" .. connector_name(flat[i + 1])
+    end
+    if nbytes > 0 then
+        self.tree:add(F.path, self:range(pos, nbytes), table.concat(path, " "))
+    end
+    pos = after
+    local route
+    if kind == LAYOUT.kinds.routed then
+        if pos >= #self.data then
+            decode_error(string.format("hormone frame %s: truncated before the route length", name))
+        end
+        local count = self.data:byte(pos + 1)
+        self.tree:add(F.route_length, self:range(pos, 1))
+        route, after, nbytes = self:unpack(pos + 1, count, "route")
+        if nbytes > 0 then
+            self.tree:add(F.route, self:range(pos + 1, nbytes), table.concat(names(route), " "))
+        end
+        pos = after
+    end
+    if pos ~= #self.data then
+        decode_error(string.format("hormone frame %s: %d trailing byte(s)", name, #self.data - pos))
+    end
+    return { kind = FRAME_KINDS[kind], text = text, path = path, route = route }
+end
+
+function Decode:frame()
+    local data = self.data
+    if #data == 0 then
+        decode_error("frame: no bytes")
+    end
+    local head = data:byte(1)
+    local header = self:range(0, 1)
+    self.tree:add(F.version, header)
+    local version = bits(head, LAYOUT.header.version)
+    if version ~= LAYOUT.wire_version then
+        decode_error(string.format("frame: wire version %d, expected %d", version, LAYOUT.wire_version))
+    end
+    local kind = bits(head, LAYOUT.header.kind)
+    self.tree:add(F.frame_kind, header)
+    local sender = bits(head, LAYOUT.header.sender)
+    self.tree:add(F.sender, header)
+    if sender < 1 or sender > self.count then
+        decode_error(string.format("frame: sender connector %d is outside 1..%d", sender, self.count))
+    end
+    local hop
+    if kind == LAYOUT.kinds.keepalive then
+        if #data ~= LAYOUT.keepalive_bytes then
+            decode_error(string.format("keep-alive frame: %d bytes, expected %d", #data, LAYOUT.keepalive_bytes))
+        end
+        self.tree:add(F.keepalive_seq, self:range(1, 1))
+        hop = { kind = "keepalive", text = "#" .. data:byte(2) }
+    elseif kind == LAYOUT.kinds.hello then
+        local expected = 1 + LAYOUT.hello_digest_bytes
+        if #data ~= expected then
+            decode_error(string.format("hello frame: %d bytes, expected %d", #data, expected))
+        end
+        self.tree:add(F.digest, self:range(1, LAYOUT.hello_digest_bytes))
+        local digest = tohex(data:sub(2))
+        local text = digest
+        if #PROGRAMS > 0 and KNOWN_DIGESTS[digest] == nil then
+            text = text .. " (a program this capture does not carry)"
+        end
+        hop = { kind = "hello", text = text, digest = digest }
+    else
+        hop = self:hormone(kind)
+    end
+    hop.sender = connector_name(sender)
+    return hop
+end
+
+-- Decode ``tvb`` as one frame; a frame that does not decode gives an error hop.
+local function decode_frame(tvb, tree, program)
+    local reader = Decode.new(tvb, tree, program)
+    local ok, result = pcall(Decode.frame, reader)
+    if ok then
+        return result
+    end
+    if type(result) == "table" and result.dh2rt then
+        return { kind = "error", text = "", error = result.dh2rt }
+    end
+    error(result, 0)
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Showing a hop: the tree's summary fields and the Info column, as Hop.describe
+
+local function describe(medium, link, side, hop)
+    local label = medium == "serial" and "ir  " or "link"
+    local line = string.format("%s %4d side %d  %-9s %s", label, link, side, hop.kind, hop.text)
+    if hop.sender then
+        line = line .. " via " .. hop.sender
+    end
+    if hop.path and #hop.path > 0 then
+        line = line .. "  path " .. table.concat(hop.path, " ")
+    end
+    if hop.route and #hop.route > 0 then
+        line = line .. "  route " .. table.concat(names(hop.route), " ")
+    end
+    if hop.lost then
+        line = line .. "  !! lost on the link (never delivered)"
+    end
+    if hop.error then
+        line = line .. "  !! " .. hop.error
+    end
+    return line
+end
+
+local function show(tvb, pinfo, root, medium, link, side, hop)
+    local line = describe(medium, link, side, hop)
+    pinfo.cols.protocol:set("DH2RT")
+    pinfo.cols.info:set(line)
+    root:append_text(": " .. line)
+    root:add(F.kind, hop.kind):set_generated()
+    root:add(F.text, hop.text):set_generated()
+    if hop.lost then
+        root:add(F.lost, true):set_generated()
+        root:add_proto_expert_info(E.lost)
+    end
+    if hop.error then
+        root:add(F.error, hop.error):set_generated()
+        root:add_proto_expert_info(E.error, hop.error)
+    end
+end
+
+-- Decode a frame's payload with the program that names its end's hormones: its last
+-- Hello's, else the first. Chosen the first time the frame is dissected and kept in
+-- ``remembered``; a Hello then switches its end to the program it names.
+local function dissect_payload(payload_tvb, root, remembered, medium, link, side)
+    local key = medium .. ":" .. link .. ":" .. side
+    local first = remembered.program == nil
+    if first then
+        remembered.program = state.programs[key] or 1
+    end
+    local program = PROGRAMS[remembered.program]
+    local frame_tree = root:add(dh2rt, payload_tvb:range(0), string.format("dh2rt frame (%d bytes)", payload_tvb:len()))
+    if program ~= nil then
+        frame_tree:add(F.program, program.name):set_generated()
+    end
+    local hop = decode_frame(payload_tvb, frame_tree, program)
+    if first and hop.kind == "hello" then
+        state.programs[key] = KNOWN_DIGESTS[hop.digest] or 1
+    end
+    return hop
+end
+
+-- ------------------------------------------------------------------------------------------
+-- CAN: the heuristic, the arbitration id, reassembly (as can_frames.Reassembler)
+
+local function parse_can_id(id)
+    local f = LAYOUT.can
+    return {
+        kind = bits(id, f.kind),
+        segment = bits(id, f.segment),
+        seq = bits(id, f.seq),
+        link = bits(id, f.link),
+        side = bits(id, f.side),
+    }
+end
+
+-- Whether a CAN frame is dh2rt's: an extended id whose kind the frame's first byte repeats
+-- with the wire version, or a later segment from a link end that sent dh2rt frames.
+local function is_dh2rt(tvb, id)
+    if id.segment == LAYOUT.segments.single or id.segment == LAYOUT.segments.first then
+        if tvb:len() < 1 then
+            return false
+        end
+        local head = tvb:range(0, 1):uint()
+        return bits(head, LAYOUT.header.version) == LAYOUT.wire_version and bits(head, LAYOUT.header.kind) == id.kind
+    end
+    return state.ends[id.link .. ":" .. id.side] == true
+end
+
+-- One frame into the reassembler: the whole payload (or nil), and whether a payload was lost.
+local function reassemble(id, data, number)
+    local S = LAYOUT.segments
+    local key = id.link .. ":" .. id.side
+    local part = state.partial[key]
+    if id.segment == S.single or id.segment == S.first then
+        state.partial[key] = nil
+        local lost = part ~= nil
+        if id.segment == S.single then
+            return data, lost, nil
+        end
+        if id.seq ~= 0 or #data == 0 then
+            return nil, true, nil
+        end
+        state.partial[key] = { kind = id.kind, next_seq = 1, chunks = { data }, frames = { number } }
+        return nil, lost, nil
+    end
+    if part == nil or id.seq ~= part.next_seq or id.kind ~= part.kind or #data == 0 then
+        state.partial[key] = nil
+        return nil, true, nil
+    end
+    part.chunks[#part.chunks + 1] = data
+    part.frames[#part.frames + 1] = number
+    part.next_seq = part.next_seq + 1
+    if id.segment == S.last then
+        state.partial[key] = nil
+        return table.concat(part.chunks), false, part.frames
+    end
+    if part.next_seq >= LAYOUT.max_segments then
+        state.partial[key] = nil
+        return nil, true, nil
+    end
+    return nil, false, nil
+end
+
+-- What the first dissection learns of a CAN frame, or nil for a frame that is not dh2rt's.
+local function first_look_can(tvb, pinfo, id)
+    if not is_dh2rt(tvb, id) then
+        return nil
+    end
+    state.ends[id.link .. ":" .. id.side] = true
+    local data = tvb:len() > 0 and tvb:range(0):raw() or ""
+    local payload, lost, frames = reassemble(id, data, pinfo.number)
+    return { payload = payload, lost = lost, frames = frames }
+end
+
+local function add_can_id(tree, tvb, id)
+    local here = tvb:range(0, 0)
+    tree:add(F.medium, here, "can"):set_generated()
+    tree:add(F.link, here, id.link):set_generated()
+    tree:add(F.side, here, id.side):set_generated()
+    tree:add(F.can_kind, here, id.kind):set_generated()
+    tree:add(F.segment, here, id.segment):set_generated()
+    tree:add(F.seq, here, id.seq):set_generated()
+end
+
+local function dissect_can(tvb, pinfo, tree)
+    local xtd = can_xtd_field()
+    local raw_id = can_id_field()
+    if xtd == nil or not xtd.value or raw_id == nil then
+        return false
+    end
+    local id = parse_can_id(raw_id.value)
+    local remembered = state.frames[pinfo.number]
+    if remembered == nil then
+        remembered = first_look_can(tvb, pinfo, id) or false
+        state.frames[pinfo.number] = remembered
+    end
+    if not remembered then
+        return false
+    end
+    local root = tree:add(dh2rt, tvb:range(0))
+    add_can_id(root, tvb, id)
+    local hop
+    if remembered.payload ~= nil then
+        local payload_tvb = tvb
+        if remembered.frames ~= nil then
+            payload_tvb = ByteArray.new(remembered.payload, true):tvb("Reassembled dh2rt frame")
+            local numbers = {}
+            for i, n in ipairs(remembered.frames) do
+                numbers[i] = tostring(n)
+            end
+            root:add(F.segment_frames, table.concat(numbers, ", ")):set_generated()
+        end
+        hop = dissect_payload(payload_tvb, root, remembered, "can", id.link, id.side)
+        if remembered.frames ~= nil and hop.kind ~= "error" then
+            hop.text = hop.text .. " (reassembled)"
+        end
+    elseif remembered.lost then
+        hop = { kind = "error", text = "", error = string.format("segment %d out of order: lost", id.seq) }
+    else
+        hop = { kind = "segment", text = "#" .. id.seq }
+    end
+    show(tvb, pinfo, root, "can", id.link, id.side, hop)
+    return true
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Serial links: the record header, COBS, the CRC-32
+
+local function serial_header(tvb, root)
+    local L = LAYOUT.serial
+    root:add(F.medium, tvb:range(0, 0), "serial"):set_generated()
+    root:add(F.magic, tvb:range(0, #L.magic))
+    root:add(F.record_version, tvb:range(#L.magic, 1))
+    local flags = tvb:range(#L.magic + 1, 1)
+    local flag_tree = root:add(F.flags, flags)
+    flag_tree:add(F.flag_side, flags)
+    flag_tree:add(F.flag_lost, flags)
+    flag_tree:add(F.flag_corrupted, flags)
+    local link_range = tvb:range(#L.magic + 2, L.header_bytes - #L.magic - 2)
+    root:add(F.link, link_range)
+    local value = flags:uint()
+    local side = math.floor(value / L.flag_side) % 2
+    root:add(F.side, flags, side)
+    return link_range:uint(), side, math.floor(value / L.flag_lost) % 2 == 1
+end
+
+-- The payload of a serial frame's wire bytes, or nil and the reason (as decode_serial).
+local function serial_payload(wire, tree)
+    local crc_bytes = LAYOUT.serial.crc_bytes
+    if wire:sub(-1) == string.char(LAYOUT.serial.delimiter) then
+        wire = wire:sub(1, -2)
+    end
+    local body, reason = cobs_decode(wire)
+    if body == nil then
+        return nil, reason
+    end
+    if #body <= crc_bytes then
+        return nil, string.format("serial frame of %d bytes is too short for a payload and CRC", #body)
+    end
+    local payload = body:sub(1, -crc_bytes - 1)
+    local stored = 0
+    for i = #body, #body - crc_bytes + 1, -1 do
+        stored = stored * 256 + body:byte(i)
+    end
+    local good = crc32(payload) == stored
+    local decoded = ByteArray.new(body, true):tvb("COBS-decoded dh2rt frame")
+    tree:add(F.crc, decoded:range(#payload, crc_bytes), stored)
+    tree:add(F.crc_status, good and "good" or "bad"):set_generated()
+    if not good then
+        return nil, "serial frame failed its CRC"
+    end
+    return decoded:range(0, #payload):tvb()
+end
+
+function dh2rt.dissector(tvb, pinfo, tree)
+    local L = LAYOUT.serial
+    if tvb:len() < L.header_bytes or tvb:range(0, #L.magic):string() ~= L.magic
+        or tvb:range(#L.magic, 1):uint() ~= L.version then
+        return 0
+    end
+    local root = tree:add(dh2rt, tvb:range(0))
+    local link, side, lost = serial_header(tvb, root)
+    local remembered = state.frames[pinfo.number] or {}
+    state.frames[pinfo.number] = remembered
+    local hop
+    local wire = ""
+    if tvb:len() > L.header_bytes then
+        wire = tvb:range(L.header_bytes):raw()
+        root:add(F.wire, tvb:range(L.header_bytes))
+    end
+    local payload, reason = serial_payload(wire, root)
+    if payload == nil then
+        local what = lost and "lost, and its bytes are corrupted" or "corrupted on the link"
+        hop = { kind = "error", text = "", error = what .. ": " .. reason }
+    else
+        hop = dissect_payload(payload, root, remembered, "serial", link, side)
+        hop.lost = lost
+    end
+    show(tvb, pinfo, root, "serial", link, side, hop)
+    return tvb:len()
+end
+
+dh2rt:register_heuristic("can", dissect_can)
+DissectorTable.get("wtap_encap"):add(wtap_encaps and wtap_encaps.USER0 or wtap.USER0, dh2rt)

@@ -1,0 +1,177 @@
+"""The wire layout the Wireshark dissector needs, read off dh2rt's own codec.
+
+Nothing here restates a bit position: each field is found by probing the codec's public
+functions (:func:`~dh2rt.wire.can_frames.make_arbitration_id`,
+:meth:`~dh2rt.wire.frame.FrameCodec.encode`, :func:`~dh2rt.wire.frame.frame_kind`,
+:func:`tools.serial_records.pack`) and then checked against a frame of every kind, so a
+change to the codec changes the generated dissector, or stops the generator with
+:class:`LayoutError`.
+"""
+
+from __future__ import annotations
+
+from functools import reduce
+from operator import or_
+from typing import Any
+
+from dh2rt.hormone import Hormone, HormoneSpec, Vocabulary
+from dh2rt.profile import Profile
+from dh2rt.wire import can_frames
+from dh2rt.wire.frame import (
+    HELLO_DIGEST_BYTES,
+    MAX_CONNECTORS,
+    WIRE_VERSION,
+    Frame,
+    FrameCodec,
+    FrameKind,
+    Hello,
+    KeepAlive,
+    frame_kind,
+)
+from dh2rt.wire.serial_framing import CRC_BYTES, DELIMITER
+from tools import serial_records
+from tools.decode import KINDS
+
+#: A field of an integer: its lowest bit and its width in bits.
+BitField = dict[str, int]
+
+
+class LayoutError(Exception):
+    """The codec's layout is one the dissector cannot describe."""
+
+
+def bit_field(mask: int) -> BitField:
+    """The shift and width of a contiguous run of set bits."""
+    if mask <= 0:
+        raise LayoutError(f"mask {mask:#x} has no bits")
+    shift = (mask & -mask).bit_length() - 1
+    width = (mask >> shift).bit_length()
+    if mask >> shift != (1 << width) - 1:
+        raise LayoutError(f"mask {mask:#x} is not one run of bits")
+    return {"shift": shift, "width": width}
+
+
+def extract(value: int, field: BitField) -> int:
+    """The value of ``field`` in ``value`` (what the dissector's ``bits`` computes)."""
+    return (value >> field["shift"]) & ((1 << field["width"]) - 1)
+
+
+# -- the CAN arbitration id --------------------------------------------------------------
+
+#: Each field of make_arbitration_id and its largest value.
+_CAN_LIMITS = {
+    "kind": max(FrameKind),
+    "segment": can_frames.LAST,
+    "seq": can_frames.MAX_SEGMENTS - 1,
+    "link_id": can_frames.MAX_LINK_ID,
+    "side": 1,
+}
+
+
+def can_id_fields() -> dict[str, BitField]:
+    """The fields of a 29-bit arbitration id, each probed with its largest value alone."""
+    fields: dict[str, BitField] = {}
+    for name, limit in _CAN_LIMITS.items():
+        values = dict.fromkeys(_CAN_LIMITS, 0) | {name: int(limit)}
+        field = bit_field(can_frames.make_arbitration_id(**values))
+        if field["width"] != int(limit).bit_length():
+            raise LayoutError(f"CAN id field {name}: {field['width']} bits for values up to {limit}")
+        fields["link" if name == "link_id" else name] = field
+    return fields
+
+
+# -- the frame's first byte --------------------------------------------------------------
+
+
+def _probe_codec() -> FrameCodec:
+    return FrameCodec(Vocabulary((HormoneSpec(0, "P", ()),)), MAX_CONNECTORS)
+
+
+def _one_of_each_kind() -> dict[FrameKind, Frame]:
+    return {
+        FrameKind.HORMONE: Hormone("P"),
+        FrameKind.ROUTED: Hormone("P", route=()),
+        FrameKind.KEEPALIVE: KeepAlive(0),
+        FrameKind.HELLO: Hello(bytes(HELLO_DIGEST_BYTES)),
+    }
+
+
+def header_fields() -> dict[str, BitField]:
+    """Version, kind and sender connector in byte 0: the kind as frame_kind reads it, the
+    sender as the bits the sender changes, the version as the bits left."""
+    kind_mask = reduce(or_, (1 << i for i in range(8) if frame_kind(bytes((1 << i,))) != 0))
+    codec = _probe_codec()
+    heads = [codec.encode(s, KeepAlive(0))[0] for s in range(1, MAX_CONNECTORS + 1)]
+    sender_mask = reduce(or_, (h ^ heads[0] for h in heads))
+    version_mask = 0xFF & ~(kind_mask | sender_mask)
+    fields = {"version": bit_field(version_mask), "kind": bit_field(kind_mask), "sender": bit_field(sender_mask)}
+    _check_header(codec, fields)
+    return fields
+
+
+def _check_header(codec: FrameCodec, fields: dict[str, BitField]) -> None:
+    """Every kind, through every connector, reads back as encoded."""
+    for kind, frame in _one_of_each_kind().items():
+        for sender in (1, MAX_CONNECTORS):
+            head = codec.encode(sender, frame)[0]
+            got = tuple(extract(head, fields[name]) for name in ("version", "kind", "sender"))
+            if got != (WIRE_VERSION, kind, sender):
+                raise LayoutError(f"byte 0 of a {kind.name} frame through {sender} reads {got}")
+
+
+# -- the serial record -------------------------------------------------------------------
+
+
+def serial_layout() -> dict[str, Any]:
+    """The record header of tools.serial_records and the framing's CRC and delimiter,
+    checked against a packed record: magic, version, flags, then a big-endian link id."""
+    link = 0x01020304
+    record = serial_records.SerialRecord(0.0, link, 1, b"", lost=True, corrupted=False)
+    flags = serial_records.FLAG_SIDE | serial_records.FLAG_LOST
+    expected = serial_records.MAGIC + bytes((serial_records.VERSION, flags)) + link.to_bytes(4, "big")
+    if serial_records.pack(record) != expected or serial_records.HEADER.size != len(expected):
+        raise LayoutError("the serial record is not magic, version, flags, big-endian link id")
+    for flag in (serial_records.FLAG_SIDE, serial_records.FLAG_LOST, serial_records.FLAG_CORRUPTED):
+        bit_field(flag)  # one bit each
+    return {
+        "magic": serial_records.MAGIC.decode("ascii"),
+        "version": serial_records.VERSION,
+        "header_bytes": serial_records.HEADER.size,
+        "flag_side": serial_records.FLAG_SIDE,
+        "flag_lost": serial_records.FLAG_LOST,
+        "flag_corrupted": serial_records.FLAG_CORRUPTED,
+        "crc_bytes": CRC_BYTES,
+        "delimiter": DELIMITER,
+    }
+
+
+# -- all of it ---------------------------------------------------------------------------
+
+
+def wire_layout(profile: Profile) -> dict[str, Any]:
+    """Everything the dissector reads, for robots of ``profile`` (its connector count sets
+    the width of path and route fields)."""
+    for kind in FrameKind:
+        if KINDS[kind] != kind.name.lower():
+            raise LayoutError(f"dump calls frame kind {kind.name} {KINDS[kind]!r}")
+    codec = _probe_codec()
+    segments = {
+        "single": can_frames.SINGLE,
+        "first": can_frames.FIRST,
+        "middle": can_frames.MIDDLE,
+        "last": can_frames.LAST,
+    }
+    return {
+        "wire_version": WIRE_VERSION,
+        "header": header_fields(),
+        "kinds": {KINDS[k]: int(k) for k in FrameKind},
+        "kind_names": {int(k): KINDS[k] for k in FrameKind},
+        "keepalive_bytes": len(codec.encode(1, KeepAlive(0))),
+        "hello_digest_bytes": HELLO_DIGEST_BYTES,
+        "connector_bits": FrameCodec(Vocabulary(()), profile.connector_count).connector_bits,
+        "can": can_id_fields(),
+        "segments": segments,
+        "segment_names": {value: name for name, value in segments.items()},
+        "max_segments": can_frames.MAX_SEGMENTS,
+        "serial": serial_layout(),
+    }
