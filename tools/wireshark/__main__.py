@@ -1,4 +1,4 @@
-"""``python -m tools.wireshark``: see :mod:`tools.wireshark.command`."""
+"""``dh2rt wireshark``: see :mod:`tools.wireshark.command`."""
 
 import sys
 

@@ -1,4 +1,4 @@
-"""``python -m tools.wireshark``: write the Wireshark dissector for dh2rt frames.
+"""``dh2rt wireshark``: write the Wireshark dissector for dh2rt frames.
 
 Frames carry hormone indices; the program gives them names. With ``--capture`` the dissector
 knows the programs the capture carries (the images in its section header, each matched to a
@@ -26,9 +26,9 @@ from tools.wireshark.generate import dissector, template
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m tools.wireshark",
+        prog="dh2rt wireshark",
         description="Write the Wireshark Lua dissector for dh2rt frames, knowing a program's hormone names.",
-        epilog="Example: python -m tools.wireshark --capture robot.pcapng -o ~/.local/lib/wireshark/plugins/dh2rt.lua",
+        epilog="Example: dh2rt wireshark --capture robot.pcapng -o ~/.local/lib/wireshark/plugins/dh2rt.lua",
     )
     source = p.add_mutually_exclusive_group()
     source.add_argument("--capture", type=Path, help="name hormones with the program images this pcapng carries")
@@ -53,7 +53,7 @@ def check_committed() -> int:
     """EXIT_OK when the committed generic dissector is what the generator writes."""
     committed = template()
     if dissector(base=committed) != committed:
-        err("tools/wireshark/dh2rt.lua differs from what the codec's layout gives: run python -m tools.wireshark -o it")
+        err("tools/wireshark/dh2rt.lua differs from what the codec's layout gives: run dh2rt wireshark -o it")
         return EXIT_FAIL
     return EXIT_OK
 

@@ -9,7 +9,7 @@
 -- The Info column is the line `dh2rt dump` prints for the frame, without its time.
 --
 -- Frames carry hormone indices, not names. This file, as committed, knows no program: it
--- shows a hormone as #INDEX with its argument bytes. `python -m tools.wireshark --capture
+-- shows a hormone as #INDEX with its argument bytes. `dh2rt wireshark --capture
 -- robot.pcapng -o dh2rt.lua` (or `--program caterpillar.dh2`) writes it with the names.
 --
 -- Load: tshark -X lua_script:dh2rt.lua -r robot.pcapng, or copy it into Wireshark's
@@ -21,7 +21,7 @@
 -- the dissector and the codec cannot drift apart. Edit the generator, not the block.
 
 -- BEGIN GENERATED
--- Written by `python -m tools.wireshark`; do not edit.
+-- Written by `dh2rt wireshark`; do not edit.
 -- Profile conro; programs: none.
 local LAYOUT = {
     wire_version = 1,

@@ -49,7 +49,7 @@ def generated_block(programs: Sequence[CompiledProgram], profile: Profile) -> st
     """The Lua between the markers: LAYOUT, CONNECTORS and PROGRAMS."""
     names = ", ".join(f"{p.name} ({program_digest(p.image).hex()})" for p in programs) or "none"
     lines = [
-        "-- Written by `python -m tools.wireshark`; do not edit.",
+        "-- Written by `dh2rt wireshark`; do not edit.",
         f"-- Profile {profile.name}; programs: {names}.",
         f"local LAYOUT = {lua(wire_layout(profile))}",
         f"local CONNECTORS = {lua(list(profile.connectors))}",
