@@ -2,7 +2,11 @@
 
 ``dh2rt check PROGRAM``          exit 0 if valid, else 2 with FILE:LINE:COL, the line and a caret
 ``dh2rt run PROGRAM ...``        run a robot headless in one process; per-module summary
-``dh2rt image PROGRAM -o FILE``  write the program's image (what is flashed) and print its hash
+``dh2rt image PROGRAM -o FILE``  write the program's image (what is flashed) and print its hash;
+                                 ``--sign KEY --version N``: a signed image (dh2rt.signed_image)
+``dh2rt image --inspect IMAGE``  an image's fields, signer's key id and (``--trust PUBKEY``)
+                                 verification: exit 1 if it does not verify, 2 if no image
+``dh2rt keys new -o KEY``        a signing key pair: KEY (private, mode 0600) and KEY.pub
 ``dh2rt types``                  the topology profile's types and their status tuples
 ``dh2rt demo``                   the embedded default demo (no hardware, no SocketCAN)
 ``dh2rt COMMAND ...``            a command registered by an upper layer (``launch``: the
@@ -49,17 +53,32 @@ from dh2rt.cmdline import (
     print_summary,
     timed_run,
 )
-from dh2rt.errors import DH2Error, OutputError, ProgramError
+from dh2rt.compiler import load_image
+from dh2rt.errors import DH2Error, ImageError, KeyFileError, OutputError, ProgramError
 from dh2rt.lint import lint
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.profile import CONRO
+from dh2rt.signed_image import (
+    SignedImage,
+    Verdict,
+    describe_key_id,
+    examine,
+    key_id,
+    pack,
+    parse,
+    public_key,
+    public_key_path,
+    read_private_key,
+    read_public_key,
+    write_key_pair,
+)
 from dh2rt.trace import TraceWriter
 
 COMMAND_GROUP = "dh2rt.commands"
 SIMULATOR_GROUP = "dh2rt.simulators"
 #: What ``dh2rt`` runs when its first argument is an option (``dh2rt --transport vcan0``).
 DEFAULT_COMMAND = "launch"
-CORE_COMMANDS = ("check", "run", "image", "types", "demo")
+CORE_COMMANDS = ("check", "run", "image", "keys", "types", "demo")
 
 
 def registered(group: str) -> dict[str, EntryPoint]:
@@ -111,9 +130,36 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
     run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
 
-    image = sub.add_parser("image", help="write a program's image (what gets flashed) and print its hash")
-    image.add_argument("program", type=Path)
-    image.add_argument("-o", "--output", type=Path, required=True, help="image file to write (- for standard output)")
+    image = sub.add_parser(
+        "image",
+        help="write a program's image (what gets flashed) and print its hash; or --inspect one",
+        usage="dh2rt image PROGRAM -o FILE [--sign KEY --version N]\n"
+        "       dh2rt image --inspect IMAGE [--trust PUBKEY ...]",
+    )
+    image.add_argument("program", type=Path, nargs="?", help="a .dh2 file")
+    image.add_argument("-o", "--output", type=Path, help="image file to write (- for standard output)")
+    image.add_argument("--sign", type=Path, metavar="KEY", help="sign the image with this private key (dh2rt keys new)")
+    image.add_argument(
+        "--version",
+        dest="program_version",
+        type=int,
+        metavar="N",
+        help="with --sign: the program version, 0..4294967295; a module refuses one lower than it runs",
+    )
+    image.add_argument("--inspect", type=Path, metavar="IMAGE", help="describe IMAGE: fields, key id, verification")
+    image.add_argument(
+        "--trust",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PUBKEY",
+        help="with --inspect: verify against this public key (repeatable); exit 1 if the image does not verify",
+    )
+
+    keys = sub.add_parser("keys", help="signing keys for program images")
+    keys_sub = keys.add_subparsers(dest="keys_command", metavar="ACTION", required=True)
+    keys_new = keys_sub.add_parser("new", help="make a key pair: KEY (private, mode 0600) and KEY.pub beside it")
+    keys_new.add_argument("-o", "--output", type=Path, required=True, metavar="KEY", help="the private key file")
 
     sub.add_parser("types", help="list the CONRO profile's topological types")
 
@@ -138,7 +184,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if ns.command == "run":
             return cmd_run(ns)
         if ns.command == "image":
-            return cmd_image(ns.program, ns.output)
+            return cmd_image(ns)
+        if ns.command == "keys":
+            return cmd_keys(ns.output)
         if ns.command == "types":
             return cmd_types(sys.stdout)
         if ns.command == "demo":
@@ -186,27 +234,134 @@ def cmd_check(path: Path) -> int:
     return EXIT_OK
 
 
-def cmd_image(path: Path, output: Path) -> int:
+def cmd_image(ns: argparse.Namespace) -> int:
+    """``dh2rt image``: write a program's image, signed with ``--sign``, or ``--inspect`` one."""
+    if ns.inspect is not None:
+        if ns.program or ns.output or ns.sign or ns.program_version is not None:
+            err("--inspect IMAGE takes no PROGRAM, -o, --sign or --version")
+            return EXIT_USAGE
+        return cmd_inspect(ns.inspect, ns.trust)
+    if ns.program is None or ns.output is None:
+        err("image: give PROGRAM and -o FILE, or --inspect IMAGE")
+        return EXIT_USAGE
+    if ns.trust:
+        err("--trust goes with --inspect IMAGE")
+        return EXIT_USAGE
+    if (ns.sign is None) != (ns.program_version is None):
+        err("--sign KEY and --version N go together: a signed image carries its program version")
+        return EXIT_USAGE
     try:
-        cp = load_program(path)
+        cp = load_program(ns.program)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
     try:
-        output = output_path(output, "-o", stdout=True)
+        data, described = _image_bytes(cp.image, ns.sign, ns.program_version)
+        output = output_path(ns.output, "-o", stdout=True)
         if output == STDOUT:
-            sys.stdout.buffer.write(cp.image)
+            sys.stdout.buffer.write(data)
             sys.stdout.flush()
         else:
-            output.write_bytes(cp.image)
+            output.write_bytes(data)
+    except (ImageError, OutputError) as exc:
+        err(str(exc))
+        return EXIT_USAGE
+    except OSError as exc:
+        err(f"{exc.filename or ns.output}: {exc.strerror or exc}")
+        return EXIT_USAGE
+    # with the image on standard output, its description goes to standard error
+    print(
+        f"{output}: {len(data)} bytes, sha256 {cp.hash}{described}", file=sys.stderr if output == STDOUT else sys.stdout
+    )
+    return EXIT_OK
+
+
+def _image_bytes(image: bytes, key: Path | None, version: int | None) -> tuple[bytes, str]:
+    """The program image, or (with ``key``) the signed image; and what to add to its line."""
+    if key is None or version is None:
+        return image, ""
+    private = read_private_key(key)
+    data = pack(image, version, private)
+    kid = key_id(public_key(private)).hex()
+    return data, f" (program image {len(image)} bytes), signed: version {version}, key id {kid}"
+
+
+def cmd_inspect(path: Path, trust_files: Sequence[Path]) -> int:
+    """``dh2rt image --inspect``: exit 0 if the image verifies against ``trust_files`` (or
+    is intact, with none given), 1 if it does not, 2 if it is no image or a key is unreadable."""
+    try:
+        trust = [read_public_key(p) for p in trust_files]
+        data = path.read_bytes()
+    except KeyFileError as exc:  # names its file
+        err(str(exc))
+        return EXIT_USAGE
+    except OSError as exc:
+        err(f"{exc.filename or path}: {exc.strerror or exc}")
+        return EXIT_USAGE
+    try:
+        signed = parse(data)
+    except ImageError as exc:
+        err(f"{path}: {exc}")
+        return EXIT_USAGE
+    for line in _describe_image(path, signed):
+        print(line)
+    if not trust:
+        body_ok = _print_program(signed)
+        print("  verification     not checked: give --trust PUBKEY")
+        return EXIT_OK if body_ok else EXIT_FAIL
+    exam = examine(data, trust)
+    if exam.program is not None:
+        _print_program(signed)
+    print(f"  verification     {exam.verdict}: {exam.reason}")
+    return EXIT_OK if exam.verdict is Verdict.OK else EXIT_FAIL
+
+
+def _describe_image(path: Path, signed: SignedImage) -> list[str]:
+    if not signed.signed:
+        return [
+            f"{path}: unsigned program image (format {signed.format_version}), {signed.size} bytes",
+            f"  program digest   {signed.digest.hex()} (as Hello frames carry it)",
+            "  program version  0 (unsigned)",
+            "  key id           (none)",
+        ]
+    return [
+        f"{path}: signed image, format {signed.format_version}, {signed.size} bytes",
+        f"  program version  {signed.version}",
+        f"  program digest   {signed.digest.hex()} (as Hello frames carry it)",
+        f"  program length   {signed.program_length} bytes (body {len(signed.body)} bytes, compressed)",
+        f"  key id           {describe_key_id(signed.key_id)}",
+    ]
+
+
+def _print_program(signed: SignedImage) -> bool:
+    """Print the program the image holds; False if its body does not decode to one."""
+    try:
+        cp = load_image(signed.program())
+    except ProgramError as exc:
+        print(f"  program          does not compile: {exc.render()}")
+        return False
+    except ImageError as exc:
+        print(f"  program          corrupt: {exc}")
+        return False
+    print(f"  program          {cp.name}, {len(cp.receptors)} receptors, sha256 {cp.hash[:16]}")
+    return True
+
+
+def cmd_keys(output: Path) -> int:
+    """``dh2rt keys new -o KEY``: a new key pair, never over an existing file."""
+    try:
+        output = output_path(output, "-o")
+        kid = write_key_pair(output)
     except OutputError as exc:
         err(str(exc))
+        return EXIT_USAGE
+    except FileExistsError as exc:
+        err(f"-o {output}: {exc.filename} exists; a key is never overwritten (remove it first)")
         return EXIT_USAGE
     except OSError as exc:
         err(f"-o {output}: {exc.strerror or exc}")
         return EXIT_USAGE
-    # with the image on standard output, its description goes to standard error
-    print(f"{output}: {len(cp.image)} bytes, sha256 {cp.hash}", file=sys.stderr if output == STDOUT else sys.stdout)
+    print(f"{output}: private key (mode 0600); {public_key_path(output)}: public key; key id {kid.hex()}")
     return EXIT_OK
 
 

@@ -16,6 +16,8 @@ the other side's (bytes from a link or a file that do not decode)::
     │   └── EventError                      an event is malformed or cannot happen
     ├── HormoneError (ValueError)           a hormone breaks a limit (too long, bad value)
     ├── ImageError (ValueError)             a serialized program image is corrupt or foreign
+    │   ├── SignedImageError                a signed image is cut short or garbage (names the field and offset)
+    │   └── KeyFileError                    a key file holds no Ed25519 key of the kind asked for
     ├── CodecError (ValueError)             bytes and frames do not convert
     │   ├── EncodeError                     (local) a frame this side asked for breaks a wire limit
     │   │   └── FrameEncodeError (HormoneError)  a hormone frame breaks a wire limit
@@ -34,7 +36,8 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── ServoModelMismatch              a servo answered with the wrong model number
     │   ├── ServoCommError                  a packet was lost or garbled (CRC, timeout)
     │   ├── ServoHardwareAlert              the servo reports a hardware error
-    │   └── ServoInstructionError           the servo rejected an instruction
+    │   ├── ServoInstructionError           the servo rejected an instruction
+    │   └── FlashError                      the module's flash holds no bootable program, or was misused
     ├── SimulationError (RuntimeError)      the physics stand-in failed
     │   ├── PhysicsWorldError (ValueError)  a module, connector or setting of the world does not exist
     │   ├── RecordError (ValueError)        a recording parameter or sample is malformed
@@ -139,6 +142,15 @@ class ImageError(DH2Error, ValueError):
     """A serialized program image is corrupt, truncated or of another format version."""
 
 
+class SignedImageError(ImageError):
+    """A signed image is cut short or its fields are garbage; the message names the field
+    and its offset."""
+
+
+class KeyFileError(ImageError):
+    """A key file holds no Ed25519 key of the kind asked for (private or public)."""
+
+
 class CodecError(DH2Error, ValueError):
     """Bytes and frames do not convert (see EncodeError and DecodeError)."""
 
@@ -218,6 +230,11 @@ class DriverConfigError(DriverError, ValueError):
 
 class ServoInstructionError(DriverError):
     """The servo answered but rejected the instruction (access, data range or limit error)."""
+
+
+class FlashError(DriverError):
+    """The module's flash directory holds no program it may boot (nothing confirmed, or the
+    confirmed image fails its checks), or was asked for a step its state does not allow."""
 
 
 class PhysicsWorldError(SimulationError, ValueError):
