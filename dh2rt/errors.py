@@ -23,7 +23,9 @@ the other side's (bytes from a link or a file that do not decode)::
     │   │   └── FrameEncodeError (HormoneError)  a hormone frame breaks a wire limit
     │   ├── DecodeError                     (remote) bytes from a link or a file do not decode
     │   │   ├── FrameCorrupted              a frame failed its CRC or framing
-    │   │   └── CaptureError                a capture file is not what it claims, or is cut short
+    │   │   ├── CaptureError                a capture file is not what it claims, or is cut short
+    │   │   └── TraceError                  a trace file holds a line that is no trace record
+    │   │       └── TraceFieldError         one field is missing or of the wrong kind
     │   └── DxlProtocolError                Dynamixel Protocol 2.0 packets
     │       ├── DxlEncodeError (EncodeError)     values that make no valid packet
     │       └── DxlDecodeError (DecodeError)     bytes that are no valid packet
@@ -44,11 +46,16 @@ the other side's (bytes from a link or a file that do not decode)::
     │   └── GaitError (ValueError)          a gait parameter is out of range
     ├── HilError (RuntimeError)             hardware-in-the-loop tooling failed
     │   ├── HilWorldError                   the loop's world cannot start or drive its modules
-    │   ├── EmulatorError                   the servo emulator was misused
+    │   ├── EmulatorError                   an emulator (servos, contacts) was misused
+    │   │   └── ContactEmulatorError        a connector unknown, doubled, or touching two
     │   ├── ModuleConfigError (ValueError)  a module's configuration is malformed (names the field)
     │   └── ControlProtocolError (ValueError)  a command or report between world and module is malformed
+    ├── DissectorError (RuntimeError)       the Wireshark dissector cannot be written
+    │   ├── DissectorTemplateError          its Lua lost the generated block's markers
+    │   └── DissectorLayoutError            the codec's layout is one it cannot describe
     └── OptionError (ValueError)            a command-line option's value cannot be used
-        └── OutputError                     an output option names a file that cannot be written
+        ├── OutputError                     an output option names a file that cannot be written
+        └── IncomparableInputs              two files a command compares cannot be compared
 """
 
 from __future__ import annotations
@@ -176,6 +183,20 @@ class CaptureError(DecodeError):
     the offset or record."""
 
 
+class TraceError(DecodeError):
+    """A trace file that cannot be read or holds a line that is not a trace record (the
+    message names the file, the line and the column or field)."""
+
+
+class TraceFieldError(TraceError):
+    """A trace record's ``field`` is missing (``expected`` None) or holds ``value`` where
+    ``expected`` (a description) belongs; the reader adds the file and line."""
+
+    def __init__(self, field: str, expected: str | None = None, value: object = None) -> None:
+        super().__init__(f"field {field}: " + ("missing" if expected is None else f"expected {expected}"))
+        self.field, self.expected, self.value = field, expected, value
+
+
 class DxlProtocolError(CodecError):
     """Bytes or values that do not make a valid Dynamixel Protocol 2.0 packet."""
 
@@ -258,7 +279,13 @@ class HilWorldError(HilError):
 
 
 class EmulatorError(HilError):
-    """The servo emulator was misused (bad id, restarted after stop, unknown fault)."""
+    """An emulator was misused: the servo emulator (bad id, restarted after stop, unknown
+    fault) or the contact emulator."""
+
+
+class ContactEmulatorError(EmulatorError):
+    """The contact emulator was misused: an unknown or duplicate connector, a connector asked to
+    touch a second one, a contact broken that was not made."""
 
 
 class ModuleConfigError(HilError, ValueError):
@@ -269,9 +296,25 @@ class ControlProtocolError(HilError, ValueError):
     """A command or report between the world and a module is malformed; names the field."""
 
 
+class DissectorError(DH2Error, RuntimeError):
+    """The Wireshark dissector cannot be written (``dh2rt wireshark``)."""
+
+
+class DissectorTemplateError(DissectorError):
+    """The dissector's Lua has lost its generated block's markers."""
+
+
+class DissectorLayoutError(DissectorError):
+    """The codec's layout is one the dissector cannot describe."""
+
+
 class OptionError(DH2Error, ValueError):
     """A command-line option has a value the command cannot use (exit 2)."""
 
 
 class OutputError(OptionError):
     """An output option names a file that cannot be written as asked (exit 2)."""
+
+
+class IncomparableInputs(OptionError):
+    """Two files a command compares cannot be compared (not traces, different robots)."""

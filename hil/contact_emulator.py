@@ -33,7 +33,7 @@ import tty
 from dataclasses import dataclass, field, replace
 
 from dh2rt.closing import Closing
-from dh2rt.errors import EmulatorError, FrameCorrupted
+from dh2rt.errors import ContactEmulatorError, FrameCorrupted
 from dh2rt.wire.serial_framing import SerialDecoder
 from drivers.connector_channel import (
     ContactFrame,
@@ -47,11 +47,6 @@ from drivers.connector_channel import (
 
 #: A connector of a module: ``(module, connector)``.
 End = tuple[int, int]
-
-
-class ContactEmulatorError(EmulatorError):
-    """The contact emulator was misused: an unknown or duplicate connector, a connector asked to
-    touch a second one, a contact broken that was not made."""
 
 
 @dataclass(slots=True)

@@ -58,11 +58,11 @@ from pathlib import Path
 from typing import Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, TRACE_SUFFIXES, err
-from dh2rt.errors import CaptureError, DH2Error, ProgramError
+from dh2rt.errors import CaptureError, IncomparableInputs, ProgramError, TraceError
 from dh2rt.profile import Profile
 from tools.decode import Hop
 from tools.reading import PROGRAM_HELP, open_capture
-from tools.trace_reading import TraceError, TraceRecord, read_trace
+from tools.trace_reading import TraceRecord, read_trace
 
 #: Cycles of leeway at the end of a run (see the module docs), by default.
 DEFAULT_SLACK = 3
@@ -126,10 +126,6 @@ class StreamResult:
     b_count: int
     divergence: Divergence | None
     cut: str = ""  # what was left over and not compared, cut by the end of the run
-
-
-class BadInput(DH2Error, ValueError):
-    """The two files cannot be compared (not traces, different robots)."""
 
 
 # ------------------------------------------------------------------ traces into streams
@@ -242,7 +238,7 @@ def compare(a: Run, b: Run, slack: float) -> tuple[list[StreamResult], list[Dive
     """Compare every stream of ``a`` and ``b``; returns the per-stream results and the
     divergences, earliest first (by where they are in ``a``, else in ``b``)."""
     if a.unit != b.unit:
-        raise BadInput(f"{a.path} and {b.path}: a trace and a capture; compare two traces or two captures")
+        raise IncomparableInputs(f"{a.path} and {b.path}: a trace and a capture; compare two traces or two captures")
     _check_same_robot(a, b)
     divergences = [
         Divergence(StreamKey(order, owner, "module"), 0, *_presence(owner, a, b), when=0.0)
@@ -265,7 +261,7 @@ def _check_same_robot(a: Run, b: Run) -> None:
     for owner, order in b.owners.items():
         other = numbers_a.get(order)
         if other is not None and other != owner:
-            raise BadInput(
+            raise IncomparableInputs(
                 f"{a.path} and {b.path} are not runs of the same robot: "
                 f"module {order[0]} is {other.split()[0]} in one, {owner.split()[0]} in the other"
             )
@@ -490,7 +486,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
-    except (TraceError, CaptureError, BadInput) as exc:
+    except (TraceError, CaptureError, IncomparableInputs) as exc:
         err(str(exc))
         return EXIT_USAGE
     except KeyboardInterrupt:

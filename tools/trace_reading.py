@@ -20,11 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dh2rt.errors import DH2Error
-
-
-class TraceError(DH2Error, ValueError):
-    """A trace file that cannot be read or holds a line that is not a trace record."""
+from dh2rt.errors import TraceError, TraceFieldError
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,24 +75,12 @@ def parse_record(line: str, path: Path | str, line_no: int) -> TraceRecord:
         raise TraceError(f"{path}:{line_no}: not a trace record (a JSON object per line), but {_kind(obj)}")
     try:
         return _record(obj, line_no)
-    except _Missing as exc:
-        raise TraceError(f"{path}:{line_no}: no field {exc.field!r}; not a trace record") from None
-    except _Wrong as exc:
+    except TraceFieldError as exc:
+        if exc.expected is None:
+            raise TraceError(f"{path}:{line_no}: no field {exc.field!r}; not a trace record") from None
         raise TraceError(
             f"{path}:{line_no}: field {exc.field}: expected {exc.expected}, got {_kind(exc.value)}"
         ) from None
-
-
-class _Missing(Exception):
-    def __init__(self, field: str) -> None:
-        self.field = field
-
-
-class _Wrong(Exception):
-    """A field of the wrong kind (the message is written only when one is raised)."""
-
-    def __init__(self, field: str, expected: str, value: Any) -> None:
-        self.field, self.expected, self.value = field, expected, value
 
 
 def _record(obj: dict[str, Any], line_no: int) -> TraceRecord:
@@ -116,10 +100,10 @@ def _field(obj: dict[str, Any], key: str, kind: type, *, optional: bool = False)
     if key not in obj:
         if optional:
             return kind()
-        raise _Missing(key)
+        raise TraceFieldError(key)
     value = obj[key]
     if not isinstance(value, kind):
-        raise _Wrong(key, _KINDS[kind], value)
+        raise TraceFieldError(key, _KINDS[kind], value)
     return value
 
 
@@ -127,22 +111,22 @@ def _count(obj: dict[str, Any], key: str, *, optional: bool = False) -> int:
     if key not in obj:
         if optional:
             return 0
-        raise _Missing(key)
+        raise TraceFieldError(key)
     value = obj[key]
     if type(value) is not int or value < 0:
-        raise _Wrong(key, "a whole number 0 or more", value)
+        raise TraceFieldError(key, "a whole number 0 or more", value)
     return value
 
 
 def _arrival(obj: Any, i: int) -> TraceArrival:
     if not isinstance(obj, dict):
-        raise _Wrong(f"received[{i}]", "an object", obj)
+        raise TraceFieldError(f"received[{i}]", "an object", obj)
     path = obj.get("path")
     if not isinstance(path, list):
-        raise _Wrong(f"received[{i}].path", "a list", path)
+        raise TraceFieldError(f"received[{i}].path", "a list", path)
     for j, hop in enumerate(path):
         if not (isinstance(hop, list) and len(hop) == 2 and isinstance(hop[0], str) and isinstance(hop[1], str)):
-            raise _Wrong(f"received[{i}].path[{j}]", "[sent through, received at]", hop)
+            raise TraceFieldError(f"received[{i}].path[{j}]", "[sent through, received at]", hop)
     at, remote = obj.get("at"), obj.get("from")
     return TraceArrival(
         hormone=_string(obj.get("hormone"), f"received[{i}].hormone"),
@@ -154,13 +138,13 @@ def _arrival(obj: Any, i: int) -> TraceArrival:
 
 def _number(value: Any, field: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise _Wrong(field, "a number", value)
+        raise TraceFieldError(field, "a number", value)
     return float(value)
 
 
 def _string(value: Any, field: str) -> str:
     if not isinstance(value, str):
-        raise _Wrong(field, "a string", value)
+        raise TraceFieldError(field, "a string", value)
     return value
 
 

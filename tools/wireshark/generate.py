@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from importlib.resources import files
 from typing import Any
 
+from dh2rt.errors import DissectorTemplateError
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.wire.frame import program_digest
@@ -25,8 +26,8 @@ _INDENT = "    "
 _INLINE = 96
 
 
-class TemplateError(Exception):
-    """The dissector's Lua has lost its generated block's markers."""
+#: The dissector's Lua has lost its generated block's markers.
+TemplateError = DissectorTemplateError
 
 
 def template() -> str:

@@ -14,6 +14,7 @@ from functools import reduce
 from operator import or_
 from typing import Any
 
+from dh2rt.errors import DissectorLayoutError
 from dh2rt.hormone import Hormone, HormoneSpec, Vocabulary
 from dh2rt.profile import Profile
 from dh2rt.wire import can_frames
@@ -36,8 +37,8 @@ from tools.decode import KINDS
 BitField = dict[str, int]
 
 
-class LayoutError(Exception):
-    """The codec's layout is one the dissector cannot describe."""
+#: The codec's layout is one the dissector cannot describe.
+LayoutError = DissectorLayoutError
 
 
 def bit_field(mask: int) -> BitField:
