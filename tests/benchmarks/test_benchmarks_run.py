@@ -27,3 +27,17 @@ def test_benchmark_quick_mode_ends_with_json(name: str) -> None:
 def test_runner_help() -> None:
     proc = subprocess.run([sys.executable, "-m", "benchmarks", "--help"], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0 and "usage: python -m benchmarks" in proc.stdout
+
+
+def test_decode_benchmark_reports_its_ratios_and_bus_hours() -> None:
+    """Issue 12: dump against python-can's LogReader on the same files, in the same run (the
+    figures themselves are not asserted: timing belongs to the benchmark, not the tests)."""
+    cmd = [sys.executable, "-m", "benchmarks.bench_decode", "--quick"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert data["frames"] == 20_000 and {"hormone", "keepalive", "hello", "segment", "error"} <= set(data["kinds"])
+    for fmt in ("log", "blf"):
+        assert data[f"dump_vs_read_{fmt}"] > 0 and data[f"read_{fmt}_frames_per_s"] > 0
+    for fmt in ("log", "blf", "pcapng"):
+        assert data[f"dump_{fmt}_frames_per_s"] > 0 and data[f"dump_{fmt}_bus_hours_per_min"] > 0
