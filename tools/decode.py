@@ -10,25 +10,27 @@ digest among the capture's programs); before any Hello, with the first program."
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 from dh2rt.errors import DecodeError
 from dh2rt.hormone import Hormone
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
-from dh2rt.wire.can_frames import SINGLE, Reassembler, parse_arbitration_id
+from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
 from dh2rt.wire.serial_framing import decode_serial
 from tools.capture_files import CanRecord, Record
 from tools.serial_records import SerialRecord
 
 KINDS = ("hormone", "routed", "keepalive", "hello")
+#: Frames decoded once and remembered (see Decoder._can); cleared when full, so memory stays
+#: bounded whatever the capture.
+MEMO_SIZE = 8192
 
 
-@dataclass(frozen=True, slots=True)
-class Hop:
-    """One frame of the robot's traffic (or one reassembled hormone)."""
+class Hop(NamedTuple):
+    """One frame of the robot's traffic (or one reassembled hormone). Immutable; a named
+    tuple rather than a dataclass because a capture makes millions of them."""
 
     time: float
     link: int | None
@@ -44,14 +46,19 @@ class Hop:
     def describe(self, profile: Profile = CONRO) -> str:
         """One line, like candump's but in DH2 terms."""
         label = "ir  " if self.medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
-        where = f"{label} {self.link:>4} side {self.side}" if self.link is not None else f"{label}    ? side ?"
-        through = f" via {self.sender}" if self.sender else ""
-        line = f"{self.time:17.6f}  {where}  {self.kind:<9} {self.text}{through}"
-        if self.hormone is not None and self.hormone.path:
-            hops = " ".join(f"{profile.connector_name(s)}>{profile.connector_name(r)}" for s, r in self.hormone.path)
-            line += f"  path {hops}"
-        if self.hormone is not None and self.hormone.route:
-            line += "  route " + " ".join(profile.connector_name(c) for c in self.hormone.route)
+        if self.link is not None:
+            line = f"{self.time:17.6f}  {label} {self.link:>4} side {self.side}  {self.kind:<9} {self.text}"
+        else:
+            line = f"{self.time:17.6f}  {label}    ? side ?  {self.kind:<9} {self.text}"
+        if self.sender:
+            line += f" via {self.sender}"
+        hormone = self.hormone
+        if hormone is not None:
+            if hormone.path:
+                name = profile.connector_name
+                line += "  path " + " ".join(f"{name(s)}>{name(r)}" for s, r in hormone.path)
+            if hormone.route:
+                line += "  route " + " ".join(profile.connector_name(c) for c in hormone.route)
         if self.lost:
             line += "  !! lost on the link (never delivered)"
         if self.error:
@@ -91,13 +98,16 @@ class Decoder:
         self._default = FrameCodec(programs[0].vocabulary, count)
         self._by_end: dict[tuple[str, int, int], FrameCodec] = {}
         self._reassembler = Reassembler()
+        #: A single CAN frame's hop, time aside, by (codec, arbitration id, data).
+        self._memo: dict[tuple[FrameCodec, int, bytes], tuple[Any, ...]] = {}
 
     def hops(self, records: Iterable[Record]) -> Iterator[Hop]:
+        can = self._can
         for rec in records:
             if isinstance(rec, SerialRecord):
                 yield self._serial(rec)
             else:
-                yield from self._can(rec)
+                yield can(rec)
 
     def _decode(self, key: tuple[str, int, int], payload: bytes) -> tuple[int, Any]:
         codec = self._by_end.get(key, self._default)
@@ -129,29 +139,45 @@ class Decoder:
             what = "lost, and its bytes are corrupted" if rec.lost else "corrupted on the link"
             return Hop(rec.timestamp, rec.link, rec.side, "error", error=f"{what}: {exc}", medium="serial")
         hop = self._hop(rec.timestamp, key, payload)
-        return replace(hop, lost=rec.lost) if rec.lost else hop
+        return hop._replace(lost=rec.lost) if rec.lost else hop
 
-    def _can(self, rec: CanRecord) -> Iterator[Hop]:
+    def _can(self, rec: CanRecord) -> Hop:
+        """One CAN frame: a segment, the hormone its last segment completes, or an error."""
         if not rec.is_extended_id:
-            yield Hop(rec.timestamp, None, None, "error", error=f"11-bit id {rec.arbitration_id:#x}: not dh2rt")
-            return
-        try:
-            can_id = parse_arbitration_id(rec.arbitration_id)
-        except DecodeError as exc:
-            yield Hop(rec.timestamp, None, None, "error", error=str(exc))
-            return
-        link, side = can_id.link_id, can_id.side
+            return Hop(rec.timestamp, None, None, "error", error=f"11-bit id {rec.arbitration_id:#x}: not dh2rt")
+        can_id = rec.arbitration_id
+        if not 0 <= can_id < 1 << 29:
+            try:
+                parse_arbitration_id(can_id)  # it says why
+            except DecodeError as exc:
+                return Hop(rec.timestamp, None, None, "error", error=str(exc))
+        # the fields parse_arbitration_id would give, read in place: this runs for every frame
+        link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         reassembler = self._reassembler
         corrupted, dropped = reassembler.corrupted, reassembler.dropped
-        payload = reassembler.feed(rec.arbitration_id, rec.data)
+        payload = reassembler.feed(can_id, rec.data)
         if payload is None:
+            seq = (can_id >> 19) & 63
             if reassembler.corrupted > corrupted or reassembler.dropped > dropped:
-                yield Hop(rec.timestamp, link, side, "error", error=f"segment {can_id.seq} out of order: lost")
-            else:
-                yield Hop(rec.timestamp, link, side, "segment", text=f"#{can_id.seq}")
-            return
-        note = "" if can_id.segment == SINGLE else " (reassembled)"
-        yield self._hop(rec.timestamp, ("can", link, side), payload, note)
+                return Hop(rec.timestamp, link, side, "error", error=f"segment {seq} out of order: lost")
+            return Hop(rec.timestamp, link, side, "segment", text=f"#{seq}")
+        end = ("can", link, side)
+        if (can_id >> 25) & 3 != SINGLE:
+            return self._hop(rec.timestamp, end, payload, " (reassembled)")
+        # A capture repeats the same few frames (hormones, beacons) over and over: each is
+        # decoded once per codec and its hop remembered. A Hello is always decoded: it sets
+        # the codec of its link end.
+        memo = self._memo
+        key = (self._by_end.get(end, self._default), can_id, payload)
+        fields = memo.get(key)
+        if fields is not None:
+            return Hop._make((rec.timestamp, *fields))
+        hop = self._hop(rec.timestamp, end, payload)
+        if hop.kind != "hello":
+            if len(memo) >= MEMO_SIZE:
+                memo.clear()
+            memo[key] = hop[1:]
+        return hop
 
 
 def decode(records: Iterable[Record], programs: Sequence[CompiledProgram]) -> Iterator[Hop]:

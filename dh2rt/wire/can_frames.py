@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from dh2rt.errors import CodecError, DecodeError, EncodeError
+from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.wire.frame import frame_kind
 
 SINGLE, FIRST, MIDDLE, LAST = 0, 1, 2, 3
@@ -71,9 +71,12 @@ def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: i
     return (kind << 27) | (segment << 25) | (seq << 19) | (link_id << 1) | side
 
 
+_ID_LIMIT = 1 << 29
+
+
 def parse_arbitration_id(can_id: int) -> CanId:
     """Split a 29-bit id into its fields."""
-    if not 0 <= can_id < (1 << 29):
+    if not 0 <= can_id < _ID_LIMIT:
         raise DecodeError(f"CAN id {can_id:#x} is not a 29-bit identifier")
     return CanId(
         (can_id >> 27) & 3,
@@ -156,24 +159,26 @@ class Reassembler:
 
     def feed(self, can_id: int, data: bytes) -> bytes | None:
         """Consume one received frame (already known to be for one of our link ends)."""
-        try:
-            f = parse_arbitration_id(can_id)
-        except CodecError:
+        # The fields of parse_arbitration_id, read in place: this runs for every frame.
+        if not 0 <= can_id < _ID_LIMIT:
             self.corrupted += 1
             return None
-        key = (f.link_id, f.side)
-        if f.segment == SINGLE:
-            self._abandon(key)
+        mark = (can_id >> 25) & 3
+        key = ((can_id >> 1) & MAX_LINK_ID, can_id & 1)
+        if mark == SINGLE:
+            if self._partial:
+                self._abandon(key)
             return bytes(data)
-        if f.segment == FIRST:
+        kind, seq = can_id >> 27, (can_id >> 19) & 63
+        if mark == FIRST:
             self._abandon(key)
-            if f.seq != 0 or not data:
+            if seq != 0 or not data:
                 self.corrupted += 1
                 return None
-            self._partial[key] = _Partial(f.kind, 1, bytearray(data))
+            self._partial[key] = _Partial(kind, 1, bytearray(data))
             return None
         part = self._partial.get(key)
-        if part is None or f.seq != part.next_seq or f.kind != part.kind or not data:
+        if part is None or seq != part.next_seq or kind != part.kind or not data:
             # A lost first segment or a gap: whatever was being rebuilt is lost too.
             if part is not None:
                 self._abandon(key)
@@ -182,7 +187,7 @@ class Reassembler:
             return None
         part.data += data
         part.next_seq += 1
-        if f.segment == LAST:
+        if mark == LAST:
             del self._partial[key]
             return bytes(part.data)
         if part.next_seq >= MAX_SEGMENTS:

@@ -167,15 +167,15 @@ class FrameCodec:
         version = head >> 6
         if version != WIRE_VERSION:
             raise DecodeError(f"frame: wire version {version}, expected {WIRE_VERSION}")
-        kind = FrameKind((head >> 4) & 0x3)
+        kind = (head >> 4) & 0x3  # a FrameKind, compared as an int (the enum's call is slow)
         sender = head & 0x0F
         if not 1 <= sender <= self.connector_count:
             raise DecodeError(f"frame: sender connector {sender} is outside 1..{self.connector_count}")
-        if kind is FrameKind.KEEPALIVE:
+        if kind == FrameKind.KEEPALIVE:
             if len(data) != 2:
                 raise DecodeError(f"keep-alive frame: {len(data)} bytes, expected 2")
             return Decoded(sender, KeepAlive(data[1]))
-        if kind is FrameKind.HELLO:
+        if kind == FrameKind.HELLO:
             if len(data) != 1 + HELLO_DIGEST_BYTES:
                 raise DecodeError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
             return Decoded(sender, Hello(data[1:]))
@@ -184,9 +184,9 @@ class FrameCodec:
         hops = data[1]
         name, args, pos = self.vocabulary.decode_content(data, 2)
         flat, pos = self._unpack(data, pos, 2 * hops, "path")
-        path = tuple((flat[i], flat[i + 1]) for i in range(0, len(flat), 2))
+        path = tuple(zip(flat[::2], flat[1::2], strict=True)) if flat else ()
         route: tuple[int, ...] | None = None
-        if kind is FrameKind.ROUTED:
+        if kind == FrameKind.ROUTED:
             if pos >= len(data):
                 raise DecodeError(f"hormone frame {name}: truncated before the route length")
             count = data[pos]
@@ -196,6 +196,8 @@ class FrameCodec:
         return Decoded(sender, Hormone(name, args, path, route))
 
     def _unpack(self, data: bytes, pos: int, count: int, what: str) -> tuple[tuple[int, ...], int]:
+        if not count:
+            return (), pos
         bits = self.connector_bits
         nbytes = (count * bits + 7) // 8
         if pos + nbytes > len(data):
