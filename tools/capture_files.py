@@ -58,19 +58,23 @@ def read_records(path: Path) -> Iterator[Record]:
     yield from read_can(path)
 
 
+_SOCKETCAN_HEAD = struct.Struct(">IB")  # the id with its flags, the data length
+
+
 def _read_pcapng(fh: BinaryIO, path: Path) -> Iterator[Record]:
     reader = PcapngReader(fh, path)
     reader.read_header()
     for packet in reader:
         if packet.linktype == LINKTYPE_CAN_SOCKETCAN:
-            if len(packet.data) < 8:
-                raise CaptureError(f"{path}: offset {packet.offset}: CAN packet of {len(packet.data)} bytes")
-            can_id, length = struct.unpack(">IB", packet.data[:5])
-            if length > len(packet.data) - 8:
+            data = packet.data
+            if len(data) < 8:
+                raise CaptureError(f"{path}: offset {packet.offset}: CAN packet of {len(data)} bytes")
+            can_id, length = _SOCKETCAN_HEAD.unpack_from(data)
+            if length > len(data) - 8:
                 raise CaptureError(f"{path}: offset {packet.offset}: CAN frame claims {length} bytes")
             extended = bool(can_id & CAN_EFF_FLAG)
             can_id &= 0x1FFFFFFF if extended else 0x7FF
-            yield CanRecord(packet.timestamp, can_id, packet.data[8 : 8 + length], extended)
+            yield CanRecord(packet.timestamp, can_id, data[8 : 8 + length], extended)
         elif packet.linktype == LINKTYPE_USER0:
             try:
                 yield serial_records.unpack(packet.timestamp, packet.data)

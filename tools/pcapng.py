@@ -24,9 +24,8 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, NamedTuple
 
 from dh2rt.errors import CaptureError, EncodeError
 
@@ -99,8 +98,7 @@ def _interface(linktype: int, name: str, description: str) -> bytes:
     return _block(IDB, struct.pack("<HHI", linktype, 0, 0) + options)
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
+class Packet(NamedTuple):
     """One packet of a pcapng file: the link type of its interface, its time, its bytes,
     and the byte offset of its block (for error messages)."""
 
@@ -119,9 +117,16 @@ class PcapngReader:
         self._fh = fh
         self.path = path
         self.comments: list[bytes] = []
-        self._endian = "<"
         self._interfaces: list[tuple[int, float]] = []  # (linktype, seconds per tick)
         self._offset = 0
+        self._set_endian("<")
+
+    def _set_endian(self, endian: str) -> None:
+        """The section's byte order, and the structs every block is read with in it."""
+        self._endian = endian
+        self._u32 = struct.Struct(endian + "I")
+        self._block_head = struct.Struct(endian + "II")
+        self._epb_head = struct.Struct(endian + "IIIII")
 
     def _fail(self, offset: int, message: str) -> CaptureError:
         return CaptureError(f"{self.path}: offset {offset}: {message}")
@@ -163,19 +168,19 @@ class PcapngReader:
                 raise self._fail(offset, "section header cut short")
             for endian in ("<", ">"):
                 if struct.unpack(endian + "I", magic)[0] == BYTE_ORDER_MAGIC:
-                    self._endian = endian
+                    self._set_endian(endian)
                     break
             else:
                 raise self._fail(offset + 8, f"bad byte-order magic {magic.hex()}")
             head += magic
-        block_type, total = struct.unpack(self._endian + "II", head[:8])
+        block_type, total = self._block_head.unpack_from(head)
         if total < 12 or total % 4 or total > _MAX_BLOCK:
             raise self._fail(offset, f"block of type {block_type:#x} claims {total} bytes")
         rest = self._fh.read(total - len(head))
         if len(rest) < total - len(head):
             raise self._fail(offset, f"block cut short ({len(head) + len(rest)} of {total} bytes)")
-        data = head[8:] + rest
-        if struct.unpack(self._endian + "I", data[-4:])[0] != total:
+        data = head[8:] + rest if len(head) > 8 else rest
+        if self._u32.unpack_from(data, len(data) - 4)[0] != total:
             raise self._fail(offset, "block's trailing length differs from its leading length")
         self._offset = offset + total
         return block_type, data[:-4], offset
@@ -216,7 +221,7 @@ class PcapngReader:
     def _packet(self, body: bytes, offset: int) -> Packet:
         if len(body) < 20:
             raise self._fail(offset, "enhanced packet block shorter than 20 bytes")
-        interface, high, low, captured, _original = struct.unpack(self._endian + "IIIII", body[:20])
+        interface, high, low, captured, _original = self._epb_head.unpack_from(body)
         if interface >= len(self._interfaces):
             raise self._fail(offset, f"packet on interface {interface}, which no interface block describes")
         if 20 + captured > len(body):
