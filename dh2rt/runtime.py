@@ -83,6 +83,8 @@ class RuntimeCounters:
     keepalives_sent: int = 0
     hellos_sent: int = 0
     late_cycles: int = 0
+    #: periods lost to late starts (a late cycle restarts the schedule from now)
+    cycles_skipped: int = 0
     lost_in_flight: int = 0
     hormones_sent: int = 0
     hormones_received: int = 0
@@ -196,6 +198,13 @@ class ModuleRuntime:
                 next_beacon = now + self.cycle_period
                 self._beacon(set())
             self._absorb(self.transport.poll(min(deadline, next_beacon) - now))
+
+    def listen(self, seconds: float) -> None:
+        """Before cycle 0: take frames in for ``seconds`` (Hellos are handled, the rest kept
+        for cycle 0), as :meth:`handshake` does between its beacons."""
+        deadline = self.clock() + seconds
+        while (left := deadline - self.clock()) > 0:
+            self._absorb(self.transport.poll(left))
 
     def _absorb(self, received: list[Received]) -> None:
         """Handle Hellos now (verification and link status); keep the rest for the cycle."""
@@ -378,6 +387,7 @@ class ModuleRuntime:
                 self.first_cycle_at = now
             if now - deadline > LATE_TOLERANCE * period:
                 self.stats.late_cycles += 1
+                self.stats.cycles_skipped += int((now - deadline) / period)
                 deadline = now
             self.step()
             done += 1
@@ -429,6 +439,7 @@ class ModuleRuntime:
             "links_lost": lv.links_lost,
             "beacons_missed": lv.beacons_missed,
             "late_cycles": s.late_cycles,
+            "cycles_skipped": s.cycles_skipped,
             "lost_in_flight": s.lost_in_flight,
             "hormones_sent": s.hormones_sent,
             "hormones_received": s.hormones_received,

@@ -57,6 +57,33 @@ def end_from_json(obj: object, where: str) -> LinkEnd:
 
 
 @dataclass(frozen=True)
+class ChannelSpec:
+    """One connector's connector-local channel (drivers.connector_channel): the HIL world's
+    emulation on a pty (``device`` only), or on hardware a UART and a GPIO contact pin."""
+
+    device: str
+    contact: str | None = None  # a GPIO value file: a UART channel; None: the emulation
+    active_low: bool = True
+    baud: int = 115_200
+
+    def to_json(self) -> dict[str, Any]:
+        return {"device": self.device, "contact": self.contact, "active_low": self.active_low, "baud": self.baud}
+
+    @classmethod
+    def from_json(cls, obj: object, where: str) -> ChannelSpec:
+        if isinstance(obj, str):
+            return cls(obj)
+        if isinstance(obj, Mapping) and isinstance(obj.get("device"), str):
+            contact = obj.get("contact")
+            active_low, baud = obj.get("active_low", True), obj.get("baud", 115_200)
+            if (contact is None or isinstance(contact, str)) and isinstance(active_low, bool) and _is_int(baud):
+                return cls(obj["device"], contact, active_low, int(baud))
+        raise ModuleConfigError(
+            f"{where}: expected a device path or {{device, contact, active_low, baud}}, got {obj!r}"
+        )
+
+
+@dataclass(frozen=True)
 class ModuleConfig:
     """Everything one module needs to run (the firmware's configuration)."""
 
@@ -77,6 +104,8 @@ class ModuleConfig:
     servo_model: int | None = DEFAULT_SERVO_MODEL
     #: python-can options of the ``can`` transport: interface, channel, bitrate, fd, data_bitrate
     bus_options: Mapping[str, Any] = field(default_factory=dict)
+    #: connector -> its connector-local channel: on a bus, links are negotiated over these
+    connector_channels: Mapping[int, ChannelSpec] = field(default_factory=dict)
     #: "stdio": commands from the HIL world on stdin, reports on stdout; "none": on its own
     control: str = "stdio"
     #: where JSON log lines go when there is no control channel (None: standard error)
@@ -120,6 +149,8 @@ class ModuleConfig:
                 value = list(value)
             elif f.name == "bus_options":
                 value = dict(value)
+            elif f.name == "connector_channels":
+                value = {str(c): spec.to_json() for c, spec in sorted(value.items())}
             out[f.name] = value
         return out
 
@@ -179,6 +210,13 @@ class ModuleConfig:
             if not (isinstance(ids, list | tuple) and len(ids) == 2 and all(_is_int(i) for i in ids)):
                 raise ModuleConfigError(f"config servo_ids {ids!r}: expected two servo ids [DOF1, DOF2]")
             kw["servo_ids"] = (int(ids[0]), int(ids[1]))
+        if "connector_channels" in obj:
+            channels = obj["connector_channels"]
+            if not isinstance(channels, Mapping) or not all(str(c).isdigit() for c in channels):
+                raise ModuleConfigError("config connector_channels: expected an object of connector -> channel")
+            kw["connector_channels"] = {
+                int(c): ChannelSpec.from_json(v, f"config connector_channels[{c}]") for c, v in channels.items()
+            }
         if "attach" in obj:
             attach = obj["attach"]
             if not isinstance(attach, Mapping):

@@ -46,7 +46,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error
@@ -57,6 +57,9 @@ from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from hil.config import ModuleConfig
+
+if TYPE_CHECKING:
+    from hil.negotiated_links import NegotiatedLinks
 from hil.control import (
     Attach,
     Command,
@@ -79,6 +82,10 @@ from hil.control import (
 Reporter = Callable[[Report], None]
 #: Cycle periods a module keeps reading after its last cycle (see ModuleRuntime.drain).
 DRAIN_PERIODS = 3
+#: Seconds a module under the HIL world may take to link its contacts before it is ready.
+NEGOTIATE_S = 10.0
+#: Periods the links must stay settled before a module counts its contacts linked.
+SETTLED_PERIODS = 5
 
 
 def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
@@ -128,6 +135,20 @@ class ModuleHost:
             module=self.module,
             name=config.label,
         )
+        #: links negotiated over the connectors' local channels (on a bus), or None
+        self.links: NegotiatedLinks | None = None
+        if config.connector_channels:
+            from hil.negotiated_links import NegotiatedLinks, open_channels
+
+            rt = self.runtime
+            try:
+                self.links = NegotiatedLinks(
+                    open_channels(config.connector_channels), transport, sorted(config.connector_channels),
+                    rt.clock(), rt.attach, rt.detach, rt.log.append,
+                )  # fmt: skip
+            except BaseException:
+                rt.close()
+                raise
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -140,6 +161,8 @@ class ModuleHost:
         try:
             for c, end in self.config.attach.items():
                 rt.attach(c, end)
+            if self.links is not None:
+                self._negotiate_first_links()
             self.report(Ready())
             start_at: float | None = None
             while not self.stop_event.is_set():
@@ -174,11 +197,34 @@ class ModuleHost:
             # what was last commanded: the servos themselves may be gone by now
             targets = self.runtime.commanded if self.driver is not None else None
             final = Status(rt.status(), final=True, failed=self.failed, targets=targets)
+            if self.links is not None:
+                self.links.close()
             rt.close()
             self.report(final)
         return 1 if self.failed else 0
 
+    def _negotiate_first_links(self) -> None:
+        """Before Ready: link every connector found in contact at power-up (the HIL world
+        starts the robot when all are), for up to NEGOTIATE_S, or the handshake time on
+        its own (links that come later are negotiated while it cycles)."""
+        assert self.links is not None
+        rt = self.runtime
+        limit = NEGOTIATE_S if self.config.control == "stdio" else self.config.handshake
+        start = rt.clock()
+        steady = 0
+        while not self.stop_event.is_set() and rt.clock() - start < limit:
+            self.links.step(rt.clock())
+            rt.listen(self.config.cycle_period)
+            # settled for a few periods in a row: contacts have had time to be sensed
+            steady = steady + 1 if self.links.settled else 0
+            if steady >= SETTLED_PERIODS:
+                return
+        if not self.stop_event.is_set():
+            self.report(Log(f"links: not every contact linked after {limit:g} s"))
+
     def _on_cycle(self, rt: ModuleRuntime) -> None:
+        if self.links is not None:
+            self.links.step(rt.clock())
         while True:
             try:
                 cmd = self.commands.get_nowait()

@@ -27,13 +27,18 @@ is not TOML names the line and column. Relative paths are relative to the file's
     fd = false
     # data_bitrate = 2000000         # CAN FD's data phase
 
-    [transport.links]                # can: links wired by hand (the negotiation issue removes this)
-    back = { link_id = 4, side = 0 }
+    # [transport.links]              # or links wired by hand, with no negotiation
+    # back = { link_id = 4, side = 0 }
 
     # kind = "serial": one UART per connector, like CONRO's infrared pairs
     # [transport.connectors]
     # front = "/dev/ttyAMA1"
     # back = { device = "/dev/ttyAMA2", baud = 115200 }
+
+    [connectors]                     # on a bus: each connector's local channel (infrared pair):
+    front = { device = "/dev/ttyAMA3", contact = "/sys/class/gpio/gpio17/value" }
+    back = { device = "/dev/ttyAMA4", contact = "/sys/class/gpio/gpio27/value", active_low = true }
+                                     # links are negotiated over them (docs/link-layer.md)
 
     [servos]
     port = "/dev/ttyUSB0"            # a USB-to-Dynamixel adapter (U2D2)
@@ -67,12 +72,14 @@ from dh2rt.profile import CONRO, Profile
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from drivers.dxl_table import MODEL_NAMES
-from hil.config import DEFAULTS, STAND_INS, ModuleConfig
+from hil.config import DEFAULTS, STAND_INS, ChannelSpec, ModuleConfig
 
 IMAGE_NAME = "program.img"
 TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
+#: The transports on a shared bus, where links are negotiated over the connectors' channels.
+BUS_KINDS = ("can", "socketcan", "virtual", "udp")
 MAX_SERVO_ID = 252
-SECTIONS = ("name", "program", "cycle", "transport", "servos", "log", "hil")
+SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "log", "hil")
 
 
 @dataclass(frozen=True)
@@ -167,6 +174,12 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
     kw["image"] = _image(top.table("program", required=True), base)
     kw.update(_cycle(top.table("cycle")))
     kw.update(_transport(top.table("transport", required=True), base, profile))
+    kw["connector_channels"] = _channels(top.table("connectors"), profile)
+    if kw["connector_channels"] and kw["transport"].partition(":")[0] not in BUS_KINDS:
+        raise ModuleConfigError(
+            f"{source}: [connectors]: connector-local channels negotiate links on a bus; "
+            f"[transport] kind {kw['transport']!r} has its links already"
+        )
     kw.update(_servos(top.table("servos"), base))
     kw.update(_log(top.table("log"), base))
     kw.update(_hil(top.table("hil"), profile))
@@ -257,6 +270,26 @@ def _transport(t: _Table, base: Path, profile: Profile) -> dict[str, Any]:
             if key in t.data:
                 raise t.fail(key, f'only for kind = "can" (kind {kind!r} has its own)')
         out["transport"] = f"{kind}:{channel}" if channel else kind
+    return out
+
+
+def _channels(t: _Table, profile: Profile) -> dict[int, ChannelSpec]:
+    """``[connectors]``: each connector's local channel (contact and a few bytes), over which
+    the modules of a docked pair agree on their link id on the bus."""
+    out: dict[int, ChannelSpec] = {}
+    for key, value in t.data.items():
+        c = _connector(t, key, profile)
+        if isinstance(value, str) and value:
+            out[c] = ChannelSpec(value)
+            continue
+        one = t.table(key)
+        one.only("device", "contact", "active_low", "baud")
+        device = one.get_str("device")
+        if device is None:
+            raise one.fail("device", "missing: the UART (or the emulation's pty) of this connector's channel")
+        out[c] = ChannelSpec(
+            device, one.get_str("contact"), one.get_bool("active_low", True), one.get_int("baud", 115_200, 1) or 115_200
+        )
     return out
 
 
@@ -367,6 +400,13 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO) -> st
     if ports:
         lines += ["", "[transport.connectors]"]
         lines += [f"{name(c)} = {{ device = {_q(e.url)}, baud = {e.baudrate} }}" for c, e in sorted(ports.items())]
+    if config.connector_channels:
+        lines += ["", "[connectors]"]
+        for c, spec in sorted(config.connector_channels.items()):
+            fields = [f"device = {_q(spec.device)}", f"baud = {spec.baud}"]
+            if spec.contact is not None:
+                fields += [f"contact = {_q(spec.contact)}", f"active_low = {_value(spec.active_low)}"]
+            lines.append(f"{name(c)} = {{ {', '.join(fields)} }}")
     lines += ["", "[servos]"]
     if config.servo_port:
         model = "any" if config.servo_model is None else MODEL_NAMES[config.servo_model]

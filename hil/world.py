@@ -52,7 +52,8 @@ from dh2rt.topology import Topology
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
-from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ModuleConfig
+from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ChannelSpec, ModuleConfig
+from hil.contact_emulator import ContactEmulator
 from hil.control import (
     Attach,
     Command,
@@ -78,6 +79,8 @@ from hil.supervisor import ModuleHandle, ProcessModule, Reports, deferred_interr
 
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
+#: Transports on a shared bus: the modules negotiate their link ids (inproc keeps the world's).
+NEGOTIATED = ("virtual", "udp", "socketcan", "can")
 #: The bus transports' channels when the spec names none.
 _DEFAULT_CHANNELS = {
     cls.name: cls.default_channel for cls in (VirtualCanTransport, UdpCanTransport, SocketCanTransport)
@@ -191,12 +194,22 @@ class World:
         if hardware is not None:
             ports = {(m, c): end for m, h in hardware.modules.items() for c, end in h.connectors.items()}
         self.link_map = LinkMap(self.emulator, ports)
+        #: on a bus the world assigns no link ids: it plays the connectors' contacts (their
+        #: local channels, like CONRO's infrared pairs) and the modules negotiate their links
+        self.contacts: ContactEmulator | None = None
+        if self.kind in NEGOTIATED:
+            self.contacts = ContactEmulator(seed=seed)
+            for m in range(topology.size):
+                for c in range(1, self.profile.connector_count + 1):
+                    self.contacts.add_connector(m, c)
         self._pending: list[tuple[int, Callable[[], None]]] = []  # (world cycle, effect)
         self._go_at: float | None = None
         self._closed = False
         self._lost_on_link: int | None = None
         for lk in topology.links:
             self.link_map.add(lk.a, lk.a_conn, lk.b, lk.b_conn)
+            if self.contacts is not None:
+                self.contacts.make_contact((lk.a, lk.a_conn), (lk.b, lk.b_conn))
 
     @property
     def links(self) -> dict[int, Any]:
@@ -222,7 +235,8 @@ class World:
             name=self.topology.names[module],
             image=self.program.image,
             transport=self.transport_spec,
-            attach=self.link_map.attachments(module),
+            attach={} if self.contacts is not None else self.link_map.attachments(module),
+            connector_channels=self._channels(module),
             timer_phase=phase,
             cycle_period=self.cycle_period,
             cycles=cycles,
@@ -233,6 +247,13 @@ class World:
             status_every=self.status_every,
             handshake=self.handshake,
         )
+
+    def _channels(self, module: int) -> dict[int, ChannelSpec]:
+        """The module's connector-local channels (the contact emulator's ptys) on a bus."""
+        if self.contacts is None:
+            return {}
+        connectors = range(1, self.profile.connector_count + 1)
+        return {c: ChannelSpec(self.contacts.path((module, c))) for c in connectors}
 
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
         config = replace(self.config(module, cycles, phase), life=self.lives[module])
@@ -412,15 +433,20 @@ class World:
         self.link_map.remove(link)
         if self.physics is not None:
             self.physics.undock(module, connector)
-        if self.emulator is None:
+        if self.contacts is not None:  # the modules sense it and release their link
+            self.contacts.break_contact((link.a, link.a_conn), (link.b, link.b_conn))
+        elif self.emulator is None:
             for m, c in ((link.a, link.a_conn), (link.b, link.b_conn)):
                 self._send(m, Detach(c))
 
     def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
         docking.check_dock(self.profile, self.link_map.peer.__contains__, self.where, a, a_conn, b, b_conn)
         link = self.link_map.add(a, a_conn, b, b_conn)
-        for m, c in ((a, a_conn), (b, b_conn)):
-            self._send(m, Attach(c, self.link_map.end(link, m, c)))
+        if self.contacts is not None:  # the modules sense the contact and negotiate a link
+            self.contacts.make_contact((a, a_conn), (b, b_conn))
+        else:
+            for m, c in ((a, a_conn), (b, b_conn)):
+                self._send(m, Attach(c, self.link_map.end(link, m, c)))
         if self.physics is not None:
             self.physics.dock(a, a_conn, b, b_conn)  # latches only if aligned within tolerance
 
@@ -522,6 +548,8 @@ class World:
             self.physics.close()
         if self.bus_tap is not None:
             self.bus_tap.close()
+        if self.contacts is not None:
+            self.contacts.close()
         shutil.rmtree(self.workdir, ignore_errors=True)
         self._closed = True
 

@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 from dh2rt.errors import DecodeError
 from dh2rt.hormone import Hormone
+from dh2rt.negotiation import MANAGEMENT_ID, decode_bus
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
@@ -22,7 +23,7 @@ from dh2rt.wire.serial_framing import decode_serial
 from tools.capture_files import CanRecord, Record
 from tools.serial_records import SerialRecord
 
-KINDS = ("hormone", "routed", "keepalive", "hello")
+KINDS = ("hormone", "routed", "keepalive", "hello", "link")
 #: Frames decoded once and remembered (see Decoder._can); cleared when full, so memory stays
 #: bounded whatever the capture.
 MEMO_SIZE = 8192
@@ -47,7 +48,8 @@ class Hop(NamedTuple):
         """One line, like candump's but in DH2 terms."""
         label = "ir  " if self.medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
         if self.link is not None:
-            line = f"{self.time:17.6f}  {label} {self.link:>4} side {self.side}  {self.kind:<9} {self.text}"
+            side = "-" if self.side is None else self.side  # a management frame names a link, no side
+            line = f"{self.time:17.6f}  {label} {self.link:>4} side {side}  {self.kind:<9} {self.text}"
         else:
             line = f"{self.time:17.6f}  {label}    ? side ?  {self.kind:<9} {self.text}"
         if self.sender:
@@ -151,6 +153,8 @@ class Decoder:
                 parse_arbitration_id(can_id)  # it says why
             except DecodeError as exc:
                 return Hop(rec.timestamp, None, None, "error", error=str(exc))
+        if can_id == MANAGEMENT_ID:  # link negotiation, not a link's frame
+            return self._management(rec)
         # the fields parse_arbitration_id would give, read in place: this runs for every frame
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         reassembler = self._reassembler
@@ -178,6 +182,15 @@ class Decoder:
                 memo.clear()
             memo[key] = hop[1:]
         return hop
+
+    @staticmethod
+    def _management(rec: CanRecord) -> Hop:
+        """A management frame of link negotiation: kind ``link``, its op, link id and tag."""
+        try:
+            msg = decode_bus(rec.data)
+        except DecodeError as exc:
+            return Hop(rec.timestamp, None, None, "error", error=f"link negotiation: {exc}")
+        return Hop(rec.timestamp, msg.link_id, None, "link", text=f"{msg.op.name} tag {msg.tag:08x}")
 
 
 def decode(records: Iterable[Record], programs: Sequence[CompiledProgram]) -> Iterator[Hop]:

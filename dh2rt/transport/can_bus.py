@@ -85,6 +85,10 @@ class CanTransport(Transport):
         self.max_data = FD_DATA if fd else CLASSIC_DATA
         self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
+        #: link negotiation's management frames (see enable_management), kept apart from the
+        #: link frames: not hormones, not counted in the frame accounting
+        self.management_id: int | None = None
+        self._management: list[bytes] = []
         self._bus: Any = self._open_bus(bus_options)
         import can  # already imported by _open_bus; kept for exception and Message types
 
@@ -112,10 +116,34 @@ class CanTransport(Transport):
 
     def _apply_filters(self) -> None:
         ends = [(k >> 1, k & 1) for k in self._listen]
-        if ends:
-            self._bus.set_filters([listen_filter(link, 1 - far_side) for link, far_side in ends])
-        else:  # accept nothing useful; the software check below drops the rest anyway
-            self._bus.set_filters([{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}])
+        filters: list[dict[str, Any]] = [listen_filter(link, 1 - far_side) for link, far_side in ends]
+        if self.management_id is not None:
+            filters.append({"can_id": self.management_id, "can_mask": 0x1FFFFFFF, "extended": True})
+        if not filters:  # accept nothing useful; the software check below drops the rest anyway
+            filters = [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
+        self._bus.set_filters(filters)
+
+    # -- link negotiation's management frames (dh2rt.negotiation) ------------------------
+
+    def enable_management(self, arbitration_id: int) -> None:
+        """Receive the frames with ``arbitration_id`` apart (:meth:`take_management`)."""
+        self.management_id = arbitration_id
+        self._apply_filters()
+
+    def take_management(self) -> list[bytes]:
+        """The management frames' data received since the last call, in order."""
+        out, self._management = self._management, []
+        return out
+
+    def send_management(self, arbitration_id: int, data: bytes) -> bool:
+        """Send one management frame; False when the bus refused it."""
+        can = self._can
+        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True)
+        try:
+            self._bus.send(msg, timeout=self.send_timeout)
+        except (can.CanError, OSError):
+            return False
+        return True
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
         if not isinstance(end, BusEnd):
@@ -170,6 +198,9 @@ class CanTransport(Transport):
             wait = 0.0
             if not msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                 continue  # not dh2rt traffic
+            if msg.arbitration_id == self.management_id:
+                self._management.append(bytes(msg.data))
+                continue
             connector = self._listen.get(msg.arbitration_id & LINK_END_MASK)
             if connector is None:
                 continue  # another module's link, or our own frame echoed back

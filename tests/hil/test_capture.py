@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -44,11 +45,22 @@ def launch(transport: str, tmp_path: Path, *extra: str) -> tuple[int, dict[str, 
     return proc.returncode, summary, proc.stderr, capture, trace
 
 
-def link_ends() -> dict[tuple[int, str], tuple[int, int]]:
-    """(module, connector name) -> (link id, side): the world numbers links in topology order."""
+NEGOTIATED = re.compile(r"^m(\d+): link negotiated: connector (\d+) is link (\d+) side ([01])$")
+
+
+def link_ends(summary: dict[str, Any]) -> dict[tuple[int, str], tuple[int, int]]:
+    """(module, connector name) -> (link id, side). On serial links the world numbers its
+    emulator's links in topology order; on a bus the modules negotiated their link ids, and
+    each said which in its log."""
     topo = parse_spec(f"snake:{MODULES}")
     name = topo.profile.connector_name
     ends = {}
+    negotiated = [m.groups() for line in summary["log"] if (m := NEGOTIATED.match(line))]
+    if negotiated:
+        for module, connector, link, side in negotiated:
+            ends[(int(module), name(int(connector)))] = (int(link), int(side))
+        assert len(ends) == 2 * len(topo.links), negotiated
+        return ends
     for i, lk in enumerate(topo.links):
         ends[(lk.a, name(lk.a_conn))] = (i, 0)
         ends[(lk.b, name(lk.b_conn))] = (i, 1)
@@ -78,7 +90,7 @@ def test_capture_of_a_loop_run_holds_every_frame(transport: str, tmp_path: Path)
     hops = list(capture.hops())
     assert not [h for h in hops if h.kind == "error"]
 
-    ends = link_ends()
+    ends = link_ends(summary)
     sent_in_trace: Counter[tuple[int, int, str]] = Counter()
     for line in trace_path.read_text().splitlines():
         rec = json.loads(line)
@@ -99,7 +111,14 @@ def test_capture_of_a_loop_run_holds_every_frame(transport: str, tmp_path: Path)
         assert all((b - a) & 0xFF == 1 for a, b in itertools.pairwise(seqs)), end  # none missing
 
     frames = summary["frames"]
-    assert len(hops) == frames["sent"], (len(hops), frames)  # one capture record per frame sent
+    # one capture record per frame sent (and, on a bus, the links' negotiation: its claims
+    # and re-announcements on the management id, which no module counts as a link frame)
+    negotiation = [h for h in hops if h.kind == "link"]
+    assert (len(negotiation) > 0) == (transport != "serial")
+    claimed = {h.link for h in negotiation if h.text.startswith("CLAIM")}
+    if transport != "serial":
+        assert {end[0] for end in ends.values()} <= claimed  # each link was claimed before use
+    assert len(hops) - len(negotiation) == frames["sent"], (len(hops), frames)
     assert all(h.medium == ("serial" if transport == "serial" else "can") for h in hops)
 
 

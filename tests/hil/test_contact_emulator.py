@@ -9,8 +9,9 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
+from dh2rt.errors import ContactEmulatorError
 from drivers.connector_channel import CONTACT, DEFAULT_SETTLE, LOST, LocalEvent, PtyConnectorChannel
-from hil.contact_emulator import ContactEmulator, ContactEmulatorError, End
+from hil.contact_emulator import ContactEmulator, End
 
 A: End = (0, 2)  # module 0's back connector
 B: End = (1, 1)  # module 1's front connector
