@@ -236,3 +236,22 @@ def _cycled(tmp_path: Path, count: int, cycles: int) -> bool:
         if status.get("cycle", 0) < cycles:
             return False
     return True
+
+
+def test_the_documented_module_toml_is_valid(tmp_path: Path) -> None:
+    """docs/firmware.md's module.toml (its flash put here) passes the checks as written."""
+    import re
+    import tomllib
+
+    from hil.module_toml import parse_toml
+
+    doc = (ROOT / "docs" / "firmware.md").read_text()
+    text = re.findall(r"```toml\n(.*?)```", doc, re.S)[0]
+    data = tomllib.loads(text)
+    flash = tmp_path / "flash"
+    flash.mkdir()
+    (flash / "program.img").write_bytes(compile_bundled("caterpillar.dh2").image)
+    data["program"]["flash"] = str(flash)
+    config = parse_toml(data, "firmware.md", tmp_path)
+    assert config.transport == "can" and config.bus_options["interface"] == "socketcan"
+    assert sorted(config.connector_channels) == [1, 2, 3, 4] and config.servo_port == "/dev/ttyUSB0"
