@@ -46,25 +46,25 @@ class Hop(NamedTuple):
 
     def describe(self, profile: Profile = CONRO) -> str:
         """One line, like candump's but in DH2 terms."""
-        label = "ir  " if self.medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
-        if self.link is not None:
-            side = "-" if self.side is None else self.side  # a management frame names a link, no side
-            line = f"{self.time:17.6f}  {label} {self.link:>4} side {side}  {self.kind:<9} {self.text}"
+        at, link, side, kind, sender, text, hormone, error, medium, lost = self
+        label = "ir  " if medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
+        through = f" via {sender}" if sender else ""
+        # %-formatting: the text an f-string would give, in half the time (a capture has millions)
+        if link is not None:
+            shown = "-" if side is None else side  # a management frame names a link, no side
+            line = "%17.6f  %s %4d side %s  %-9s %s%s" % (at, label, link, shown, kind, text, through)  # noqa: UP031
         else:
-            line = f"{self.time:17.6f}  {label}    ? side ?  {self.kind:<9} {self.text}"
-        if self.sender:
-            line += f" via {self.sender}"
-        hormone = self.hormone
+            line = "%17.6f  %s    ? side ?  %-9s %s%s" % (at, label, kind, text, through)  # noqa: UP031
         if hormone is not None:
             if hormone.path:
                 name = profile.connector_name
                 line += "  path " + " ".join(f"{name(s)}>{name(r)}" for s, r in hormone.path)
             if hormone.route:
                 line += "  route " + " ".join(profile.connector_name(c) for c in hormone.route)
-        if self.lost:
+        if lost:
             line += "  !! lost on the link (never delivered)"
-        if self.error:
-            line += f"  !! {self.error}"
+        if error:
+            line += f"  !! {error}"
         return line
 
     def to_json(self) -> dict[str, Any]:
@@ -158,30 +158,33 @@ class Decoder:
         # the fields parse_arbitration_id would give, read in place: this runs for every frame
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         reassembler = self._reassembler
+        if (can_id >> 25) & 3 == SINGLE:
+            if reassembler.pending:
+                reassembler.feed(can_id, rec.data)  # it abandons what was being rebuilt at this end
+            # A capture repeats the same few frames (hormones, beacons) over and over: each is
+            # decoded once per codec and its hop remembered. A Hello is always decoded: it sets
+            # the codec of its link end.
+            end = ("can", link, side)
+            payload = rec.data if type(rec.data) is bytes else bytes(rec.data)
+            memo = self._memo
+            key = (self._by_end.get(end, self._default), can_id, payload)
+            fields = memo.get(key)
+            if fields is not None:
+                return Hop._make((rec.timestamp, *fields))
+            hop = self._hop(rec.timestamp, end, payload)
+            if hop.kind != "hello":
+                if len(memo) >= MEMO_SIZE:
+                    memo.clear()
+                memo[key] = hop[1:]
+            return hop
         corrupted, dropped = reassembler.corrupted, reassembler.dropped
-        payload = reassembler.feed(can_id, rec.data)
-        if payload is None:
+        whole = reassembler.feed(can_id, rec.data)
+        if whole is None:
             seq = (can_id >> 19) & 63
             if reassembler.corrupted > corrupted or reassembler.dropped > dropped:
                 return Hop(rec.timestamp, link, side, "error", error=f"segment {seq} out of order: lost")
             return Hop(rec.timestamp, link, side, "segment", text=f"#{seq}")
-        end = ("can", link, side)
-        if (can_id >> 25) & 3 != SINGLE:
-            return self._hop(rec.timestamp, end, payload, " (reassembled)")
-        # A capture repeats the same few frames (hormones, beacons) over and over: each is
-        # decoded once per codec and its hop remembered. A Hello is always decoded: it sets
-        # the codec of its link end.
-        memo = self._memo
-        key = (self._by_end.get(end, self._default), can_id, payload)
-        fields = memo.get(key)
-        if fields is not None:
-            return Hop._make((rec.timestamp, *fields))
-        hop = self._hop(rec.timestamp, end, payload)
-        if hop.kind != "hello":
-            if len(memo) >= MEMO_SIZE:
-                memo.clear()
-            memo[key] = hop[1:]
-        return hop
+        return self._hop(rec.timestamp, ("can", link, side), whole, " (reassembled)")
 
     @staticmethod
     def _management(rec: CanRecord) -> Hop:

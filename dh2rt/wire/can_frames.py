@@ -157,6 +157,11 @@ class Reassembler:
         self.dropped = 0
         self.corrupted = 0
 
+    @property
+    def pending(self) -> bool:
+        """Whether a payload is being rebuilt (at any link end)."""
+        return bool(self._partial)
+
     def feed(self, can_id: int, data: bytes) -> bytes | None:
         """Consume one received frame (already known to be for one of our link ends)."""
         # The fields of parse_arbitration_id, read in place: this runs for every frame.
