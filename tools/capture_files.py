@@ -48,43 +48,43 @@ SIDECAR_FORMAT = "dh2rt-capture-programs"
 
 
 def read_records(path: Path) -> Iterator[Record]:
-    """The frames of a capture file, in file order: CAN frames and serial link frames."""
+    """The frames of a capture file, in file order: CAN frames and serial link frames. The
+    file is opened (and an error raised) when the first frame is asked for."""
+    # the reader's own generator, not one that delegates to it: a layer less for every frame
     if path.suffix.lower() == ".pcapng":
-        if not path.exists():
-            raise CaptureError(f"{path}: no such capture file")
-        with path.open("rb") as fh:
-            yield from _read_pcapng(fh, path)
-        return
-    yield from read_can(path)
+        return _read_pcapng(path)
+    return read_can(path)
 
 
 _SOCKETCAN_HEAD = struct.Struct(">IB")  # the id with its flags, the data length
 
 
-def _read_pcapng(fh: BinaryIO, path: Path) -> Iterator[Record]:
-    reader = PcapngReader(fh, path)
-    reader.read_header()
-    for packet in reader:
-        if packet.linktype == LINKTYPE_CAN_SOCKETCAN:
-            data = packet.data
-            if len(data) < 8:
-                raise CaptureError(f"{path}: offset {packet.offset}: CAN packet of {len(data)} bytes")
-            can_id, length = _SOCKETCAN_HEAD.unpack_from(data)
-            if length > len(data) - 8:
-                raise CaptureError(f"{path}: offset {packet.offset}: CAN frame claims {length} bytes")
-            extended = bool(can_id & CAN_EFF_FLAG)
-            can_id &= 0x1FFFFFFF if extended else 0x7FF
-            yield CanRecord(packet.timestamp, can_id, data[8 : 8 + length], extended)
-        elif packet.linktype == LINKTYPE_USER0:
-            try:
-                yield serial_records.unpack(packet.timestamp, packet.data)
-            except DecodeError as exc:
-                raise CaptureError(f"{path}: offset {packet.offset}: {exc}") from None
-        else:
-            raise CaptureError(
-                f"{path}: offset {packet.offset}: link type {packet.linktype} is neither CAN (227) "
-                f"nor dh2rt serial ({LINKTYPE_USER0})"
-            )
+def _read_pcapng(path: Path) -> Iterator[Record]:
+    _check_exists(path)
+    with path.open("rb") as fh:
+        reader = PcapngReader(fh, path)
+        reader.read_header()
+        for packet in reader:
+            if packet.linktype == LINKTYPE_CAN_SOCKETCAN:
+                data = packet.data
+                if len(data) < 8:
+                    raise CaptureError(f"{path}: offset {packet.offset}: CAN packet of {len(data)} bytes")
+                can_id, length = _SOCKETCAN_HEAD.unpack_from(data)
+                if length > len(data) - 8:
+                    raise CaptureError(f"{path}: offset {packet.offset}: CAN frame claims {length} bytes")
+                extended = bool(can_id & CAN_EFF_FLAG)
+                can_id &= 0x1FFFFFFF if extended else 0x7FF
+                yield CanRecord(packet.timestamp, can_id, data[8 : 8 + length], extended)
+            elif packet.linktype == LINKTYPE_USER0:
+                try:
+                    yield serial_records.unpack(packet.timestamp, packet.data)
+                except DecodeError as exc:
+                    raise CaptureError(f"{path}: offset {packet.offset}: {exc}") from None
+            else:
+                raise CaptureError(
+                    f"{path}: offset {packet.offset}: link type {packet.linktype} is neither CAN (227) "
+                    f"nor dh2rt serial ({LINKTYPE_USER0})"
+                )
 
 
 def capture_programs(path: Path) -> list[bytes]:
@@ -127,22 +127,35 @@ def write_sidecar(path: Path, programs: Sequence[bytes]) -> Path:
 
 
 def read_can(path: Path) -> Iterator[CanRecord]:
-    """The CAN frames of a pcap or python-can log file, in file order."""
-    if not path.exists():
-        raise CaptureError(f"{path}: no such capture file")
+    """The CAN frames of a pcap or python-can log file, in file order. The file is opened (and
+    an error raised) when the first frame is asked for."""
     suffix = path.suffix.lower()
     if suffix in (".pcap", ".cap"):
-        with path.open("rb") as fh:
-            yield from _read_pcap(fh, path)
-        return
+        return _read_pcap(path)
     if suffix in PYTHON_CAN_SUFFIXES:
-        yield from _read_python_can(path)
-        return
+        return _read_python_can(path)
+    return _unknown_format(path)
+
+
+def _check_exists(path: Path) -> None:
+    if not path.exists():
+        raise CaptureError(f"{path}: no such capture file")
+
+
+def _unknown_format(path: Path) -> Iterator[CanRecord]:
+    _check_exists(path)
     known = ", ".join((".pcapng", ".pcap", *PYTHON_CAN_SUFFIXES))
-    raise CaptureError(f"{path}: unknown capture format {suffix or '(no suffix)'} (known: {known})")
+    raise CaptureError(f"{path}: unknown capture format {path.suffix.lower() or '(no suffix)'} (known: {known})")
+    yield  # a generator, like the readers: nothing happens before the first frame is asked for
 
 
-def _read_pcap(fh: BinaryIO, path: Path) -> Iterator[CanRecord]:
+def _read_pcap(path: Path) -> Iterator[CanRecord]:
+    _check_exists(path)
+    with path.open("rb") as fh:
+        yield from _pcap_records(fh, path)
+
+
+def _pcap_records(fh: BinaryIO, path: Path) -> Iterator[CanRecord]:
     head = fh.read(24)
     if len(head) < 24:
         raise CaptureError(f"{path}: offset 0: shorter than a pcap header (24 bytes)")
@@ -182,6 +195,7 @@ def _read_pcap(fh: BinaryIO, path: Path) -> Iterator[CanRecord]:
 def _read_python_can(path: Path) -> Iterator[CanRecord]:
     import can
 
+    _check_exists(path)
     if path.suffix.lower() == ".blf":
         # python-can's BLF reader leaves the file open when the header is wrong: look first
         with path.open("rb") as fh:
