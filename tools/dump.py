@@ -25,9 +25,6 @@ from dh2rt.errors import CaptureError
 from tools.decode import KINDS
 from tools.reading import PROGRAM_HELP, options_and_capture
 
-#: Lines joined into one write.
-BATCH = 256
-
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -56,25 +53,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = sys.stdout
     seen = 0
     filtered = bool(ns.link or ns.kind or ns.hormone)
-    lines: list[str] = []  # written BATCH at a time: one write per line costs as much as decoding it
     try:
-        try:
-            for hop in capture.hops():
-                seen += 1
-                if filtered:
-                    if ns.link and hop.link not in ns.link:
-                        continue
-                    if ns.kind and hop.kind not in ns.kind:
-                        continue
-                    if ns.hormone and (hop.hormone is None or hop.hormone.name not in ns.hormone):
-                        continue
-                lines.append(json.dumps(hop.to_json()) if ns.json else hop.describe(profile))
-                if len(lines) >= BATCH:
-                    out.write("\n".join(lines) + "\n")
-                    lines.clear()
-        finally:  # what was decoded before an error or an interruption is shown, then the error
-            if lines:
-                out.write("\n".join(lines) + "\n")
+        for hop in capture.hops():
+            seen += 1
+            if filtered:
+                if ns.link and hop.link not in ns.link:
+                    continue
+                if ns.kind and hop.kind not in ns.kind:
+                    continue
+                if ns.hormone and (hop.hormone is None or hop.hormone.name not in ns.hormone):
+                    continue
+            out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(profile)) + "\n")
     except CaptureError as exc:
         out.flush()
         err(str(exc))
