@@ -100,22 +100,27 @@ class Decoder:
         self._default = FrameCodec(programs[0].vocabulary, count)
         self._by_end: dict[tuple[str, int, int], FrameCodec] = {}
         self._reassembler = Reassembler()
-        #: A single CAN frame's hop, time aside, by (codec, arbitration id, data).
-        self._memo: dict[tuple[FrameCodec, int, bytes], tuple[Any, ...]] = {}
+        #: A single CAN frame's hop, time aside, by (arbitration id, data): a capture repeats
+        #: the same few frames (hormones, beacons) over and over, and each is decoded once.
+        #: Emptied when a Hello changes the codec of a link end, and when full.
+        self._memo: dict[tuple[int, bytes], tuple[Any, ...]] = {}
 
     def hops(self, records: Iterable[Record]) -> Iterator[Hop]:
-        can = self._can
-        for rec in records:
-            if isinstance(rec, SerialRecord):
-                yield self._serial(rec)
-            else:
-                yield can(rec)
+        return map(self._record, records)
+
+    def _record(self, rec: Record) -> Hop:
+        if isinstance(rec, SerialRecord):
+            return self._serial(rec)
+        return self._can(rec)
 
     def _decode(self, key: tuple[str, int, int], payload: bytes) -> tuple[int, Any]:
         codec = self._by_end.get(key, self._default)
         sender, frame = codec.decode(payload)
         if isinstance(frame, Hello):
-            self._by_end[key] = self._codecs.get(frame.digest, self._default)
+            announced = self._codecs.get(frame.digest, self._default)
+            if announced is not codec:
+                self._by_end[key] = announced
+                self._memo.clear()  # its hops were decoded with the codecs the ends had then
         return sender, frame
 
     def _hop(self, rec_time: float, key: tuple[str, int, int], payload: bytes, note: str = "") -> Hop:
@@ -155,28 +160,23 @@ class Decoder:
                 return Hop(rec.timestamp, None, None, "error", error=str(exc))
         if can_id == MANAGEMENT_ID:  # link negotiation, not a link's frame
             return self._management(rec)
-        # the fields parse_arbitration_id would give, read in place: this runs for every frame
-        link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
+        # the fields parse_arbitration_id would give are read in place: this runs for every frame
         reassembler = self._reassembler
         if (can_id >> 25) & 3 == SINGLE:
             if reassembler.pending:
                 reassembler.feed(can_id, rec.data)  # it abandons what was being rebuilt at this end
-            # A capture repeats the same few frames (hormones, beacons) over and over: each is
-            # decoded once per codec and its hop remembered. A Hello is always decoded: it sets
-            # the codec of its link end.
-            end = ("can", link, side)
             payload = rec.data if type(rec.data) is bytes else bytes(rec.data)
             memo = self._memo
-            key = (self._by_end.get(end, self._default), can_id, payload)
-            fields = memo.get(key)
+            fields = memo.get((can_id, payload))
             if fields is not None:
                 return Hop._make((rec.timestamp, *fields))
-            hop = self._hop(rec.timestamp, end, payload)
-            if hop.kind != "hello":
+            hop = self._hop(rec.timestamp, ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1), payload)
+            if hop.kind != "hello":  # a Hello is always decoded: it may change its end's codec
                 if len(memo) >= MEMO_SIZE:
                     memo.clear()
-                memo[key] = hop[1:]
+                memo[can_id, payload] = hop[1:]
             return hop
+        link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         corrupted, dropped = reassembler.corrupted, reassembler.dropped
         whole = reassembler.feed(can_id, rec.data)
         if whole is None:
