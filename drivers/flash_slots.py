@@ -257,6 +257,25 @@ class Flash:
 
     # -------------------------------------------------------- boot
 
+    def peek(self) -> tuple[str, bytes | None]:
+        """What the flash would boot, without booting it (nothing is written): a line that
+        says so, and the program image when it passes its checks (``--check-config``)."""
+        state = self._read_state()
+        if state is None:
+            legacy = self.files.read(LEGACY_IMAGE)
+            if legacy is None:
+                return "empty: no program to boot", None
+            exam = examine(legacy, self.trust)
+            if not self._acceptable(exam):
+                return f"{LEGACY_IMAGE} would be refused ({exam.verdict}: {exam.reason})", None
+            version = exam.image.version if exam.image is not None else 0
+            return f"{LEGACY_IMAGE} (version {version}, {exam.verdict}), installed at the first boot", exam.program
+        checked = self._check_slot(state.confirmed)
+        trial = "" if state.trial is None else f"; slot {state.trial.program.slot} waits for a trial boot"
+        if isinstance(checked, str):
+            return f"the confirmed program cannot boot: {checked}{trial}", None
+        return f"slot {state.confirmed.slot}, version {state.confirmed.version}, confirmed{trial}", checked
+
     def boot(self) -> Boot:
         """The program to run now: a pending trial (its boot counted first), else the
         confirmed program. A trial booted before and never confirmed is reverted. Raises

@@ -87,7 +87,8 @@ class ChannelSpec:
 class ModuleConfig:
     """Everything one module needs to run (the firmware's configuration)."""
 
-    image: bytes
+    #: the program image to run (empty when the module boots from its ``flash``)
+    image: bytes = b""
     module: int = 0
     name: str = ""
     transport: str = "inproc"
@@ -106,6 +107,13 @@ class ModuleConfig:
     bus_options: Mapping[str, Any] = field(default_factory=dict)
     #: connector -> its connector-local channel: on a bus, links are negotiated over these
     connector_channels: Mapping[int, ChannelSpec] = field(default_factory=dict)
+    #: the module's flash (drivers.flash_slots): it boots from there rather than from ``image``
+    flash: str | None = None
+    #: raw Ed25519 public keys whose images the flash accepts; unsigned ones only if allowed
+    trust: tuple[bytes, ...] = ()
+    allow_unsigned: bool = False
+    #: clean cycles (no fault, every neighbour verified) before a new program is confirmed
+    trial_cycles: int = 100
     #: "stdio": commands from the HIL world on stdin, reports on stdout; "none": on its own
     control: str = "stdio"
     #: where JSON log lines go when there is no control channel (None: standard error)
@@ -149,6 +157,8 @@ class ModuleConfig:
                 value = list(value)
             elif f.name == "bus_options":
                 value = dict(value)
+            elif f.name == "trust":
+                value = [key.hex() for key in value]
             elif f.name == "connector_channels":
                 value = {str(c): spec.to_json() for c, spec in sorted(value.items())}
             out[f.name] = value
@@ -170,6 +180,8 @@ class ModuleConfig:
                 kw["image"] = bytes.fromhex(_typed(obj, "image", str))
             except ValueError:
                 raise ModuleConfigError("config image: not hexadecimal") from None
+        elif "flash" in obj:
+            kw["image"] = b""  # booted from the flash
         elif "image_path" in obj:
             path = _typed(obj, "image_path", str)
             try:
@@ -177,7 +189,7 @@ class ModuleConfig:
             except OSError as exc:
                 raise ModuleConfigError(f"config image_path {path}: {exc.strerror or exc}") from None
         else:
-            raise ModuleConfigError("config: one of 'image' (hex) or 'image_path' is required")
+            raise ModuleConfigError("config: one of 'image' (hex), 'image_path' or 'flash' is required")
         for name, kind in (
             ("module", int),
             ("name", str),
@@ -190,6 +202,8 @@ class ModuleConfig:
             ("life", int),
             ("servo_baud", int),
             ("control", str),
+            ("allow_unsigned", bool),
+            ("trial_cycles", int),
         ):
             if name in obj:
                 kw[name] = _typed(obj, name, kind)
@@ -198,7 +212,15 @@ class ModuleConfig:
                 kw[name] = float(_typed(obj, name, (int, float)))
         if obj.get("cycles") is not None:
             kw["cycles"] = _typed(obj, "cycles", int)
-        for name in ("servo_port", "log_file", "status_file"):
+        if "trust" in obj:
+            keys = obj["trust"]
+            if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+                raise ModuleConfigError("config trust: expected a list of public keys in hexadecimal")
+            try:
+                kw["trust"] = tuple(bytes.fromhex(k) for k in keys)
+            except ValueError:
+                raise ModuleConfigError("config trust: not hexadecimal") from None
+        for name in ("servo_port", "log_file", "status_file", "flash"):
             if obj.get(name) is not None:
                 kw[name] = _typed(obj, name, str)
         if "servo_model" in obj:

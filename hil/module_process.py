@@ -49,8 +49,9 @@ from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
 
 from dh2rt.compiler import load_image
-from dh2rt.errors import ControlProtocolError, DH2Error
+from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
 from dh2rt.events import parse_hormone
+from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.transport.registry import open_transport
 from dh2rt.wire.frame import FrameCodec
@@ -59,6 +60,7 @@ from drivers.recording import RecordingDriver
 from hil.config import ModuleConfig
 
 if TYPE_CHECKING:
+    from drivers.flash_slots import Boot, Flash
     from hil.negotiated_links import NegotiatedLinks
 from hil.control import (
     Attach,
@@ -118,7 +120,11 @@ class ModuleHost:
         self.report = report
         self.stop_event = threading.Event()
         self.failed = False
-        self.program = load_image(config.image)
+        #: the flash the program was booted from (None: the config's image), and what it booted
+        self.flash: Flash | None = None
+        self.boot: Boot | None = None
+        self.program = self._load_program(config)
+        self._trial = TrialWatch()
         self.module = config.module
         self.cycles = config.cycles
         self.driver, driver_fault = open_driver(config)
@@ -196,7 +202,7 @@ class ModuleHost:
             self._flush()
             # what was last commanded: the servos themselves may be gone by now
             targets = self.runtime.commanded if self.driver is not None else None
-            final = Status(rt.status(), final=True, failed=self.failed, targets=targets)
+            final = Status(self._status(rt), final=True, failed=self.failed, targets=targets)
             if self.links is not None:
                 self.links.close()
             rt.close()
@@ -222,9 +228,67 @@ class ModuleHost:
         if not self.stop_event.is_set():
             self.report(Log(f"links: not every contact linked after {limit:g} s"))
 
+    def _load_program(self, config: ModuleConfig) -> CompiledProgram:
+        """The program to run: booted from the flash (its confirmed program, or a new one on
+        trial), or the config's image. A trial program that does not even compile is
+        rejected at once and the confirmed one runs."""
+        if not config.flash:
+            return load_image(config.image)
+        from drivers.flash_slots import Flash
+
+        self.flash = Flash(
+            Path(config.flash), config.trust, allow_unsigned=config.allow_unsigned, trial_cycles=config.trial_cycles
+        )
+        self.boot = self.flash.boot()
+        try:
+            return load_image(self.boot.program)
+        except DH2Error as exc:
+            if not self.boot.trial:
+                raise
+            self.boot = self.flash.reject(f"the program does not load: {exc}")
+            return load_image(self.boot.program)
+
+    def _check_trial(self, rt: ModuleRuntime) -> None:
+        """A program on trial is confirmed after its clean cycles (no receptor or actuator
+        fault, every neighbour verified); a fault rejects it, and the module stops so that
+        its next start (systemd restarts it) boots the confirmed program."""
+        if self.flash is None or self.boot is None or not self.boot.trial:
+            return
+        verdict = self._trial.cycle(rt, self.boot.trial_cycles)
+        if verdict == "clean":
+            self.flash.confirm()
+            self.boot = self.flash.running
+            rt.log.append(f"program version {self.boot.version if self.boot else '?'} confirmed after its trial")
+        elif verdict is not None:
+            self.flash.reject(verdict)
+            rt.log.append(f"program on trial rejected ({verdict}): the next start boots the confirmed one")
+            self.failed = True
+            self.stop_event.set()
+
+    def program_status(self) -> dict[str, Any] | None:
+        """Where the running program came from, for the status line."""
+        if self.boot is None or self.flash is None:
+            return None
+        return {
+            "slot": self.boot.slot,
+            "version": self.boot.version,
+            "digest": self.boot.digest.hex(),
+            "trial": self.boot.trial,
+            "refused": {str(k): v for k, v in self.flash.refused.items()},
+            "reverts": self.flash.reverts,
+        }
+
+    def _status(self, rt: ModuleRuntime) -> dict[str, Any]:
+        status = rt.status()
+        program = self.program_status()
+        if program is not None:
+            status["program"] = program
+        return status
+
     def _on_cycle(self, rt: ModuleRuntime) -> None:
         if self.links is not None:
             self.links.step(rt.clock())
+        self._check_trial(rt)
         while True:
             try:
                 cmd = self.commands.get_nowait()
@@ -235,7 +299,7 @@ class ModuleHost:
             self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
             self._flush()
-            self.report(Status(rt.status()))
+            self.report(Status(self._status(rt)))
 
     def _reopen_servos(self, rt: ModuleRuntime) -> None:
         """Servos that could not be opened are tried again (a bus that was busy or
@@ -275,9 +339,30 @@ class ModuleHost:
             elif isinstance(cmd, Inject):
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, StatusRequest):
-                self.report(Status(rt.status()))
+                self.report(Status(self._status(rt)))
         except DH2Error as exc:
             self.report(Log(f"command {cmd!r} refused: {exc}"))
+
+
+class TrialWatch:
+    """Counts a trial program's clean cycles: ``cycle`` returns "clean" once it has run
+    ``needed`` cycles with no fault and every attached neighbour verified, the reason when a
+    fault ends the trial, else None."""
+
+    def __init__(self) -> None:
+        self.clean = 0
+        self._faults: int | None = None
+
+    def cycle(self, rt: ModuleRuntime, needed: int) -> str | None:
+        faults = rt.engine.counters["faults"]
+        if self._faults is None:
+            self._faults = faults
+        if faults > self._faults:
+            return f"{faults - self._faults} receptor fault(s) on trial: {rt.last_fault}"
+        if rt.actuator_fault:
+            return f"an actuator fault on trial: {rt.actuator_fault}"
+        self.clean = self.clean + 1 if rt.liveness.settled else 0
+        return "clean" if self.clean >= needed else None
 
 
 def _stdout_report(stream: IO[str]) -> Reporter:
@@ -404,9 +489,20 @@ def load_config(text: str) -> ModuleConfig:
 
 
 def describe(config: ModuleConfig) -> str:
-    """What a config sets up, one line each (``--check-config``)."""
-    program = load_image(config.image)
+    """What a config sets up, one line each (``--check-config``); nothing is written."""
+    source = "image"
+    image = config.image
+    if config.flash:
+        from drivers.flash_slots import Flash
+
+        peeked, program_image = Flash(Path(config.flash), config.trust, allow_unsigned=config.allow_unsigned).peek()
+        source = f"flash {config.flash}: {peeked}; trusts {len(config.trust)} key(s)"
+        if program_image is None:
+            raise ModuleConfigError(f"[program] flash: {config.flash}: {peeked}")
+        image = program_image
+    program = load_image(image)
     links = ", ".join(f"{program.profile.connector_name(c)}: {e}" for c, e in sorted(config.attach.items()))
+    channels = ", ".join(program.profile.connector_name(c) for c in sorted(config.connector_channels))
     if config.servo_port:
         body = f"Dynamixel servos on {config.servo_port} at {config.servo_baud} baud, ids {config.servo_ids}"
     else:
@@ -414,8 +510,11 @@ def describe(config: ModuleConfig) -> str:
     bus = ", ".join(f"{k}={v}" for k, v in config.bus_options.items())
     return "\n".join(
         [
-            f"module {config.label}: program {program.name} ({len(config.image)} bytes, sha256 {program.hash[:16]})",
-            f"transport {config.transport}" + (f" ({bus})" if bus else "") + (f"; links {links}" if links else ""),
+            f"module {config.label}: program {program.name} (sha256 {program.hash[:16]}) from the {source}",
+            f"transport {config.transport}"
+            + (f" ({bus})" if bus else "")
+            + (f"; links {links}" if links else "")
+            + (f"; links negotiated over the channels of {channels}" if channels else ""),
             f"cycle {config.cycle_period * 1000:g} ms, liveness bound {config.silence_cycles} cycles",
             f"body: {body}",
             f"log: {config.log_file or 'standard error'}"
@@ -471,7 +570,13 @@ def _run_alone(config: ModuleConfig) -> int:
         print(f"dh2rt module: {exc}", file=sys.stderr)
         return 2
     _stop_on_signals(host)
-    log(Log(f"started: {describe(config).splitlines()[0]}"))
+    origin = host.program_status()
+    where = (
+        f" from slot {origin['slot']} (version {origin['version']}{', on trial' if origin['trial'] else ''})"
+        if origin
+        else ""
+    )
+    log(Log(f"started: module {config.label}: program {host.program.name} (sha256 {host.program.hash[:16]}){where}"))
     try:
         return host.serve()
     finally:
@@ -482,6 +587,9 @@ def _run_alone(config: ModuleConfig) -> int:
 def _stop_on_signals(host: ModuleHost) -> None:
     def on_signal(_sig: int, _frame: FrameType | None) -> None:
         host.stop_event.set()
+        # one stop request is enough: a second signal while the module winds down (closing its
+        # links, writing its final status) must not kill it with its work half done
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)

@@ -10,8 +10,11 @@ is not TOML names the line and column. Relative paths are relative to the file's
     name = "spine0"                  # in logs only, never in a program
 
     [program]
-    flash = "flash"                  # the module's flash: it boots flash/program.img
-    image = "program.img"            # the image's file name in the flash (default)
+    flash = "flash"                  # the module's flash: two slots and a state record; an
+                                     # image put there as program.img is installed at first boot
+    trust = ["keys/signer.pub"]      # whose signed images it accepts (dh2rt keys new)
+    # allow_unsigned = true          # development only: accept unsigned images
+    trial_cycles = 100               # clean cycles before a new program is confirmed
 
     [cycle]
     period_ms = 20                   # 50 Hz
@@ -67,14 +70,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dh2rt.errors import ModuleConfigError
+from dh2rt.errors import DH2Error, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
+from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from drivers.dxl_table import MODEL_NAMES
 from hil.config import DEFAULTS, STAND_INS, ChannelSpec, ModuleConfig
 
 IMAGE_NAME = "program.img"
+#: What a flash directory that holds a program has (drivers.flash_slots): the state record,
+#: or a single image to install at the first boot.
+FLASH_FILES = ("state.json", IMAGE_NAME)
 TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
 #: The transports on a shared bus, where links are negotiated over the connectors' channels.
 BUS_KINDS = ("can", "socketcan", "virtual", "udp")
@@ -171,7 +178,7 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
     top = _Table(source, "", data)
     top.only(*SECTIONS)
     kw: dict[str, Any] = {"name": top.get_str("name") or ""}
-    kw["image"] = _image(top.table("program", required=True), base)
+    kw.update(_program(top.table("program", required=True), base))
     kw.update(_cycle(top.table("cycle")))
     kw.update(_transport(top.table("transport", required=True), base, profile))
     kw["connector_channels"] = _channels(top.table("connectors"), profile)
@@ -189,21 +196,39 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
         raise ModuleConfigError(f"{source}: {exc}") from None
 
 
-def _image(t: _Table, base: Path) -> bytes:
-    t.only("flash", "image")
+def _program(t: _Table, base: Path) -> dict[str, Any]:
+    """``[program]``: the flash the module boots from and the keys whose images it accepts."""
+    t.only("flash", "trust", "allow_unsigned", "trial_cycles")
     flash = t.get_path("flash", base)
     if flash is None:
         raise t.fail("flash", "missing: the directory the module boots its program from")
-    name = t.get_str("image", IMAGE_NAME) or IMAGE_NAME
-    image = flash / name
     if not flash.is_dir():
         raise t.fail("flash", f"{flash} is not a directory")
-    try:
-        return image.read_bytes()
-    except OSError as exc:
+    keys = t.data.get("trust", [])
+    if not isinstance(keys, list) or not all(isinstance(k, str) and k for k in keys):
+        raise t.fail("trust", f"expected a list of public key files, got {keys!r}")
+    trust = []
+    for i, name in enumerate(keys):
+        path = Path(name) if Path(name).is_absolute() else base / name
+        try:
+            trust.append(read_public_key(path))
+        except (OSError, DH2Error) as exc:
+            raise t.fail(f"trust[{i}]", f"{path}: {getattr(exc, 'strerror', None) or exc}") from None
+    allow_unsigned = t.get_bool("allow_unsigned", False)
+    if not trust and not allow_unsigned:
         raise t.fail(
-            "image", f"cannot read {image} ({exc.strerror or exc}); write one with: dh2rt image PROGRAM -o {image}"
-        ) from None
+            "trust",
+            "empty: list the public keys whose images this module accepts (dh2rt keys new), "
+            "or allow_unsigned = true for development",
+        )
+    if not any((flash / name).exists() for name in FLASH_FILES):
+        raise t.fail("flash", f"{flash} holds no program: write one with: dh2rt image PROGRAM -o {flash / IMAGE_NAME}")
+    return {
+        "flash": str(flash),
+        "trust": tuple(trust),
+        "allow_unsigned": allow_unsigned,
+        "trial_cycles": t.get_int("trial_cycles", DEFAULTS.trial_cycles, 0),
+    }
 
 
 def _cycle(t: _Table) -> dict[str, Any]:
@@ -373,12 +398,21 @@ def _hil(t: _Table, profile: Profile) -> dict[str, Any]:
     return out
 
 
-def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO) -> str:
-    """``config`` as a module.toml whose program is ``flash/program.img`` (written here)."""
+def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image: bytes | None = None) -> str:
+    """``config`` as a module.toml booting from ``flash``, where ``image`` (a signed image, or
+    the config's program image) is written as program.img; the config's trusted keys are
+    written beside the flash."""
     flash.mkdir(parents=True, exist_ok=True)
-    (flash / IMAGE_NAME).write_bytes(config.image)
+    (flash / IMAGE_NAME).write_bytes(config.image if image is None else image)
     name = profile.connector_name
-    lines = [f"name = {_q(config.label)}", "", "[program]", f"flash = {_q(str(flash))}", ""]
+    keys = []
+    for i, key in enumerate(config.trust):
+        key_file = flash.parent / f"trust{i}.pub"
+        key_file.write_bytes(public_key_pem(key))
+        keys.append(_q(str(key_file)))
+    lines = [f"name = {_q(config.label)}", "", "[program]", f"flash = {_q(str(flash))}"]
+    lines += [f"trust = [{', '.join(keys)}]", f"allow_unsigned = {_value(config.allow_unsigned)}"]
+    lines += [f"trial_cycles = {config.trial_cycles}", ""]
     lines += [
         "[cycle]",
         f"period_ms = {config.cycle_period * 1000!r}",

@@ -55,7 +55,7 @@ class ProcessModule:
     """One module as an OS process in a process group of its own; commands on its stdin,
     reports from its stdout."""
 
-    def __init__(self, config: ModuleConfig, reports: Reports, workdir: Path) -> None:
+    def __init__(self, config: ModuleConfig, reports: Reports, workdir: Path, flash_image: bytes | None = None) -> None:
         self.module = config.module
         env = dict(os.environ)
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -64,7 +64,7 @@ class ProcessModule:
         folder = workdir / f"{config.label}-life{config.life}"
         path = folder / "module.toml"
         folder.mkdir(parents=True, exist_ok=True)
-        path.write_text(dump_toml(config, folder / "flash"), encoding="utf-8")
+        path.write_text(dump_toml(config, folder / "flash", image=flash_image), encoding="utf-8")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "dh2rt", "module", "--config", str(path)],
             stdin=subprocess.PIPE,
@@ -211,9 +211,12 @@ def reap_exited_children() -> list[int]:
         reaped.append(pid)
 
 
-def start_module(config: ModuleConfig, reports: Reports, *, thread: bool, workdir: Path) -> ModuleHandle:
+def start_module(
+    config: ModuleConfig, reports: Reports, *, thread: bool, workdir: Path, flash_image: bytes | None = None
+) -> ModuleHandle:
     """Start one module as a thread (in-process buses) or as a process whose config and
-    flash are written under ``workdir``."""
+    flash (holding ``flash_image``, a signed image, or else the config's image) are written
+    under ``workdir``."""
     if thread:
         return ThreadModule(config, reports)
-    return ProcessModule(config, reports, workdir)
+    return ProcessModule(config, reports, workdir, flash_image)

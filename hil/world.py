@@ -180,6 +180,16 @@ class World:
         self.reports: Reports = queue.Queue()
         #: each module process's module.toml and flash (removed by stop())
         self.workdir = Path(tempfile.mkdtemp(prefix="dh2rt-hil-"))
+        #: module processes boot from a flash as a robot's modules do: the program signed with
+        #: a key of this run's, which their trust stores hold (threads run the image as it is)
+        self.signed_image: bytes | None = None
+        self.trust: tuple[bytes, ...] = ()
+        if not self.threads:
+            from dh2rt.signed_image import new_private_key, pack, public_key
+
+            signer = new_private_key()
+            self.signed_image = pack(program.image, 1, signer)
+            self.trust = (public_key(signer),)
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
@@ -230,6 +240,7 @@ class World:
             bus_options["channel"] = real.can_channel
         return ModuleConfig(
             **servos,
+            trust=self.trust,
             bus_options=bus_options,
             module=module,
             name=self.topology.names[module],
@@ -259,7 +270,9 @@ class World:
         config = replace(self.config(module, cycles, phase), life=self.lives[module])
         self.lives[module] += 1
         with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
-            self.handles[module] = start_module(config, self.reports, thread=self.threads, workdir=self.workdir)
+            self.handles[module] = start_module(
+                config, self.reports, thread=self.threads, workdir=self.workdir, flash_image=self.signed_image
+            )
         v = self.views[module]
         v.alive, v.ready, v.finished, v.failed, v.killed = True, False, False, False, False
 

@@ -17,6 +17,7 @@ from typing import Any
 import can
 
 from dh2rt.bundled import compile_bundled
+from dh2rt.signed_image import pack, public_key_path, read_private_key, write_key_pair
 from hil.contact_emulator import ContactEmulator
 from tools.capture_files import CanRecord
 from tools.decode import Decoder
@@ -27,6 +28,9 @@ CONNECTORS = ("front", "back", "left", "right")
 
 def main(folder: Path) -> int:
     program = compile_bundled("caterpillar.dh2")
+    key = folder / "signer.key"
+    write_key_pair(key)  # each module trusts it, and boots the image it signed
+    image = pack(program.image, 1, read_private_key(key))
     procs: list[subprocess.Popen[str]] = []
     tap = can.Bus(interface="udp_multicast", channel="239.74.163.2")
     frames: list[CanRecord] = []
@@ -38,7 +42,7 @@ def main(folder: Path) -> int:
             contacts.make_contact((m, 2), (m + 1, 1))
         try:
             for m in range(MODULES):
-                procs.append(start(folder / f"m{m}", m, program.image, contacts))
+                procs.append(start(folder / f"m{m}", m, image, public_key_path(key), contacts))
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and not all(cycled(folder / f"m{m}", 200) for m in range(MODULES)):
                 listen(tap, frames, 0.2)
@@ -66,12 +70,13 @@ def main(folder: Path) -> int:
     return 0
 
 
-def start(folder: Path, m: int, image: bytes, contacts: ContactEmulator) -> subprocess.Popen[str]:
+def start(folder: Path, m: int, image: bytes, trust: Path, contacts: ContactEmulator) -> subprocess.Popen[str]:
     (folder / "flash").mkdir(parents=True)
     (folder / "flash" / "program.img").write_bytes(image)
     channels = "".join(f'{name} = "{contacts.path((m, c))}"\n' for c, name in enumerate(CONNECTORS, 1))
     (folder / "module.toml").write_text(
-        f'name = "m{m}"\n[program]\nflash = "flash"\n[transport]\nkind = "udp"\n[connectors]\n{channels}'
+        f'name = "m{m}"\n[program]\nflash = "flash"\ntrust = ["{trust}"]\n'
+        f'[transport]\nkind = "udp"\n[connectors]\n{channels}'
         '[cycle]\nperiod_ms = 30\nsilence_cycles = 6\n[log]\nstatus_every = 10\nstatus_file = "status.json"\n'
     )
     cmd = [sys.executable, "-m", "dh2rt", "module", "--config", str(folder / "module.toml")]

@@ -230,6 +230,8 @@ def test_impaired_serial_links_never_feed_a_corrupted_hormone_and_recover() -> N
 #: Cycles from a dock on a bus to a verified link: the negotiation's 8, a Hello, and the
 #: contact's debounce and the scheduling of threads on a busy machine.
 NEGOTIATION_CYCLES = 16
+#: Cycles from a cut to a released link: the contact's debounce (20 ms) and the scheduling.
+CUT_CYCLES = 8
 
 
 def test_world_events_change_links() -> None:
@@ -260,7 +262,8 @@ def test_world_events_change_links() -> None:
         return {r["T"] for r in records if r["module"] == module and start + settle * period < r["t"] < end}
 
     t_cut, t_dock, t_inject = times["20:cut:m1.back"], times["50:dock:m1.back-m2.front"], times["70:inject:m2:X(C)"]
-    assert types(2, t_cut, t_dock) == {1}  # alone after the cut: a head
+    # alone after the cut: a head, once it sensed the contact broken (debounced) and let go
+    assert types(2, t_cut, t_dock, settle=CUT_CYCLES) == {1}
     # docked again: the tail, once the pair has negotiated a link over its connectors'
     # channels (8 cycles without loss, docs/link-layer.md) and verified each other's Hello
     assert types(2, t_dock, t_inject, settle=NEGOTIATION_CYCLES) == {2}

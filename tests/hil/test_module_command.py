@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 
 from dh2rt.bundled import compile_bundled
+from dh2rt.signed_image import pack, public_key_path, read_private_key, write_key_pair
 from hil.link_emulator import LinkEmulator
 from hil.servo_emulator import ServoEmulator
 from tools.capture_sink import FileSink
@@ -29,12 +30,24 @@ from tools.reading import open_capture
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def module_dir(tmp_path: Path, name: str, body: str) -> Path:
-    """A module's folder: module.toml and a flash holding the caterpillar."""
+def signer(tmp_path: Path) -> tuple[bytes, Path]:
+    """A signing key of this test's (made once), and its public key file."""
+    key = tmp_path / "signer.key"
+    if not key.exists():
+        write_key_pair(key)
+    return read_private_key(key), public_key_path(key)
+
+
+def module_dir(tmp_path: Path, name: str, body: str, version: int = 1) -> Path:
+    """A module's folder: module.toml, and a flash holding the caterpillar signed by the
+    test's key, which the module trusts."""
+    private, public = signer(tmp_path)
     folder = tmp_path / name
     (folder / "flash").mkdir(parents=True)
-    (folder / "flash" / "program.img").write_bytes(compile_bundled("caterpillar.dh2").image)
-    (folder / "module.toml").write_text(f'name = "{name}"\n[program]\nflash = "flash"\n' + body)
+    image = pack(compile_bundled("caterpillar.dh2").image, version, private)
+    (folder / "flash" / "program.img").write_bytes(image)
+    program = f'name = "{name}"\n[program]\nflash = "flash"\ntrust = ["{public}"]\n'
+    (folder / "module.toml").write_text(program + body)
     return folder / "module.toml"
 
 
@@ -50,9 +63,10 @@ def start_module(config: Path, **env: str) -> subprocess.Popen[str]:
     )
 
 
-def stop(proc: subprocess.Popen[str]) -> tuple[int, list[dict[str, Any]]]:
-    """SIGTERM, as systemd stops a unit; the exit code and the JSON log lines."""
-    proc.send_signal(signal.SIGTERM)
+def stop(proc: subprocess.Popen[str], signalled: bool = False) -> tuple[int, list[dict[str, Any]]]:
+    """SIGTERM (once), as systemd stops a unit; the exit code and the JSON log lines."""
+    if not signalled:
+        proc.send_signal(signal.SIGTERM)
     _out, err = proc.communicate(timeout=20)
     return proc.returncode, [json.loads(line) for line in err.splitlines() if line.startswith("{")]
 
@@ -60,7 +74,10 @@ def stop(proc: subprocess.Popen[str]) -> tuple[int, list[dict[str, Any]]]:
 INPROC = '[transport]\nkind = "inproc"\n'
 
 BAD = [
-    ("", '[program]\nflash = "flash"\n', "[transport]: missing table"),
+    ("", '[program]\nflash = "flash"\nallow_unsigned = true\n', "[transport]: missing table"),
+    (INPROC, '[program]\nflash = "flash"\n', "[program] trust: empty: list the public keys"),
+    (INPROC, '[program]\nflash = "flash"\ntrust = ["nokey.pub"]\n', "[program] trust[0]: "),
+    (INPROC, '[program]\nflash = "flash"\ntrust = "x.pub"\n', "[program] trust: expected a list"),
     ('[transport]\nkind = "radio"\n', "", "[transport] kind: expected one of can, serial"),
     ('[transport]\nkind = "can"\nchannel = "can0"\n', "", "[transport] interface: missing"),
     (
@@ -108,7 +125,8 @@ def test_a_flash_without_a_program_says_how_to_write_one(tmp_path: Path) -> None
     config = module_dir(tmp_path, "m", INPROC)
     (config.parent / "flash" / "program.img").unlink()
     proc = run_module(config, "--check-config")
-    assert proc.returncode == 2 and "[program] image: cannot read" in proc.stderr and "dh2rt image" in proc.stderr
+    assert proc.returncode == 2 and "[program] flash:" in proc.stderr and "holds no program" in proc.stderr
+    assert "dh2rt image" in proc.stderr
 
 
 def test_check_config_says_what_it_sets_up(tmp_path: Path) -> None:
@@ -192,24 +210,35 @@ def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: i
             for m in range(count):
                 connectors = "".join(f'{c} = "{ports[(m, c)]}"\n' for c in ("front", "back") if (m, c) in ports)
                 body = (
-                    '[transport]\nkind = "serial"\n[transport.connectors]\n' + connectors + "[cycle]\nperiod_ms = 30\n"
+                    '[transport]\nkind = "serial"\n[transport.connectors]\n'
+                    + connectors
+                    + "[cycle]\nperiod_ms = 30\nsilence_cycles = 6\n"
                     '[log]\nstatus_every = 10\nstatus_file = "status.json"\n'
                 )
                 procs.append(start_module(module_dir(tmp_path, f"m{m}", body)))
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and not _cycled(tmp_path, count, 120):
                 time.sleep(0.2)
-            results = [stop(p) for p in procs]
+            # the robot running: each module's last status before any was stopped
+            running = [json.loads((tmp_path / f"m{m}" / "status.json").read_text()) for m in range(count)]
+            for p in procs:  # power off all at once (one by one, the last would miss the first)
+                p.send_signal(signal.SIGTERM)
+            results = [stop(p, signalled=True) for p in procs]
         finally:
             for p in procs:
                 if p.poll() is None:
                     p.kill()
                     p.wait()
     sink.close()
-    assert all(code == 0 for code, _ in results), [lines[-3:] for _, lines in results]
-    finals = [lines[-1] for _, lines in results]
-    assert [f["type"] for f in finals] == ["head"] + ["body"] * (count - 2) + ["tail"]
-    assert all(f["counters"]["links_lost"] == 0 and f["counters"]["refused"] == 0 for f in finals)
+    assert all(code == 0 for code, _ in results), [
+        (code, [x.get("message") or x["event"] for x in lines[-4:]]) for code, lines in results
+    ]
+    assert all(lines[-1]["event"] == "final" for _, lines in results)
+    assert [r["type"] for r in running] == ["head"] + ["body"] * (count - 2) + ["tail"]
+    assert all(r["counters"]["links_lost"] == 0 and r["counters"]["refused"] == 0 for r in running), [
+        (r["module"], r["counters"]["links_lost"], r["counters"]["refused"], r["counters"]["late_cycles"])
+        for r in running
+    ]
     # Table I on the wire: the head's X(A) goes down link 0, the next module answers with X(B)
     # on link 1 within a cycle or two, and so on down the snake
     hormones = [h for h in open_capture(tmp_path / "snake.pcapng").hops() if h.kind == "hormone"]
@@ -250,8 +279,9 @@ def test_the_documented_module_toml_is_valid(tmp_path: Path) -> None:
     data = tomllib.loads(text)
     flash = tmp_path / "flash"
     flash.mkdir()
-    (flash / "program.img").write_bytes(compile_bundled("caterpillar.dh2").image)
+    (flash / "program.img").write_bytes(pack(compile_bundled("caterpillar.dh2").image, 1, signer(tmp_path)[0]))
     data["program"]["flash"] = str(flash)
+    data["program"]["trust"] = [str(signer(tmp_path)[1])]
     config = parse_toml(data, "firmware.md", tmp_path)
     assert config.transport == "can" and config.bus_options["interface"] == "socketcan"
     assert sorted(config.connector_channels) == [1, 2, 3, 4] and config.servo_port == "/dev/ttyUSB0"
