@@ -27,6 +27,8 @@ KINDS = ("hormone", "routed", "keepalive", "hello", "link")
 #: Frames decoded once and remembered (see Decoder._can); cleared when full, so memory stays
 #: bounded whatever the capture.
 MEMO_SIZE = 8192
+#: How a line of :meth:`Hop.describe` starts: the time.
+TIME_FORMAT = "%17.6f"
 
 
 class Hop(NamedTuple):
@@ -49,7 +51,8 @@ class Hop(NamedTuple):
         at, link, side, kind, sender, text, hormone, error, medium, lost = self
         label = "ir  " if medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
         through = f" via {sender}" if sender else ""
-        # %-formatting: the text an f-string would give, in half the time (a capture has millions)
+        # %-formatting: the text an f-string would give, in half the time (a capture has millions);
+        # the time first, TIME_FORMAT (Decoder.lines reuses the rest of a line)
         if link is not None:
             shown = "-" if side is None else side  # a management frame names a link, no side
             line = "%17.6f  %s %4d side %s  %-9s %s%s" % (at, label, link, shown, kind, text, through)  # noqa: UP031
@@ -100,18 +103,58 @@ class Decoder:
         self._default = FrameCodec(programs[0].vocabulary, count)
         self._by_end: dict[tuple[str, int, int], FrameCodec] = {}
         self._reassembler = Reassembler()
-        #: A single CAN frame's hop, time aside, by (arbitration id, data): a capture repeats
-        #: the same few frames (hormones, beacons) over and over, and each is decoded once.
-        #: Emptied when a Hello changes the codec of a link end, and when full.
+        #: A single CAN frame's hop, time aside, by (arbitration id, data) (:meth:`_memo_key`):
+        #: a capture repeats the same few frames (hormones, beacons) over and over, and each
+        #: is decoded once. With it, for :meth:`lines`, the text of its line after the time.
+        #: Both emptied when a Hello changes the codec of a link end, and when full.
         self._memo: dict[tuple[int, bytes], tuple[Any, ...]] = {}
+        self._tails: dict[tuple[int, bytes], str] = {}
 
     def hops(self, records: Iterable[Record]) -> Iterator[Hop]:
         return map(self._record, records)
 
+    def lines(self, records: Iterable[Record], profile: Profile | None = None) -> Iterator[str]:
+        """Each record's hop as :meth:`Hop.describe` puts it (what ``dh2rt dump`` prints), and
+        faster than describing each hop: a frame seen before reuses its text, only the time is
+        formatted anew."""
+        profile = profile or self.profile
+        tails, memo, reassembler = self._tails, self._memo, self._reassembler
+        for rec in records:
+            key = self._memo_key(rec)
+            if key is not None and not reassembler.pending:
+                tail = tails.get(key)
+                if tail is not None:
+                    yield TIME_FORMAT % rec.timestamp + tail
+                    continue
+            hop = self._record(rec)
+            line = hop.describe(profile)
+            if key is not None and key in memo:
+                tails[key] = line[len(TIME_FORMAT % hop.time) :]
+            yield line
+
+    def _memo_key(self, rec: Record) -> tuple[int, bytes] | None:
+        """(arbitration id, data) of a whole frame in one CAN frame (a hormone, a beacon, a
+        Hello: what the memo keeps), or None."""
+        if isinstance(rec, SerialRecord) or not rec.is_extended_id:
+            return None
+        can_id = rec.arbitration_id
+        if (can_id >> 25) & 3 != SINGLE or not 0 <= can_id < 1 << 29 or can_id == MANAGEMENT_ID:
+            return None
+        return can_id, rec.data if type(rec.data) is bytes else bytes(rec.data)
+
     def _record(self, rec: Record) -> Hop:
+        key = self._memo_key(rec)
+        if key is not None and not self._reassembler.pending:  # (a single frame abandons a payload)
+            fields = self._memo.get(key)
+            if fields is not None:
+                return Hop._make((rec.timestamp, *fields))
         if isinstance(rec, SerialRecord):
             return self._serial(rec)
-        return self._can(rec)
+        return self._can(rec, key)
+
+    def _forget(self) -> None:
+        self._memo.clear()
+        self._tails.clear()
 
     def _decode(self, key: tuple[str, int, int], payload: bytes) -> tuple[int, Any]:
         codec = self._by_end.get(key, self._default)
@@ -120,7 +163,7 @@ class Decoder:
             announced = self._codecs.get(frame.digest, self._default)
             if announced is not codec:
                 self._by_end[key] = announced
-                self._memo.clear()  # its hops were decoded with the codecs the ends had then
+                self._forget()  # the memo's hops were decoded with the codecs the ends had then
         return sender, frame
 
     def _hop(self, rec_time: float, key: tuple[str, int, int], payload: bytes, note: str = "") -> Hop:
@@ -148,8 +191,9 @@ class Decoder:
         hop = self._hop(rec.timestamp, key, payload)
         return hop._replace(lost=rec.lost) if rec.lost else hop
 
-    def _can(self, rec: CanRecord) -> Hop:
-        """One CAN frame: a segment, the hormone its last segment completes, or an error."""
+    def _can(self, rec: CanRecord, key: tuple[int, bytes] | None) -> Hop:
+        """One CAN frame: a segment, the hormone its last segment completes, or an error;
+        ``key``: its :meth:`_memo_key`."""
         if not rec.is_extended_id:
             return Hop(rec.timestamp, None, None, "error", error=f"11-bit id {rec.arbitration_id:#x}: not dh2rt")
         can_id = rec.arbitration_id
@@ -165,16 +209,15 @@ class Decoder:
         if (can_id >> 25) & 3 == SINGLE:
             if reassembler.pending:
                 reassembler.feed(can_id, rec.data)  # it abandons what was being rebuilt at this end
-            payload = rec.data if type(rec.data) is bytes else bytes(rec.data)
-            memo = self._memo
-            fields = memo.get((can_id, payload))
+            key = key or (can_id, bytes(rec.data))
+            fields = self._memo.get(key)
             if fields is not None:
                 return Hop._make((rec.timestamp, *fields))
-            hop = self._hop(rec.timestamp, ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1), payload)
+            hop = self._hop(rec.timestamp, ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1), key[1])
             if hop.kind != "hello":  # a Hello is always decoded: it may change its end's codec
-                if len(memo) >= MEMO_SIZE:
-                    memo.clear()
-                memo[can_id, payload] = hop[1:]
+                if len(self._memo) >= MEMO_SIZE:
+                    self._forget()
+                self._memo[key] = hop[1:]
             return hop
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         corrupted, dropped = reassembler.corrupted, reassembler.dropped

@@ -22,7 +22,8 @@ from pathlib import Path
 
 from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
-from tools.decode import KINDS
+from tools.capture_files import read_records
+from tools.decode import KINDS, Decoder
 from tools.reading import PROGRAM_HELP, options_and_capture
 
 
@@ -52,18 +53,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     profile = capture.program.profile
     out = sys.stdout
     seen = 0
-    filtered = bool(ns.link or ns.kind or ns.hormone)
     try:
-        for hop in capture.hops():
-            seen += 1
-            if filtered:
+        if ns.json or ns.link or ns.kind or ns.hormone:
+            for hop in capture.hops():
+                seen += 1
                 if ns.link and hop.link not in ns.link:
                     continue
                 if ns.kind and hop.kind not in ns.kind:
                     continue
                 if ns.hormone and (hop.hormone is None or hop.hormone.name not in ns.hormone):
                     continue
-            out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(profile)) + "\n")
+                out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(profile)) + "\n")
+        else:  # every frame, as text: the decoder's lines (Hop.describe's, made faster)
+            for line in Decoder(capture.programs).lines(read_records(capture.path), profile):
+                seen += 1
+                out.write(line + "\n")
     except CaptureError as exc:
         out.flush()
         err(str(exc))
