@@ -41,3 +41,20 @@ def test_decode_benchmark_reports_its_ratios_and_bus_hours() -> None:
         assert data[f"dump_vs_read_{fmt}"] > 0 and data[f"read_{fmt}_frames_per_s"] > 0
     for fmt in ("log", "blf", "pcapng"):
         assert data[f"dump_{fmt}_frames_per_s"] > 0 and data[f"dump_{fmt}_bus_hours_per_min"] > 0
+
+
+def test_footprint_benchmark_reports_each_figure_against_its_bare_loop() -> None:
+    """Issue 10: 8 dh2rt modules on serial links against 8 bare pyserial loops in the same run;
+    every figure with its baseline, ratio and target verdict (the figures are not asserted)."""
+    cmd = [sys.executable, "-m", "benchmarks.bench_footprint", "--quick", "--only", "serial"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(proc.stdout.strip().splitlines()[-1])
+    serial = data["transports"][0]
+    assert serial["transport"] == "serial" and set(data["met"]["serial"]) == set(data["targets"])
+    for key in ("rss_mb", "cpu_percent", "cpu_ms_per_cycle", "lateness_p99_ms", "first_cycle_s"):
+        for who in ("dh2rt", "baseline"):
+            assert serial[who][key]["max"] >= serial[who][key]["median"] > 0, (who, key)
+        assert serial["ratio"][key]["median"] > 0
+    assert serial["dh2rt"]["checks"]["types"] == ["head"] + ["body"] * 6 + ["tail"]
+    assert all(serial[who]["checks"]["frames_received_min"] > 0 for who in ("dh2rt", "baseline"))
