@@ -8,6 +8,11 @@ World / plain is the cost of the World layer. The gait matters for speed: contac
 PyBullet's step time, and a crawling snake has far fewer of them than one lying flat, so both
 loops run the same gait from the same start.
 
+The sensors-on variant runs the World loop again reading every sensor of every module once a
+cycle, as a physics run does for a program that declares them all (:mod:`sim.sensors`: IMU,
+infrared with its ray casts, ground contact, joint positions and loads; each value rounded and
+clamped to the profile's range), so sensors / plain is what sensing costs on top.
+
 Run: ``python -m benchmarks.bench_physics [--quick]``. The last line is one JSON object.
 """
 
@@ -22,9 +27,11 @@ from pathlib import Path
 
 import pybullet as p
 
+from dh2rt.profile import CONRO
 from dh2rt.topology import parse_spec
 from sim.gaits import CLOCK_CYCLE, STEPS_PER_CYCLE, caterpillar_schedule, run_caterpillar
 from sim.record import Recorder
+from sim.sensors import PhysicsSensors, physics_sensor_names
 from sim.world import World
 
 #: Real-time factor goals from the brief.
@@ -38,6 +45,27 @@ def _time_world(n: int, hz: float, cycles: int) -> float:
         run_caterpillar(w, SETTLE_CYCLES)
         t0 = time.perf_counter()
         run_caterpillar(w, cycles, first_cycle=SETTLE_CYCLES)
+        elapsed = time.perf_counter() - t0
+    return cycles * STEPS_PER_CYCLE / elapsed
+
+
+def _time_sensors(n: int, hz: float, cycles: int) -> float:
+    """Steps per second of World + run_caterpillar reading every module's every sensor each cycle."""
+    with World(parse_spec(f"snake:{n}"), physics_hz=hz) as w:
+        sensors = PhysicsSensors(w, physics_sensor_names(w.model))
+        specs = [CONRO.sensor(name) for name in sensors.names]
+        modules = list(range(n))
+        values = [[0] * len(specs) for _ in modules]  # what the engines' S would hold
+
+        def sense(_cycle: int) -> None:
+            for m, readings in sensors.read(modules).items():
+                row = values[m]
+                for i, spec in enumerate(specs):
+                    row[i] = spec.reading(readings[spec.name])
+
+        run_caterpillar(w, SETTLE_CYCLES, on_step=sense)
+        t0 = time.perf_counter()
+        run_caterpillar(w, cycles, first_cycle=SETTLE_CYCLES, on_step=sense)
         elapsed = time.perf_counter() - t0
     return cycles * STEPS_PER_CYCLE / elapsed
 
@@ -119,17 +147,24 @@ def main(argv: list[str] | None = None) -> int:
     )
     result: dict[str, object] = {"bench": "physics", "physics_hz": hz, "quick": args.quick}
     for n in (8, 20):
-        world_best = plain_best = 0.0
-        for _ in range(repeats):  # interleaved, so drift in machine load hits both alike
+        world_best = plain_best = sensors_best = 0.0
+        for _ in range(repeats):  # interleaved, so drift in machine load hits all alike
             world_best = max(world_best, _time_world(n, hz, cycles))
             plain_best = max(plain_best, _time_plain(n, hz, cycles))
-        rtf, plain_rtf = world_best / hz, plain_best / hz
+            sensors_best = max(sensors_best, _time_sensors(n, hz, cycles))
+        rtf, plain_rtf, sensors_rtf = world_best / hz, plain_best / hz, sensors_best / hz
         ok = rtf >= TARGET_RTF[n]
+        sensors_ok = sensors_rtf >= TARGET_RTF[n]
         print(
             f"snake:{n:<2}  World {world_best:8.0f} steps/s = {rtf:5.1f}x real time "
             f"(target >= {TARGET_RTF[n]:g}x: {'met' if ok else 'MISSED'}); "
             f"plain PyBullet {plain_best:8.0f} steps/s = {plain_rtf:5.1f}x; "
             f"World/plain {rtf / plain_rtf:.2f}"
+        )
+        print(
+            f"snake:{n:<2}  World with every sensor {sensors_best:8.0f} steps/s = {sensors_rtf:5.1f}x real time "
+            f"(target >= {TARGET_RTF[n]:g}x: {'met' if sensors_ok else 'MISSED'}); "
+            f"sensors/plain {sensors_rtf / plain_rtf:.2f}"
         )
         result[f"snake{n}"] = {
             "steps_per_s": round(world_best),
@@ -138,6 +173,9 @@ def main(argv: list[str] | None = None) -> int:
             "ratio_vs_plain": round(rtf / plain_rtf, 3),
             "target_rtf": TARGET_RTF[n],
             "met": ok,
+            "sensors_rtf": round(sensors_rtf, 2),
+            "sensors_ratio_vs_plain": round(sensors_rtf / plain_rtf, 3),
+            "sensors_met": sensors_ok,
         }
     seeds = (0,) if args.quick else (0, 1, 2)
     travel: dict[str, list[float]] = {}

@@ -1,4 +1,4 @@
-"""Timed events for a run: live surgery, docking, injected hormones, killed modules.
+"""Timed events for a run: live surgery, docking, injected hormones, killed modules, sensors.
 
 Text form (``--event``), with modules by name or index::
 
@@ -7,6 +7,12 @@ Text form (``--event``), with modules by name or index::
     CYCLE:inject:M:HORMONE           place HORMONE (e.g. LTS or X(A)) in M's mailbox
     CYCLE:kill:M                     the module stops (its neighbours lose the link)
     CYCLE:restart:M                  it boots again with a fresh state
+    CYCLE:sense:M:NAME=VALUE         sensor S.NAME of M reads VALUE from then on (e.g. roll=90)
+
+A ``sense`` event names a sensor of the topology's profile and an integer within its range
+(``dh2rt.profile.SensorSpec``); the value holds until another ``sense`` event for the same
+sensor, even where the physics stand-in fills that sensor (its reading of that module's
+sensor is overridden) and across a restart of the module.
 
 :func:`check_events` replays a run's events against its topology before the run starts, so
 that a cut of nothing, a dock of two male connectors or an event after the last cycle is
@@ -15,7 +21,7 @@ refused up front (naming the event) rather than ending the run at cycle 300 of 4
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 from dh2rt.docking import check_cut, check_dock
@@ -23,10 +29,10 @@ from dh2rt.errors import DH2Error, EventError, ProgramError, TopologyError
 from dh2rt.hormone import Hormone, Vocabulary
 from dh2rt.lang import ast
 from dh2rt.lang.parser import Parser
+from dh2rt.profile import Profile
 from dh2rt.topology import Topology
 
-KINDS = ("cut", "dock", "inject", "kill", "restart")
-
+KINDS = ("cut", "dock", "inject", "kill", "restart", "sense")
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,6 +45,9 @@ class Event:
     other_connector: int = 0
     hormone: Hormone | None = None
     text: str = ""
+    #: ``sense``: the sensor's name and the value it reads
+    sensor: str = ""
+    value: int = 0
 
 
 def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
@@ -80,14 +89,41 @@ def parse_event(text: str, topology: Topology, vocabulary: Vocabulary) -> Event:
         if not sep:
             raise EventError(f"event {text!r}: expected CYCLE:inject:M:HORMONE")
         return Event(cycle, kind, module(ref), hormone=parse_hormone(htext, vocabulary, f"event {text!r}"), text=text)
+    if kind == "sense":
+        ref, sep, assignment = rest.partition(":")
+        if not sep:
+            raise EventError(f"event {text!r}: expected CYCLE:sense:M:NAME=VALUE")
+        name, value = parse_sensing(assignment, topology.profile, f"event {text!r}")
+        return Event(cycle, kind, module(ref), sensor=name, value=value, text=text)
     return Event(cycle, kind, module(rest), text=text)
 
 
-def check_events(events: Sequence[Event], topology: Topology, cycles: int) -> None:
+def parse_sensing(text: str, profile: Profile, where: str = "sensor") -> tuple[str, int]:
+    """``NAME=VALUE``: a sensor of ``profile`` and an integer it can read; EventError naming
+    ``where`` and what is wrong otherwise."""
+    name, sep, raw = text.partition("=")
+    name, raw = name.strip(), raw.strip()
+    if not sep or not name:
+        raise EventError(f"{where}: expected NAME=VALUE, e.g. roll=90")
+    try:
+        value = int(raw)
+    except ValueError:
+        raise EventError(f"{where}: sensor value {raw!r} is not a whole number") from None
+    try:
+        profile.sensor(name).check(value)
+    except TopologyError as exc:
+        raise EventError(f"{where}: {exc}") from None
+    return name, value
+
+
+def check_events(
+    events: Sequence[Event], topology: Topology, cycles: int, *, sensors: Collection[str] | None = None
+) -> None:
     """Replay ``events`` in the order a run applies them against ``topology``'s links and
     raise EventError naming the first event that cannot happen: one at or after cycle
     ``cycles`` (the run ends first), a cut of a connector with nothing docked, a dock the
-    profile or the links then do not allow, an injection into a stopped module.
+    profile or the links then do not allow, an injection into or a sensing of a stopped
+    module, and, given the program's declared ``sensors``, a sensing of one it does not read.
 
     Links that native actions change during the run (reach_and_dock) are not known here;
     an event those make impossible is reported when it is applied."""
@@ -117,10 +153,17 @@ def check_events(events: Sequence[Event], topology: Topology, cycles: int) -> No
                 stopped.add(ev.module)
             elif ev.kind == "restart":
                 stopped.discard(ev.module)
-            elif ev.kind == "inject" and ev.module in stopped:
+            elif ev.kind in ("inject", "sense") and ev.module in stopped:
                 raise TopologyError(f"module {topology.names[ev.module]} is stopped then")
+            elif ev.kind == "sense" and sensors is not None and ev.sensor not in sensors:
+                raise TopologyError(undeclared_sensor(ev.sensor))
         except TopologyError as exc:
             raise EventError(f"{label}: {exc}") from None
+
+
+def undeclared_sensor(name: str) -> str:
+    """The message for sensing a sensor the program does not read."""
+    return f"the program does not declare sensor {name} (add `sensor {name}` to read S.{name})"
 
 
 def parse_hormone(text: str, vocabulary: Vocabulary, where: str = "hormone") -> Hormone:

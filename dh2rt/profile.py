@@ -19,6 +19,21 @@ It agrees with every example the paper gives:
   (left, 0, 0, 0); right foot T6 = (right, 0, 0, 0); spine types for legged robots; every
   other tuple gets a systematic name ``t_`` + one letter per connector (``0`` or the first
   letter of the remote connector), e.g. ``t_lf00``.
+
+A profile also lists the module's *sensors* (:class:`SensorSpec`): the names a program reads
+as ``S.name``, each with its unit and range. Sensor values are integers, as every DH2 value:
+whatever fills a sensor (the physics stand-in, a servo driver, a ``sense`` event) rounds
+to the nearest integer and clamps to the range (:meth:`SensorSpec.reading`). The CONRO
+table (:data:`CONRO_SENSORS`, documented in docs/language.md, *Sensors*):
+
+* ``roll``, ``pitch``: the module's attitude from its IMU, degrees;
+* ``ir_<connector>``: distance (mm) to the nearest connector facing this one within the
+  infrared pair's range and cone, 0 when none is in view (a face in contact reads 1);
+  ``ir_<connector>_align``: how far (degrees) that face is from squarely facing this one,
+  180 when none is in view;
+* ``contact``: 1 while any part of the module touches the ground;
+* ``pos1``, ``pos2``: the joints' present angles (degrees); ``load1``, ``load2``: the
+  servos' present load, percent of their maximum torque, signed.
 """
 
 from __future__ import annotations
@@ -44,6 +59,31 @@ class TopoType:
     statuses: frozenset[tuple[int, ...]]
 
 
+@dataclass(frozen=True, slots=True)
+class SensorSpec:
+    """A sensor of a module: its name (``S.name``), unit, and range of integer values."""
+
+    name: str
+    unit: str
+    low: int
+    high: int
+    doc: str = ""
+
+    def reading(self, value: float) -> int:
+        """A measured value as the sensor reads it: rounded to the nearest integer (halves
+        to even, as Python rounds) and clamped to the range."""
+        return min(self.high, max(self.low, round(value)))
+
+    def check(self, value: int) -> int:
+        """``value`` if the sensor can read it; TopologyError naming the range otherwise."""
+        if not self.low <= value <= self.high:
+            raise TopologyError(f"sensor {self.name} reads {self.low}..{self.high} {self.unit}, not {value}")
+        return value
+
+    def describe(self) -> str:
+        return f"{self.name} ({self.unit}, {self.low}..{self.high})"
+
+
 @dataclass(frozen=True)
 class Profile:
     """Connectors, genders and topological types of one kind of module.
@@ -56,10 +96,23 @@ class Profile:
     genders: tuple[str, ...]
     types: tuple[TopoType, ...]
     type_of_status: Mapping[tuple[int, ...], int] = field(repr=False)
+    sensors: tuple[SensorSpec, ...] = ()
 
     @property
     def connector_count(self) -> int:
         return len(self.connectors)
+
+    @property
+    def sensor_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.sensors)
+
+    def sensor(self, name: str) -> SensorSpec:
+        """A sensor by name; TopologyError (a ValueError) naming the profile's sensors otherwise."""
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        known = ", ".join(self.sensor_names) or "none"
+        raise TopologyError(f"profile {self.name} has no sensor {name!r} (it has: {known})")
 
     def connector_index(self, name: str) -> int:
         """Index (1-based) of a connector by name; TopologyError (a ValueError) naming the
@@ -107,11 +160,14 @@ class Profile:
         ``connectors`` is a table name -> gender; ``types`` a list of tables with ``name``,
         optional ``alias`` and ``statuses`` (lists of remote connector names or "0", one entry
         per connector in declaration order). Legal tuples no type names get systematic names.
+        ``sensors`` (optional) is a list of tables with ``name``, ``unit``, ``min``, ``max``
+        and an optional ``doc``.
         """
         try:
             conn_table = dict(data["connectors"])
             name = str(data.get("name", "custom"))
             type_rows = list(data.get("types", []))
+            sensor_rows = list(data.get("sensors", []))
         except (KeyError, TypeError) as exc:
             raise TopologyError(f"profile: missing or malformed field: {exc}") from None
         connectors = tuple(conn_table)
@@ -147,7 +203,27 @@ class Profile:
                 letters = "".join("0" if v == NONE else connectors[v - 1][0] for v in tup)
                 claimed[tup] = len(types)
                 types.append(TopoType(len(types), f"t_{letters}", None, frozenset({tup})))
-        return cls(name, connectors, genders, tuple(types), claimed)
+        return cls(name, connectors, genders, tuple(types), claimed, _sensors(name, sensor_rows))
+
+
+def _sensors(profile: str, rows: Sequence[Any]) -> tuple[SensorSpec, ...]:
+    """The sensor table of ``from_dict``; errors name the profile and the sensor."""
+    specs: list[SensorSpec] = []
+    for i, row in enumerate(rows):
+        where = f"profile {profile}: sensor {row.get('name', i) if isinstance(row, Mapping) else i}"
+        try:
+            spec = SensorSpec(str(row["name"]), str(row["unit"]), row["min"], row["max"], str(row.get("doc", "")))
+        except (KeyError, TypeError) as exc:
+            raise TopologyError(f"{where}: missing or malformed field {exc}") from None
+        if not spec.name.isidentifier():
+            raise TopologyError(f"{where}: the name must be an identifier")
+        if any(s.name == spec.name for s in specs):
+            raise TopologyError(f"{where}: declared twice")
+        bounds = (spec.low, spec.high)
+        if any(not isinstance(b, int) or isinstance(b, bool) for b in bounds) or spec.low > spec.high:
+            raise TopologyError(f"{where}: min and max must be whole numbers with min <= max, got {bounds}")
+        specs.append(spec)
+    return tuple(specs)
 
 
 CONRO_DATA: dict[str, Any] = {
@@ -164,7 +240,29 @@ CONRO_DATA: dict[str, Any] = {
         {"name": "spine_rear", "statuses": [["back", "0", "front", "front"]]},
         {"name": "spine_lone", "statuses": [["0", "0", "front", "front"]]},
     ],
+    "sensors": [
+        {"name": name, "unit": unit, "min": low, "max": high, "doc": doc}
+        for name, unit, low, high, doc in (
+            ("roll", "deg", -180, 180, "IMU: rotation about the module's x axis, left side up > 0"),
+            ("pitch", "deg", -90, 90, "IMU: rotation about the module's y axis, front end down > 0"),
+            *(
+                row
+                for c in ("front", "back", "left", "right")
+                for row in (
+                    (f"ir_{c}", "mm", 0, 100, f"infrared at {c}: nearest facing connector, 0 when none in view"),
+                    (f"ir_{c}_align", "deg", 0, 180, f"infrared at {c}: that face's angle off square, 180 when none"),
+                )
+            ),
+            ("contact", "bool", 0, 1, "1 while any part of the module touches the ground"),
+            ("pos1", "deg", -180, 180, "DOF1 (pitch) present angle"),
+            ("pos2", "deg", -180, 180, "DOF2 (yaw) present angle"),
+            ("load1", "%", -100, 100, "DOF1 servo's present load, percent of its maximum torque, signed"),
+            ("load2", "%", -100, 100, "DOF2 servo's present load, percent of its maximum torque, signed"),
+        )
+    ],
 }
 
 #: The CONRO profile every built-in topology and example uses.
 CONRO = Profile.from_dict(CONRO_DATA)
+#: The CONRO module's sensors (see the module docs).
+CONRO_SENSORS = CONRO.sensors

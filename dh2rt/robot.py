@@ -22,7 +22,7 @@ from dh2rt import docking
 from dh2rt.docking import End
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import EventError, TopologyError
-from dh2rt.events import Event
+from dh2rt.events import Event, undeclared_sensor
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.program import CompiledProgram
@@ -120,6 +120,9 @@ class Robot:
         #: Hormones that were on their way across a link when it was cut or its sender or
         #: receiver was killed: never delivered (dh2rt.docking.without_in_flight).
         self.lost_in_flight = 0
+        #: Sensor values set by sense events (:meth:`sense`), per module: they hold until the
+        #: next one, across restarts, and whatever else fills sensors (the physics) leaves them.
+        self.sensed: dict[int, dict[str, int]] = {}
         for link in topology.links:
             self.dock(link.a, link.a_conn, link.b, link.b_conn)
 
@@ -227,6 +230,8 @@ class Robot:
         self.kill(module)
         e = self._boot()
         self.engines[module] = e
+        for name, value in self.sensed.get(module, {}).items():
+            e.set_sensor(name, value)  # the module's surroundings did not restart
         for c, _other, other_c, oe in self._running_neighbours(module):
             e.link_up(c, other_c)
             oe.link_up(other_c, c)
@@ -249,6 +254,15 @@ class Robot:
         # An injected hormone arrives at no connector (0): it is bound here or flooded everywhere.
         self.inbox.setdefault(module, []).append(Arrival(0, 0, hormone))
 
+    def sense(self, module: int, name: str, value: int) -> None:
+        """Sensor ``name`` of a running module reads ``value`` from now on (a ``sense`` event);
+        TopologyError if the module is stopped or its program declares no such sensor."""
+        e = self.engine(module)
+        if name not in self.program.sensor_names:
+            raise TopologyError(undeclared_sensor(name))
+        e.set_sensor(name, value)
+        self.sensed.setdefault(module, {})[name] = value
+
     def apply(self, event: Event) -> None:
         """Carry out an event now; an event the robot's links or modules do not allow now
         raises EventError naming it (check_events refuses most of them before a run)."""
@@ -268,6 +282,8 @@ class Robot:
             self.kill(event.module)
         elif event.kind == "restart":
             self.restart(event.module)
+        elif event.kind == "sense":
+            self.sense(event.module, event.sensor, event.value)
         self.log.append(f"cycle {self.cycle}: {event.text or event.kind}")
 
     def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:

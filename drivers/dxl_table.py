@@ -67,6 +67,9 @@ GOAL_POSITION: Final = Field("goal_position", 116, 4, signed=True)
 REALTIME_TICK: Final = Field("realtime_tick", 120, 2, writable=False)
 MOVING: Final = Field("moving", 122, 1, writable=False)
 MOVING_STATUS: Final = Field("moving_status", 123, 1, writable=False)
+#: Present Load (0.1 % of the maximum torque) on the models in PRESENT_LOAD_MODELS; on the
+#: others (the XM430 this table follows among them) Present Current, in the units of their
+#: Current Limit (38): :func:`load_percent` reads either.
 PRESENT_LOAD: Final = Field("present_load", 126, 2, writable=False, signed=True)
 PRESENT_VELOCITY: Final = Field("present_velocity", 128, 4, writable=False, signed=True)
 PRESENT_POSITION: Final = Field("present_position", 132, 4, writable=False, signed=True)
@@ -177,6 +180,26 @@ CENTER_TICKS: Final = 2048  # 0 degrees
 MAX_TICKS: Final = TICKS_PER_REV - 1
 DEG_PER_TICK: Final = 360.0 / TICKS_PER_REV
 RPM_PER_VELOCITY_UNIT: Final = 0.229  # Profile/Present Velocity unit
+
+
+#: Models whose address 126 is Present Load (0.1 % units, -1000..1000) rather than Present Current.
+PRESENT_LOAD_MODELS: Final = frozenset({MODEL_XL430_W250})
+LOAD_UNIT_PERCENT: Final = 0.1
+
+
+def load_percent(raw: int, model: int, current_limit: int) -> float:
+    """Address 126 of a servo of ``model`` as a load in percent of its maximum (signed):
+    Present Load in 0.1 % units, or Present Current over the Current Limit (same units)."""
+    if model in PRESENT_LOAD_MODELS:
+        return raw * LOAD_UNIT_PERCENT
+    return 100.0 * raw / max(1, current_limit)
+
+
+def load_raw(percent: float, model: int, current_limit: int) -> int:
+    """The value address 126 holds for a load of ``percent`` (the inverse of :func:`load_percent`)."""
+    if model in PRESENT_LOAD_MODELS:
+        return round(max(-100.0, min(100.0, percent)) / LOAD_UNIT_PERCENT)
+    return round(max(-1.0, min(1.0, percent / 100.0)) * current_limit)
 
 
 def hardware_error_names(bits: int) -> list[str]:

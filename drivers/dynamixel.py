@@ -22,8 +22,9 @@ calls :meth:`health` or :meth:`recover`.
 What the runtime should call when:
 
 * every control tick: :meth:`set_targets` (one SYNC_WRITE; there is no status packet, so it
-  raises only if the port fails) and, when it needs feedback, :meth:`read_positions` (one
-  SYNC_READ; it reports timeouts, corruption and hardware alerts);
+  raises only if the port fails) and, when it needs feedback, :meth:`read_positions` or
+  :meth:`read_feedback` (positions and loads; one SYNC_READ either way; it reports timeouts,
+  corruption and hardware alerts);
 * on a :class:`ServoCommError`: retry on the next tick; a single corrupt packet is line noise;
 * on :class:`ServoHardwareAlert`, or when comm errors persist for a few ticks, or when
   :meth:`health` lists faults: call :meth:`recover`. It pings both servos, reboots any with a
@@ -53,15 +54,15 @@ from dh2rt.errors import (
     ServoNotFound,
 )
 from drivers import dxl_table as dxt
-from drivers.base import Health, Joint, JointLimits, ModuleDriver
+from drivers.base import Feedback, Health, Joint, JointLimits, ModuleDriver
 
 SUPPORTED_BAUDRATES: Final = (
     9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600,
     1000000, 1152000, 2000000, 2500000, 3000000, 3500000, 4000000,
 )  # fmt: skip
 MAX_UNICAST_ID: Final = 252
-
-
+#: Present Load (or Current), Velocity and Position: addresses 126..135, read together.
+_FEEDBACK_SIZE: Final = dxt.PRESENT_POSITION.end - dxt.PRESENT_LOAD.address
 
 
 def _load_sdk() -> ModuleType:
@@ -150,6 +151,11 @@ class DynamixelDriver(ModuleDriver):
         self._ph: Any = None
         self._sync_write: Any = None
         self._sync_read: Any = None
+        self._sync_feedback: Any = None
+        #: Each servo's model (from its PING) and Current Limit (read when it is configured;
+        #: 0 for models that report Present Load): what address 126 means, dxl_table.load_percent.
+        self.models: list[int | None] = [None, None]
+        self._current_limits = [0, 0]
         if connect:
             try:
                 self.open()
@@ -190,8 +196,11 @@ class DynamixelDriver(ModuleDriver):
         goal, present = dxt.GOAL_POSITION, dxt.PRESENT_POSITION
         self._sync_write = sdk.GroupSyncWrite(port, self._ph, goal.address, goal.size)
         self._sync_read = sdk.GroupSyncRead(port, self._ph, present.address, present.size)
+        # load, velocity and position are adjacent: one read from 126 to 135 gives them all
+        self._sync_feedback = sdk.GroupSyncRead(port, self._ph, dxt.PRESENT_LOAD.address, _FEEDBACK_SIZE)
         for dxl_id in self.ids:
             self._sync_read.addParam(dxl_id)
+            self._sync_feedback.addParam(dxl_id)
 
     def close(self) -> None:
         """Close the port (torque is left as it is, so the module keeps its pose)."""
@@ -225,21 +234,41 @@ class DynamixelDriver(ModuleDriver):
     def read_positions(self) -> tuple[float, float]:
         """Both present positions from one SYNC_READ."""
         with self._lock:
-            self._require_open()
-            sync, ph, size = self._sync_read, self._ph, dxt.PRESENT_POSITION.size
-            with self._port_io("SYNC_READ of present positions"):
-                result = sync.txPacket()
-                if result != 0:
-                    raise ServoCommError(f"SYNC_READ of present positions: {self._result(result)}")
-                # GroupSyncRead.rxPacket() drops each status's error byte, so receive the
-                # statuses with the packet handler to see hardware alerts.
-                replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
-            angles = []
-            for joint, (data, result, error) in zip(Joint, replies, strict=True):
-                self._check(joint, "SYNC_READ of present position", result, error)
-                ticks = int.from_bytes(bytes(data[:size]), "little", signed=True)
-                angles.append(dxt.ticks_to_deg(ticks))
+            data = self._sync_read_both(self._sync_read, dxt.PRESENT_POSITION.size, "present position")
+            angles = [dxt.ticks_to_deg(_field(d, dxt.PRESENT_POSITION, dxt.PRESENT_POSITION.address)) for d in data]
             return angles[0], angles[1]
+
+    def read_loads(self) -> tuple[float, float]:
+        """Both present loads (percent of the maximum torque, signed), from one SYNC_READ."""
+        return self.read_feedback().loads
+
+    def read_feedback(self) -> Feedback:
+        """Present positions and loads of both servos from one SYNC_READ of addresses 126..135
+        (Present Load or Current, Velocity, Position)."""
+        with self._lock:
+            data = self._sync_read_both(self._sync_feedback, _FEEDBACK_SIZE, "present load and position")
+            base = dxt.PRESENT_LOAD.address
+            angles = [dxt.ticks_to_deg(_field(d, dxt.PRESENT_POSITION, base)) for d in data]
+            raw = [_field(d, dxt.PRESENT_LOAD, base) for d in data]
+            loads = [self._load_percent(joint, r) for joint, r in zip(Joint, raw, strict=True)]
+            return Feedback((angles[0], angles[1]), (loads[0], loads[1]))
+
+    def _sync_read_both(self, sync: Any, size: int, what: str) -> list[bytes]:
+        """Send one prepared SYNC_READ and receive both servos' data (caller holds the lock)."""
+        self._require_open()
+        ph = self._ph
+        with self._port_io(f"SYNC_READ of {what}"):
+            result = sync.txPacket()
+            if result != 0:
+                raise ServoCommError(f"SYNC_READ of {what}: {self._result(result)}")
+            # GroupSyncRead.rxPacket() drops each status's error byte, so receive the
+            # statuses with the packet handler to see hardware alerts.
+            replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
+        out = []
+        for joint, (data, result, error) in zip(Joint, replies, strict=True):
+            self._check(joint, f"SYNC_READ of {what}", result, error)
+            out.append(bytes(data[:size]))
+        return out
 
     def set_torque(self, enabled: bool) -> None:
         with self._lock:
@@ -330,6 +359,11 @@ class DynamixelDriver(ModuleDriver):
                 self._write(joint, field, value)
         self._write(joint, dxt.PROFILE_VELOCITY, dxt.dps_to_velocity_units(lim.max_speed_dps))
         self._write(joint, dxt.TORQUE_ENABLE, 1)
+        if self.models[joint] not in dxt.PRESENT_LOAD_MODELS:  # address 126 is Present Current
+            self._current_limits[joint] = self._read(joint, dxt.CURRENT_LIMIT)
+
+    def _load_percent(self, joint: Joint, raw: int) -> float:
+        return dxt.load_percent(raw, self.models[joint] or 0, self._current_limits[joint])
 
     def _ping(self, joint: Joint) -> int:
         with self._port_io(f"PING of {self._who(joint)}"):
@@ -341,6 +375,7 @@ class DynamixelDriver(ModuleDriver):
             raise ServoModelMismatch(
                 f"{self._who(joint)} is model {_model_name(model)}, expected {_model_name(self.expected_model)}"
             )
+        self.models[joint] = int(model)
         return int(model)
 
     def _read(self, joint: Joint, field: dxt.Field) -> int:
@@ -401,6 +436,12 @@ class DynamixelDriver(ModuleDriver):
     def _require_open(self) -> None:
         if self._port is None:
             raise ServoCommError(f"servo port {self.port_path} is not open")
+
+
+def _field(data: bytes, field: dxt.Field, base: int) -> int:
+    """``field``'s value in ``data`` read from address ``base``."""
+    start = field.address - base
+    return int.from_bytes(data[start : start + field.size], "little", signed=field.signed)
 
 
 def _model_name(model: int) -> str:

@@ -96,6 +96,20 @@ class PyBulletDriver(ModuleDriver):
             raise DriverError(f"PyBulletDriver body {self.body_id}: {exc}") from None
         return (math.degrees(states[0][0]), math.degrees(states[1][0]))
 
+    def read_loads(self) -> tuple[float, float]:
+        """The torque each joint motor applied in the last physics step, in percent of the
+        joint's ``max_torque_nm`` (0 while limp)."""
+        self._check_open()
+        p = self._p
+        try:
+            states = p.getJointStates(self.body_id, self.joints, physicsClientId=self.client_id)
+        except p.error as exc:
+            raise DriverError(f"PyBulletDriver body {self.body_id}: {exc}") from None
+        return (
+            100.0 * states[0][3] / self.limits[0].max_torque_nm,
+            100.0 * states[1][3] / self.limits[1].max_torque_nm,
+        )
+
     def set_torque(self, enabled: bool) -> None:
         self._check_open()
         p = self._p

@@ -22,5 +22,9 @@ class RecordingDriver(ModuleDriver):
     def read_positions(self) -> tuple[float, float]:
         return self.targets
 
+    def read_loads(self) -> tuple[float, float]:
+        """An ideal servo with nothing to move: no load."""
+        return (0.0, 0.0)
+
     def set_torque(self, enabled: bool) -> None:
         self.torque = enabled

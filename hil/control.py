@@ -3,7 +3,7 @@ reports out, as JSON lines (one object a line) over a module process's stdin and
 as the same objects through queues for modules that run as threads.
 
 Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
-:class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
+:class:`Sense`, :class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
 :class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
 :class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
 ControlProtocolError naming the field; a receiver logs it and goes on.
@@ -49,6 +49,14 @@ class Inject:
 
 
 @dataclass(frozen=True)
+class Sense:
+    """A ``sense`` event: sensor ``sensor`` of the module reads ``value`` from now on."""
+
+    sensor: str
+    value: int
+
+
+@dataclass(frozen=True)
 class StatusRequest:
     pass
 
@@ -58,7 +66,7 @@ class Stop:
     pass
 
 
-Command = Go | Attach | Detach | Inject | StatusRequest | Stop
+Command = Go | Attach | Detach | Inject | Sense | StatusRequest | Stop
 
 
 def command_to_json(cmd: Command) -> dict[str, Any]:
@@ -73,6 +81,8 @@ def command_to_json(cmd: Command) -> dict[str, Any]:
         return {"cmd": "detach", "connector": cmd.connector}
     if isinstance(cmd, Inject):
         return {"cmd": "inject", "hormone": cmd.hormone}
+    if isinstance(cmd, Sense):
+        return {"cmd": "sense", "sensor": cmd.sensor, "value": cmd.value}
     if isinstance(cmd, StatusRequest):
         return {"cmd": "status"}
     return {"cmd": "stop"}
@@ -104,6 +114,11 @@ def command_from_json(obj: object) -> Command:
         if not isinstance(hormone, str):
             raise ControlProtocolError(f"inject command: field 'hormone' {hormone!r} is not text")
         return Inject(hormone)
+    if kind == "sense":
+        sensor = obj.get("sensor")
+        if not isinstance(sensor, str) or not sensor:
+            raise ControlProtocolError(f"sense command: field 'sensor' {sensor!r} is not a name")
+        return Sense(sensor, _int(obj, "value", "sense command"))
     if kind == "status":
         return StatusRequest()
     if kind == "stop":

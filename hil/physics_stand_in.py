@@ -45,6 +45,10 @@ class _LockedDriver(ModuleDriver):
         with self.lock:
             return self.inner.read_positions()
 
+    def read_loads(self) -> tuple[float, float]:
+        with self.lock:
+            return self.inner.read_loads()
+
     def set_torque(self, enabled: bool) -> None:
         with self.lock:
             self.inner.set_torque(enabled)

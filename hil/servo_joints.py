@@ -3,8 +3,8 @@
 A :class:`JointBackend` is what an :class:`~hil.servo_table.EmulatedServo` drives: by default
 a :class:`KinematicJoint` (first-order servo with a speed limit, advancing in real time), or
 one joint of any :class:`drivers.base.ModuleDriver` through :class:`ModuleJointAdapter` (DOF1
-and DOF2 of one module on two ids), e.g. the PyBullet stand-in. Backends are called from the
-emulator's thread.
+and DOF2 of one module on two ids), e.g. the PyBullet stand-in, whose present position and
+load are then the PyBullet joint's. Backends are called from the emulator's thread.
 """
 
 from __future__ import annotations
@@ -33,6 +33,9 @@ class JointBackend(Protocol):
 
     def set_speed_limit(self, ticks_per_s: float) -> None:
         """Largest speed the horn may move at."""
+
+    def present_load_percent(self) -> float:
+        """The torque the horn is applying, in percent of the servo's maximum, signed."""
 
 
 DEFAULT_SPEED_TPS = dxt.velocity_units_to_dps(200) / dxt.DEG_PER_TICK  # X-series velocity limit 200
@@ -98,6 +101,10 @@ class KinematicJoint:
         self._advance()
         self.speed_limit_tps = max(ticks_per_s, 1e-6)
 
+    def present_load_percent(self) -> float:
+        """Nothing loads a kinematic horn."""
+        return 0.0
+
 
 class ModuleJointAdapter:
     """Expose a :class:`ModuleDriver`'s two joints as two :class:`JointBackend` objects.
@@ -146,3 +153,6 @@ class _AdaptedJoint:
 
     def set_speed_limit(self, ticks_per_s: float) -> None:
         pass
+
+    def present_load_percent(self) -> float:
+        return self._adapter.driver.read_loads()[self._joint]

@@ -135,6 +135,9 @@ class EmulatedServo:
             self.put(dxt.PRESENT_VELOCITY, self._velocity_units)
             moving = abs(self.get_raw(dxt.GOAL_POSITION) - ticks) > self.get_raw(dxt.MOVING_THRESHOLD)
             self.put(dxt.MOVING, int(moving and self.torque_on))
+        if wanted(dxt.PRESENT_LOAD):
+            percent = self.backend.present_load_percent() if self.torque_on else 0.0
+            self.put(dxt.PRESENT_LOAD, dxt.load_raw(percent, self.model_number, self.get_raw(dxt.CURRENT_LIMIT)))
 
     def get_raw(self, field: dxt.Field) -> int:
         """A field's stored value, without refreshing live registers."""
@@ -198,8 +201,6 @@ class EmulatedServo:
     @property
     def error_byte(self) -> int:
         return dxt.ERRBIT_ALERT if Fault.HARDWARE_ALERT in self.faults else 0
-
-
 
 
 def _value(table: bytes | bytearray, field: dxt.Field) -> int:

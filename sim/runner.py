@@ -1,10 +1,17 @@
 """DH2 robots in physics: the in-process engines drive the PyBullet world's joints.
 
-Each control cycle: the robot takes one lockstep cycle (hormones cross one link), every
-module whose DOF1/DOF2 changed commands its driver, and the world advances
-``steps_per_cycle`` physics steps. The drivers are the PyBullet stand-ins by default; any
-:class:`drivers.base.ModuleDriver` can take their place (the Dynamixel driver talking to a
-servo emulator whose joints are these same PyBullet joints runs the full firmware path).
+Each control cycle: every running module's sensors are filled from its body, the robot takes
+one lockstep cycle (hormones cross one link), every module whose DOF1/DOF2 changed commands
+its driver, and the world advances ``steps_per_cycle`` physics steps.
+
+Sensors: the sensors a program declares that the profile lists and physics provides
+(:mod:`sim.sensors`: IMU, infrared, ground contact, joints) are read once a cycle, rounded
+and clamped to the profile's range; the others are left alone. A ``sense`` event holds its
+value for that module's sensor: physics no longer fills it.
+
+The drivers are the PyBullet stand-ins by default; any :class:`drivers.base.ModuleDriver`
+can take their place (the Dynamixel driver talking to a servo emulator whose joints are these
+same PyBullet joints runs the full firmware path).
 
 Docking follows the world: a ``cut`` undocks both the logical link and the physical latch;
 a ``dock`` (an event or a native action's ``reach_and_dock``) stays logical only if the two
@@ -23,6 +30,7 @@ from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
 from sim.record import Sample
+from sim.sensors import PhysicsSensors
 from sim.world import World
 
 #: Physics steps per DH2 control cycle: 12 steps at 240 Hz = 50 ms per cycle.
@@ -55,6 +63,12 @@ class PhysicsRun:
         #: writes are not acknowledged (Dynamixel SYNC_WRITE) can make sure they landed.
         self.settle = settle
         self._sent: list[tuple[float, float] | None] = [None] * robot.size
+        program, profile = robot.program, robot.profile
+        filled = [n for n in program.sensor_names if n in profile.sensor_names]
+        #: The physics sensors this run fills: those the program reads.
+        self.sensors = PhysicsSensors(self.world, filled)
+        #: (name, the engine's sensor slot, its spec) of each filled sensor
+        self._sensor_slots = [(n, program.sensor_names.index(n), profile.sensor(n)) for n in self.sensors.names]
         self.start = self.world.centroid()
         self.samples: list[Sample] = []
         self.log = robot.log
@@ -99,6 +113,8 @@ class PhysicsRun:
     # ------------------------------------------------------------ events
 
     def apply(self, event: Event) -> None:
+        # sense events go to the robot, which keeps their values (Robot.sensed): fill_sensors
+        # leaves those alone
         if event.kind == "cut":
             self.cut(event.module, event.connector)
         elif event.kind == "dock":
@@ -110,8 +126,24 @@ class PhysicsRun:
 
     # ------------------------------------------------------------ running
 
+    def fill_sensors(self) -> None:
+        """Every running module's sensors from its body, except those sense events set."""
+        if not self._sensor_slots:
+            return
+        engines = self.robot.engines
+        running = [m for m, e in enumerate(engines) if e is not None]
+        sensed = self.robot.sensed
+        for m, values in self.sensors.read(running).items():
+            e = engines[m]
+            assert e is not None
+            held = sensed.get(m, {})
+            for name, slot, spec in self._sensor_slots:
+                if name not in held:
+                    e.sensors[slot] = spec.reading(values[name])
+
     def cycle(self) -> None:
-        """One control cycle: engines, then joints, then physics."""
+        """One control cycle: sensors, engines, then joints, then physics."""
+        self.fill_sensors()
         self.robot.step()
         for m, e in enumerate(self.robot.engines):
             if e is None:
