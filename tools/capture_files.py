@@ -206,11 +206,13 @@ def _read_python_can(path: Path) -> Iterator[CanRecord]:
         reader = can.LogReader(str(path))
     except Exception as exc:  # python-can raises what its parsers raise: name the file
         raise CaptureError(f"{path}: python-can cannot read it ({type(exc).__name__}: {exc})") from None
+    new = tuple.__new__  # CanRecord(...) without its Python-level __new__: this runs for every frame
     count = 0
     try:
         for msg in reader:
             count += 1
-            yield CanRecord(float(msg.timestamp), int(msg.arbitration_id), bytes(msg.data), bool(msg.is_extended_id))
+            fields = (float(msg.timestamp), int(msg.arbitration_id), bytes(msg.data), bool(msg.is_extended_id))
+            yield new(CanRecord, fields)
     except CaptureError:
         raise
     except Exception as exc:

@@ -103,6 +103,7 @@ class Decoder:
         self._default = FrameCodec(programs[0].vocabulary, count)
         self._by_end: dict[tuple[str, int, int], FrameCodec] = {}
         self._reassembler = Reassembler()
+        self._rebuilding = False  # whether the reassembler has a payload in the making
         #: A single CAN frame's hop, time aside, by (arbitration id, data) (:meth:`_memo_key`):
         #: a capture repeats the same few frames (hormones, beacons) over and over, and each
         #: is decoded once. With it, for :meth:`lines`, the text of its line after the time.
@@ -118,16 +119,17 @@ class Decoder:
         faster than describing each hop: a frame seen before reuses its text, only the time is
         formatted anew."""
         profile = profile or self.profile
-        tails, memo, reassembler = self._tails, self._memo, self._reassembler
+        tails, memo = self._tails, self._memo
         for rec in records:
-            key = self._memo_key(rec)
-            if key is not None and not reassembler.pending:
-                tail = tails.get(key)
+            # a tail is kept only for what _memo_key accepts: an extended-id frame comes first
+            if type(rec) is CanRecord and rec.is_extended_id and type(rec.data) is bytes and not self._rebuilding:
+                tail = tails.get((rec.arbitration_id, rec.data))
                 if tail is not None:
                     yield TIME_FORMAT % rec.timestamp + tail
                     continue
             hop = self._record(rec)
             line = hop.describe(profile)
+            key = self._memo_key(rec)
             if key is not None and key in memo:
                 tails[key] = line[len(TIME_FORMAT % hop.time) :]
             yield line
@@ -144,7 +146,7 @@ class Decoder:
 
     def _record(self, rec: Record) -> Hop:
         key = self._memo_key(rec)
-        if key is not None and not self._reassembler.pending:  # (a single frame abandons a payload)
+        if key is not None and not self._rebuilding:  # (else a single frame abandons that payload)
             fields = self._memo.get(key)
             if fields is not None:
                 return Hop._make((rec.timestamp, *fields))
@@ -207,8 +209,9 @@ class Decoder:
         # the fields parse_arbitration_id would give are read in place: this runs for every frame
         reassembler = self._reassembler
         if (can_id >> 25) & 3 == SINGLE:
-            if reassembler.pending:
+            if self._rebuilding:
                 reassembler.feed(can_id, rec.data)  # it abandons what was being rebuilt at this end
+                self._rebuilding = reassembler.pending
             key = key or (can_id, bytes(rec.data))
             fields = self._memo.get(key)
             if fields is not None:
@@ -222,6 +225,7 @@ class Decoder:
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         corrupted, dropped = reassembler.corrupted, reassembler.dropped
         whole = reassembler.feed(can_id, rec.data)
+        self._rebuilding = reassembler.pending
         if whole is None:
             seq = (can_id >> 19) & 63
             if reassembler.corrupted > corrupted or reassembler.dropped > dropped:
