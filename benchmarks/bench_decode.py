@@ -174,9 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_decode", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="20,000 frames, one repetition (a smoke test)")
     parser.add_argument("--frames", type=int, default=200_000, help="frames in the capture (default 200,000)")
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each, alternated; the best counts (default 3)")
     args = parser.parse_args(argv)
     n = 20_000 if args.quick else args.frames
-    repeats = 1 if args.quick else 3
+    repeats = 1 if args.quick else args.repeats
     program = compile_file(str(PROGRAM))
 
     with tempfile.TemporaryDirectory(prefix="dh2rt-bench-decode-") as tmp:
