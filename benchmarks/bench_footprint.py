@@ -18,7 +18,8 @@ first cycle, then per link and cycle a keep-alive, or the hormone every 10 cycle
 back), read whatever arrived, keep their own lateness, and write the same kind of status
 file every ``status_every`` cycles. What a figure adds over its baseline is what dh2rt adds.
 
-Per process (median and max over the eight):
+The modules' folders (flash, module.toml, status file, log) are on tmpfs (``/dev/shm``),
+as a module's status file is in ``/run``. Per process (median and max over the eight):
 
 * resident memory: ``VmRSS`` of ``/proc/PID/status`` at the end of the window (and the peak,
   ``VmHWM``);
@@ -65,6 +66,9 @@ HORMONE_EVERY = 10
 RESTARTED = MODULES // 2
 NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
 UDP_GROUP = "239.74.163.2"
+#: Where the modules' folders go: tmpfs, as a module's status file goes to /run (docs/firmware.md);
+#: on a disk, renaming a status file over the last one now and then takes tens of ms.
+RAM_DIR = "/dev/shm"
 TARGETS = {"rss_mb": 30.0, "cpu_percent": 3.0, "lateness_p99_percent": 10.0, "first_cycle_s": 1.0}
 FIGURES = (
     ("rss_mb", "resident MB", "{:.1f}"),
@@ -534,7 +538,9 @@ def run_transport(transport: str, window: float, status_every: int) -> dict[str,
     """The bare loops, then the dh2rt modules, on the same kind of links; figures and ratios."""
     frames = Frames()
     period = PERIOD_MS / 1000
-    with tempfile.TemporaryDirectory(prefix="dh2rt-footprint-") as name:
+    with tempfile.TemporaryDirectory(
+        prefix="dh2rt-footprint-", dir=RAM_DIR if os.path.isdir(RAM_DIR) else None
+    ) as name:
         tmp = Path(name)
         results: dict[str, dict[str, Any]] = {}
         for who in ("baseline", "dh2rt"):
