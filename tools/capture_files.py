@@ -61,6 +61,7 @@ _SOCKETCAN_HEAD = struct.Struct(">IB")  # the id with its flags, the data length
 
 def _read_pcapng(path: Path) -> Iterator[Record]:
     _check_exists(path)
+    new = tuple.__new__  # CanRecord(...) without its Python-level __new__: this runs for every frame
     with path.open("rb") as fh:
         reader = PcapngReader(fh, path)
         reader.read_header()
@@ -74,7 +75,7 @@ def _read_pcapng(path: Path) -> Iterator[Record]:
                     raise CaptureError(f"{path}: offset {packet.offset}: CAN frame claims {length} bytes")
                 extended = bool(can_id & CAN_EFF_FLAG)
                 can_id &= 0x1FFFFFFF if extended else 0x7FF
-                yield CanRecord(packet.timestamp, can_id, data[8 : 8 + length], extended)
+                yield new(CanRecord, (packet.timestamp, can_id, data[8 : 8 + length], extended))
             elif packet.linktype == LINKTYPE_USER0:
                 try:
                     yield serial_records.unpack(packet.timestamp, packet.data)

@@ -42,6 +42,7 @@ LINKTYPE_USER0 = 147
 CAN_INTERFACE, SERIAL_INTERFACE = 0, 1
 _MAX_OPTION = 0xFFFF
 _MAX_BLOCK = 16 * 1024 * 1024
+_new = tuple.__new__
 
 
 def _pad(data: bytes) -> bytes:
@@ -155,14 +156,15 @@ class PcapngReader:
     def _next_block(self, eof_ok: bool = False) -> tuple[int, bytes, int] | None:
         offset = self._offset
         head = self._fh.read(8)
-        if not head and eof_ok:
-            return None
         if len(head) < 8:
+            if not head and eof_ok:
+                return None
             raise self._fail(offset, f"block header cut short ({len(head)} of 8 bytes)")
-        raw_type = struct.unpack("<I", head[:4])[0]
-        if offset == 0 and raw_type != SHB:
+        # SHB's type reads the same in either byte order
+        block_type, total = self._block_head.unpack_from(head)
+        if offset == 0 and block_type != SHB:
             raise self._fail(0, f"not a pcapng file (starts with {head[:4].hex()}, not a section header block)")
-        if raw_type == SHB:  # the byte order is the section's: read it from the magic
+        if block_type == SHB:  # the byte order is the section's: read it from the magic
             magic = self._fh.read(4)
             if len(magic) < 4:
                 raise self._fail(offset, "section header cut short")
@@ -173,7 +175,7 @@ class PcapngReader:
             else:
                 raise self._fail(offset + 8, f"bad byte-order magic {magic.hex()}")
             head += magic
-        block_type, total = self._block_head.unpack_from(head)
+            block_type, total = self._block_head.unpack_from(head)
         if total < 12 or total % 4 or total > _MAX_BLOCK:
             raise self._fail(offset, f"block of type {block_type:#x} claims {total} bytes")
         rest = self._fh.read(total - len(head))
@@ -227,4 +229,5 @@ class PcapngReader:
         if 20 + captured > len(body):
             raise self._fail(offset, f"packet claims {captured} bytes, its block has {len(body) - 20}")
         linktype, scale = self._interfaces[interface]
-        return Packet(linktype, ((high << 32) | low) * scale, body[20 : 20 + captured], offset)
+        # Packet(...) without the named tuple's Python-level constructor: once per packet
+        return _new(Packet, (linktype, ((high << 32) | low) * scale, body[20 : 20 + captured], offset))
