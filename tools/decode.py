@@ -24,7 +24,7 @@ from tools.capture_files import CanRecord, Record
 from tools.serial_records import SerialRecord
 
 KINDS = ("hormone", "routed", "keepalive", "hello", "link")
-#: Frames decoded once and remembered (see Decoder._can); cleared when full, so memory stays
+#: Frames decoded once and remembered (see Decoder._memo); cleared when full, so memory stays
 #: bounded whatever the capture.
 MEMO_SIZE = 8192
 #: How a line of :meth:`Hop.describe` starts: the time.
@@ -121,7 +121,7 @@ class Decoder:
         profile = profile or self.profile
         tails, memo = self._tails, self._memo
         for rec in records:
-            # a tail is kept only for what _memo_key accepts: an extended-id frame comes first
+            # a frame seen before? (tails hold only what _memo_key accepts: extended ids, whole frames)
             if type(rec) is CanRecord and rec.is_extended_id and type(rec.data) is bytes and not self._rebuilding:
                 tail = tails.get((rec.arbitration_id, rec.data))
                 if tail is not None:
