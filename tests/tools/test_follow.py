@@ -65,3 +65,42 @@ def test_follow_reports_what_is_missing(tmp_path: Path, capsys: pytest.CaptureFi
     assert main([str(capture), "Z(3)", "--program", str(program), "--json"]) == 0
     assert '"next": []' in capsys.readouterr().out
     assert main([str(tmp_path / "none.pcap"), "Y", "--program", str(program)]) == 2
+
+
+def test_follow_a_caterpillar_hormone_down_the_snake_as_table_i_implies(tmp_path: Path) -> None:
+    """A loop run captured: the head's X(A) reaches the next module, which answers X(B) through
+    its back in the next cycle, and so on to the tail: Table I's wave, A B C D A B C, told from
+    the traffic alone (which link ends are one module: tools.topology_rebuild)."""
+    import json
+    import subprocess
+    import sys
+
+    from dh2rt.profile import CONRO
+    from tools.reading import open_capture
+    from tools.topology_rebuild import Traffic, rebuild
+
+    root = Path(__file__).resolve().parents[2]
+    capture = tmp_path / "snake.pcapng"
+    cmd = [sys.executable, "-m", "hil.launcher", "--transport", "virtual", "--module-count", "8", "--cycles", "150",
+           "--cycle-ms", "30", "--stand-in", "none", "--capture", str(capture), "--json"]  # fmt: skip
+    assert subprocess.run(cmd, capture_output=True, timeout=120, cwd=root).returncode == 0
+    rebuilt = rebuild(Traffic(CONRO).extend(open_capture(capture).hops()))
+    head = next(s for s in rebuilt.snapshots[-1].modules if s.type_name == "head")
+    (head_end,) = [e for m in rebuilt.modules if m.label == head.label for e in m.ends]
+    out = tmp_path / "journey.json"
+    args = [str(capture), "X(A)", "--link", str(head_end[1]), "--at", "0", "--json"]
+    proc = subprocess.run([sys.executable, "-m", "dh2rt", "follow", *args], capture_output=True, text=True, cwd=root)
+    assert proc.returncode == 0, proc.stderr
+    out.write_text(proc.stdout)
+    step = json.loads(proc.stdout)
+    texts, modules = [], []
+    while True:
+        texts.append(step["text"])
+        assert step["sender"] == "back"  # each passes the wave on through its back
+        if "answer" not in step:
+            break
+        modules.append(step["module"])
+        assert 0 < step["answer"]["latency"] < 0.06  # answered within two cycles of 30 ms
+        step = step["answer"]
+    assert texts == ["X(A)", "X(B)", "X(C)", "X(D)", "X(A)", "X(B)", "X(C)"]
+    assert len(set(modules)) == 6  # six modules in between, each once; the seventh hop ends at the tail
