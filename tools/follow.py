@@ -159,7 +159,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--no-chain",
         dest="chain",
         action="store_false",
-        help="stop where the hormone stops, rather than go on through the hormone each module it reached sent in answer",
+        help="stop where the hormone stops (do not go on through the hormone each module it reached sent in answer)",
     )
     started = options_and_capture(p, argv)
     if isinstance(started, int):
