@@ -62,6 +62,8 @@ class CanTransport(Transport):
 
     name = "can"
     interface: str = "virtual"
+    #: whether the interface filters in the kernel (set_filters costs nothing per frame)
+    kernel_filters: ClassVar[bool] = False
     default_channel: ClassVar[str] = "dh2rt"
 
     def __init__(
@@ -115,6 +117,12 @@ class CanTransport(Transport):
         return self._bus
 
     def _apply_filters(self) -> None:
+        # Only a kernel (SocketCAN) filters before python-can sees a frame. Elsewhere python-can
+        # filters in software, and recv(timeout=0) then returns None at the first frame it
+        # drops, leaving the frames behind it unread until the next wait: take every frame
+        # and let _receive keep this module's (it checks every frame against _listen anyway).
+        if not self.kernel_filters:
+            return
         ends = [(k >> 1, k & 1) for k in self._listen]
         filters: list[dict[str, Any]] = [listen_filter(link, 1 - far_side) for link, far_side in ends]
         if self.management_id is not None:
@@ -244,6 +252,7 @@ class SocketCanTransport(CanTransport):
 
     name = "socketcan"
     interface = "socketcan"
+    kernel_filters = True
     default_channel = "vcan0"
 
     def _open_bus(self, options: dict[str, Any]) -> Any:

@@ -115,3 +115,32 @@ def test_inproc_undock_silences_a_link() -> None:
         assert len(b.poll()) == 1
         with pytest.raises(TransportError, match="already attached"):
             InprocTransport(contract_codec(), bus=bus).attach(1, BusEnd(9, 1))
+
+
+def test_a_bus_poll_takes_every_frame_for_this_module_past_frames_for_others() -> None:
+    """python-can filters in software on most interfaces and stops a zero-timeout read at the
+    first frame it drops: a poll must still take in this module's frames queued behind one for
+    another link (they used to wait for the next poll, a cycle late)."""
+    import can
+
+    from dh2rt.hormone import Hormone
+    from dh2rt.transport.base import BusEnd
+    from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
+
+    channel = "registry-interleaved"
+    codec = contract_codec()
+    a, b = open_transport(f"virtual:{channel}", codec), open_transport(f"virtual:{channel}", codec)
+    other = can.Bus(interface="virtual", channel=channel)
+    try:
+        a.attach(1, BusEnd(5, 0))
+        b.attach(2, BusEnd(5, 1))
+        b.send(2, Hormone("N", (1,)))
+        foreign = make_arbitration_id(0, SINGLE, 0, 9, 1)  # another link's frame, between the two
+        other.send(can.Message(arbitration_id=foreign, data=b"\x12\x00", is_extended_id=True))
+        b.send(2, Hormone("N", (2,)))
+        got = a.poll(0.5)
+        assert [r.frame for r in got] == [Hormone("N", (1,)), Hormone("N", (2,))]
+    finally:
+        other.shutdown()
+        a.close()
+        b.close()
