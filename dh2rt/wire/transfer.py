@@ -1,0 +1,641 @@
+"""Transfer frames: the messages that carry a signed program image over the robot's own links
+(sans-IO), and the Hello that carries the program version.
+
+The frame kinds of :mod:`dh2rt.wire.frame` fill their two bits, so transfer frames are a
+second *frame family*, told apart by the top two bits of byte 0, where link frames carry the
+wire version (1)::
+
+    byte 0      FF CC SSSS   family (2 bits, = 2), class (2 bits), sender connector (4 bits)
+    byte 1      message type
+    bytes 2..   the message's fields (big-endian), exactly as long as the type says
+
+A decoder that knows only link frames reads family 2 as "wire version 2" and raises
+DecodeError before it looks at anything else: a transfer frame is never misread as a hormone,
+a keep-alive or a hello. The class bits sit where link frames keep their kind, which is what
+the CAN framing puts in the arbitration id (:func:`dh2rt.wire.can_frames.segment`), so they
+set a transfer frame's priority on a bus: class 1 (urgent: COMMIT, COMMIT_ACK, whose timing
+matters) ranks with routed hormones, class 2 (control: the other messages but SEGMENT) with
+keep-alives, class 3 (bulk: SEGMENT) with hellos, all below flooded hormones (kind 0).
+Transfer frames name no program vocabulary, so modules running different programs read
+each other's.
+
+Messages (``id`` is an image id: the first 8 bytes of blake2b of the signed image's bytes;
+``tag`` its first two bytes as an integer, for the frames sent many times)::
+
+    OFFER       version u32, id 8, length u32, segment size u16, held u16, flags u8,
+                path n u8 + n hops
+    REQUEST     id 8, next segment u16, window u8, flags u8 (bit 0: a probe)
+    SEGMENT     tag u16, index u16, data (1.. segment size bytes)
+    ACK         tag u16, next u16 (every segment below is held), sack u16 (bit i: next+1+i held)
+    DECLINE     id 8, reason u8, version u32 (the decliner runs)
+    CANCEL      id 8, verdict (len u8 + ASCII): the sender withdraws the image (it refused it)
+    COMMIT      id 8, remaining µs u32 (0: at once), hops u8
+    COMMIT_ACK  id 8
+    REPORT      tag u16, seq u16, outcome u8, version u32, left u8, path n u8 + n hops,
+                verdict (len u8 + ASCII), reason (len u8 + UTF-8)
+    REPORT_ACK  seq u16
+
+A *hop* is one byte, ``sent_through << 4 | received_at`` (connectors 1..15), as a hormone's
+path records hops. ``docs/flashing.md`` ("Delivery over the links") has the tables, the
+sequence and the rules; :mod:`dh2rt.rollout` is the state machine that speaks this.
+
+The Hello gains the program version (:func:`encode_hello`): the 7-byte hello of
+:mod:`dh2rt.wire.frame` followed by the version as an unsigned LEB128 varint (1 byte for
+versions below 128, so a Hello stays one classic CAN frame). A decoder that reads only the
+7-byte hello rejects the longer one as DecodeError (never misreads it).
+
+Decoding raises only :class:`~dh2rt.errors.DecodeError`; encoding raises
+:class:`~dh2rt.errors.EncodeError` for a message that breaks a wire limit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import NamedTuple
+
+from dh2rt.errors import DecodeError, EncodeError
+from dh2rt.wire.frame import HELLO_DIGEST_BYTES, WIRE_VERSION, FrameKind
+
+#: The top two bits of byte 0 of every transfer frame (link frames carry WIRE_VERSION there).
+TRANSFER_FAMILY = 2
+#: Class bits (the CAN priority) of COMMIT and COMMIT_ACK (that of routed hormones), of the
+#: other control messages (keep-alives') and of SEGMENT (hellos').
+URGENT_CLASS = int(FrameKind.ROUTED)
+CONTROL_CLASS = int(FrameKind.KEEPALIVE)
+BULK_CLASS = int(FrameKind.HELLO)
+IMAGE_ID_BYTES = 8
+#: Longest path an OFFER or a REPORT carries: rollouts reach modules up to this deep.
+MAX_PATH = 64
+#: Longest verdict (ASCII) and reason (UTF-8, cut at a character boundary) a frame carries.
+MAX_VERDICT = 16
+MAX_REASON = 48
+#: Largest segment: a SEGMENT frame (6 bytes of header) then fills a serial frame's 512-byte
+#: payload and the 64 classic CAN segments a payload may take.
+MAX_SEGMENT_SIZE = 506
+MAX_WINDOW = 64
+#: Segments the ACK's selective bitmap covers beyond ``next``.
+SACK_BITS = 16
+MAX_CONNECTOR = 15
+_U16 = 0xFFFF
+_U32 = 0xFFFFFFFF
+
+#: A path: hops ``(sent_through, received_at)``, from the entry point outwards.
+Path = tuple[tuple[int, int], ...]
+
+
+class MessageType(IntEnum):
+    """Byte 1 of a transfer frame."""
+
+    OFFER = 1
+    REQUEST = 2
+    SEGMENT = 3
+    ACK = 4
+    DECLINE = 5
+    CANCEL = 6
+    COMMIT = 7
+    COMMIT_ACK = 8
+    REPORT = 9
+    REPORT_ACK = 10
+
+
+class DeclineReason(IntEnum):
+    """Why a module does not take an offered image."""
+
+    HAVE = 1  # it holds (or is receiving) this image from another neighbour
+    CURRENT = 2  # it runs this image already
+    NEWER = 3  # it runs or holds a higher version: the image would be a rollback
+    REFUSED = 4  # its flash refused this image before
+    REVERTED = 5  # this image was reverted here (a fault on trial)
+    BUSY = 6  # another program runs on trial here
+
+
+class Outcome(IntEnum):
+    """What a REPORT says of a module."""
+
+    WITHHELD = 1  # not offered, or withdrawn: a module on its path refused the image
+    SILENT = 2  # offered, and never answered (reported by the neighbour that offered it)
+    STAGED = 3  # the image is in its flash, waiting for the commit
+    COMMITTED = 4  # it switched to the image
+    CURRENT = 5  # it ran the image already
+    CONFIRMED = 6  # its trial of the image ended well
+    REFUSED = 7  # its flash refused the image (verdict and reason say why)
+    REVERTED = 8  # it switched, faulted on trial and went back
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """I have (or am receiving) this image; segments follow. ``held``: the segments I hold
+    from the first on (all of them, or fewer while I am still receiving it). ``running``: I
+    run it (a module that stages it may switch at once). ``path``: the hops from the entry
+    point to me."""
+
+    version: int
+    image: bytes
+    length: int
+    segment_size: int
+    held: int
+    running: bool = False
+    path: Path = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """Send me ``image`` from segment ``next`` on (I hold every one below), ``window`` at a
+    time: you are my source. A ``probe`` asks instead: I have lost my source (a restart, a
+    link drop); OFFER me what you hold, and I choose."""
+
+    image: bytes
+    next: int
+    window: int
+    probe: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Segment:
+    """Segment ``index`` of the image whose tag is ``tag``."""
+
+    tag: int
+    index: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    """I hold every segment below ``next``, and segment ``next + 1 + i`` where bit i of ``sack`` is set."""
+
+    tag: int
+    next: int
+    sack: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Decline:
+    """I do not take ``image`` (``reason``); I run ``version``."""
+
+    image: bytes
+    reason: DeclineReason
+    version: int
+
+
+@dataclass(frozen=True, slots=True)
+class Cancel:
+    """I withdraw ``image``: my flash refused it (``verdict``). Drop what you received."""
+
+    image: bytes
+    verdict: str
+
+
+@dataclass(frozen=True, slots=True)
+class Commit:
+    """Switch to ``image`` ``remaining_us`` microseconds from when this frame was sent (0: at
+    once). ``hops``: the modules the commit has passed through (0 from the entry point)."""
+
+    image: bytes
+    remaining_us: int
+    hops: int
+
+
+@dataclass(frozen=True, slots=True)
+class CommitAck:
+    """I have the commit of ``image``: stop sending it."""
+
+    image: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Report:
+    """The outcome of the module named ``path`` (from the entry point) for the image whose
+    tag is ``tag``, travelling back to the entry point: ``left`` hops of ``path`` remain
+    (the next goes out through ``path[left - 1][1]``). ``seq`` numbers it on one hop."""
+
+    tag: int
+    seq: int
+    outcome: Outcome
+    version: int
+    left: int
+    path: Path
+    verdict: str = ""
+    reason: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class ReportAck:
+    """The report numbered ``seq`` arrived (on this hop)."""
+
+    seq: int
+
+
+Message = Offer | Request | Segment | Ack | Decline | Cancel | Commit | CommitAck | Report | ReportAck
+
+_TYPES: dict[type, MessageType] = {
+    Offer: MessageType.OFFER,
+    Request: MessageType.REQUEST,
+    Segment: MessageType.SEGMENT,
+    Ack: MessageType.ACK,
+    Decline: MessageType.DECLINE,
+    Cancel: MessageType.CANCEL,
+    Commit: MessageType.COMMIT,
+    CommitAck: MessageType.COMMIT_ACK,
+    Report: MessageType.REPORT,
+    ReportAck: MessageType.REPORT_ACK,
+}
+_CLASSES = {MessageType.SEGMENT: BULK_CLASS, MessageType.COMMIT: URGENT_CLASS, MessageType.COMMIT_ACK: URGENT_CLASS}
+
+
+class Transfer(NamedTuple):
+    """A decoded transfer frame and the connector its sender sent it through."""
+
+    sender: int
+    message: Message
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def image_id(data: bytes) -> bytes:
+    """The id an image travels under: the first 8 bytes of blake2b of its bytes."""
+    return hashlib.blake2b(data, digest_size=IMAGE_ID_BYTES).digest()
+
+
+def tag_of(image: bytes) -> int:
+    """The two-byte tag of an image id (SEGMENT, ACK and REPORT carry it)."""
+    return int.from_bytes(image[:2], "big")
+
+
+def is_transfer(payload: bytes) -> bool:
+    """Whether an encoded frame is a transfer frame (read from byte 0 only)."""
+    return bool(payload) and payload[0] >> 6 == TRANSFER_FAMILY
+
+
+def cut_reason(text: str, limit: int = MAX_REASON) -> str:
+    """``text`` cut to at most ``limit`` UTF-8 bytes at a character boundary ("…" marks a cut)."""
+    raw = text.encode()
+    if len(raw) <= limit:
+        return text
+    return raw[: limit - 3].decode(errors="ignore") + "…"
+
+
+def message_class(message: Message) -> int:
+    """The class bits a message travels with (its CAN priority)."""
+    return _CLASSES.get(_TYPES[type(message)], CONTROL_CLASS)
+
+
+# ---------------------------------------------------------------- encoding
+
+
+def encode(sender: int, message: Message) -> bytes:
+    """The frame carrying ``message`` sent through connector ``sender``."""
+    _check_range("sender connector", sender, 1, MAX_CONNECTOR)
+    kind, body = _body(message)
+    head = (TRANSFER_FAMILY << 6) | (message_class(message) << 4) | sender
+    return bytes((head, kind)) + body
+
+
+def _body(m: Message) -> tuple[int, bytes]:
+    match m:
+        case Offer():
+            _check_image(m.image)
+            _check_range("version", m.version, 0, _U32)
+            _check_range("image length", m.length, 1, _U32)
+            _check_range("segment size", m.segment_size, 1, MAX_SEGMENT_SIZE)
+            count = _segments(m.length, m.segment_size)
+            if count > _U16:
+                raise EncodeError(f"{m.length} bytes in segments of {m.segment_size} need more than {_U16} segments")
+            _check_range("segments held", m.held, 0, count)
+            head = struct.pack(">I8sIHHB", m.version, m.image, m.length, m.segment_size, m.held, int(m.running))
+            return MessageType.OFFER, head + _path(m.path)
+        case Request():
+            _check_image(m.image)
+            _check_range("next segment", m.next, 0, _U16)
+            _check_range("window", m.window, 1, MAX_WINDOW)
+            return MessageType.REQUEST, struct.pack(">8sHBB", m.image, m.next, m.window, int(m.probe))
+        case Segment():
+            _check_range("tag", m.tag, 0, _U16)
+            _check_range("segment index", m.index, 0, _U16)
+            _check_range("segment bytes", len(m.data), 1, MAX_SEGMENT_SIZE)
+            return MessageType.SEGMENT, struct.pack(">HH", m.tag, m.index) + bytes(m.data)
+        case Ack():
+            _check_range("tag", m.tag, 0, _U16)
+            _check_range("next segment", m.next, 0, _U16)
+            _check_range("sack", m.sack, 0, _U16)
+            return MessageType.ACK, struct.pack(">HHH", m.tag, m.next, m.sack)
+        case Decline():
+            _check_image(m.image)
+            _check_range("version", m.version, 0, _U32)
+            return MessageType.DECLINE, struct.pack(">8sBI", m.image, DeclineReason(m.reason), m.version)
+        case Cancel():
+            _check_image(m.image)
+            return MessageType.CANCEL, bytes(m.image) + _ascii(m.verdict)
+        case Commit():
+            _check_image(m.image)
+            _check_range("remaining µs", m.remaining_us, 0, _U32)
+            _check_range("hops", m.hops, 0, 255)
+            return MessageType.COMMIT, struct.pack(">8sIB", m.image, m.remaining_us, m.hops)
+        case CommitAck():
+            _check_image(m.image)
+            return MessageType.COMMIT_ACK, bytes(m.image)
+        case Report():
+            return MessageType.REPORT, _report(m)
+        case ReportAck():
+            _check_range("report seq", m.seq, 0, _U16)
+            return MessageType.REPORT_ACK, struct.pack(">H", m.seq)
+    raise EncodeError(f"not a transfer message: {m!r}")
+
+
+def _report(m: Report) -> bytes:
+    _check_range("tag", m.tag, 0, _U16)
+    _check_range("report seq", m.seq, 0, _U16)
+    _check_range("version", m.version, 0, _U32)
+    _check_range("hops left", m.left, 1, len(m.path))
+    head = struct.pack(">HHBIB", m.tag, m.seq, Outcome(m.outcome), m.version, m.left)
+    reason = m.reason.encode()
+    if len(reason) > MAX_REASON:
+        raise EncodeError(f"report reason of {len(reason)} bytes exceeds {MAX_REASON} (cut_reason cuts it)")
+    return head + _path(m.path) + _ascii(m.verdict) + bytes((len(reason),)) + reason
+
+
+def _path(path: Path) -> bytes:
+    if len(path) > MAX_PATH:
+        raise EncodeError(f"path of {len(path)} hops exceeds {MAX_PATH}")
+    out = bytearray((len(path),))
+    for sent, received in path:
+        _check_range("path connector", sent, 1, MAX_CONNECTOR)
+        _check_range("path connector", received, 1, MAX_CONNECTOR)
+        out.append(sent << 4 | received)
+    return bytes(out)
+
+
+def _ascii(text: str) -> bytes:
+    if not text.isascii() or len(text) > MAX_VERDICT:
+        raise EncodeError(f"verdict {text!r} is not ASCII of at most {MAX_VERDICT} characters")
+    return bytes((len(text),)) + text.encode()
+
+
+def _check_image(image: bytes) -> None:
+    if len(image) != IMAGE_ID_BYTES:
+        raise EncodeError(f"image id of {len(image)} bytes; it must be {IMAGE_ID_BYTES}")
+
+
+def _check_range(name: str, value: int, low: int, high: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise EncodeError(f"{name} {value!r} is outside {low}..{high}")
+
+
+def _segments(length: int, size: int) -> int:
+    return -(-length // size)
+
+
+# ---------------------------------------------------------------- decoding
+
+
+class _Reader:
+    """Reads fields from a frame in order; every shortfall is a DecodeError naming the field."""
+
+    __slots__ = ("data", "pos", "what")
+
+    def __init__(self, data: bytes, what: str) -> None:
+        self.data = data
+        self.pos = 2
+        self.what = what
+
+    def take(self, n: int, field: str) -> bytes:
+        if self.pos + n > len(self.data):
+            raise DecodeError(f"{self.what}: cut short in the {field} at byte {self.pos}")
+        out = self.data[self.pos : self.pos + n]
+        self.pos += n
+        return out
+
+    def unpack(self, fmt: str, field: str) -> tuple[int, ...]:
+        return struct.unpack(fmt, self.take(struct.calcsize(fmt), field))
+
+    def path(self) -> Path:
+        (n,) = self.take(1, "path length")
+        if n > MAX_PATH:
+            raise DecodeError(f"{self.what}: path of {n} hops exceeds {MAX_PATH}")
+        hops = tuple((b >> 4, b & 0x0F) for b in self.take(n, "path"))
+        if any(not (s and r) for s, r in hops):
+            raise DecodeError(f"{self.what}: a path hop names connector 0")
+        return hops
+
+    def text(self, field: str, limit: int, *, ascii_only: bool) -> str:
+        (n,) = self.take(1, f"{field} length")
+        if n > limit:
+            raise DecodeError(f"{self.what}: {field} of {n} bytes exceeds {limit}")
+        raw = self.take(n, field)
+        if ascii_only and not raw.isascii():
+            raise DecodeError(f"{self.what}: {field} is not ASCII")
+        try:
+            return raw.decode()
+        except UnicodeDecodeError:
+            raise DecodeError(f"{self.what}: {field} is not UTF-8") from None
+
+    def rest(self) -> bytes:
+        out = self.data[self.pos :]
+        self.pos = len(self.data)
+        return out
+
+    def end(self) -> None:
+        if self.pos != len(self.data):
+            raise DecodeError(f"{self.what}: {len(self.data) - self.pos} trailing byte(s)")
+
+
+def decode(data: bytes) -> Transfer:
+    """Decode one whole transfer frame; raises DecodeError for anything else."""
+    data = bytes(data)
+    if len(data) < 2:
+        raise DecodeError(f"transfer frame: {len(data)} bytes, too short for a header and a type")
+    head = data[0]
+    if head >> 6 != TRANSFER_FAMILY:
+        raise DecodeError(f"transfer frame: family {head >> 6}, expected {TRANSFER_FAMILY}")
+    sender = head & 0x0F
+    if sender == 0:
+        raise DecodeError("transfer frame: sender connector 0")
+    try:
+        kind = MessageType(data[1])
+    except ValueError:
+        raise DecodeError(f"transfer frame: unknown message type {data[1]}") from None
+    expected = _CLASSES.get(kind, CONTROL_CLASS)
+    if (head >> 4) & 3 != expected:
+        raise DecodeError(f"transfer frame {kind.name}: class {(head >> 4) & 3}, expected {expected}")
+    reader = _Reader(data, f"transfer frame {kind.name}")
+    message = _DECODERS[kind](reader)
+    reader.end()
+    return Transfer(sender, message)
+
+
+def _decode_offer(r: _Reader) -> Offer:
+    version, image, length, size, held, flags = struct.unpack(">I8sIHHB", r.take(21, "offer fields"))
+    if length == 0 or not 1 <= size <= MAX_SEGMENT_SIZE or _segments(length, size) > _U16:
+        raise DecodeError(f"{r.what}: {length} bytes in segments of {size} is no image")
+    if held > _segments(length, size):
+        raise DecodeError(f"{r.what}: {held} segments held of {_segments(length, size)}")
+    if flags & ~1:
+        raise DecodeError(f"{r.what}: unknown flags {flags:#04x}")
+    return Offer(version, image, length, size, held, bool(flags & 1), r.path())
+
+
+def _decode_request(r: _Reader) -> Request:
+    image, nxt, window, flags = struct.unpack(">8sHBB", r.take(12, "request fields"))
+    if not 1 <= window <= MAX_WINDOW:
+        raise DecodeError(f"{r.what}: window {window} is outside 1..{MAX_WINDOW}")
+    if flags & ~1:
+        raise DecodeError(f"{r.what}: unknown flags {flags:#04x}")
+    return Request(image, nxt, window, bool(flags))
+
+
+def _decode_segment(r: _Reader) -> Segment:
+    tag, index = r.unpack(">HH", "segment header")
+    data = r.rest()
+    if not 1 <= len(data) <= MAX_SEGMENT_SIZE:
+        raise DecodeError(f"{r.what}: {len(data)} data bytes, outside 1..{MAX_SEGMENT_SIZE}")
+    return Segment(tag, index, data)
+
+
+def _decode_ack(r: _Reader) -> Ack:
+    tag, nxt, sack = r.unpack(">HHH", "ack fields")
+    return Ack(tag, nxt, sack)
+
+
+def _decode_decline(r: _Reader) -> Decline:
+    image, reason, version = struct.unpack(">8sBI", r.take(13, "decline fields"))
+    try:
+        return Decline(image, DeclineReason(reason), version)
+    except ValueError:
+        raise DecodeError(f"{r.what}: unknown reason {reason}") from None
+
+
+def _decode_cancel(r: _Reader) -> Cancel:
+    image = r.take(IMAGE_ID_BYTES, "image id")
+    return Cancel(image, r.text("verdict", MAX_VERDICT, ascii_only=True))
+
+
+def _decode_commit(r: _Reader) -> Commit:
+    image, remaining, hops = struct.unpack(">8sIB", r.take(13, "commit fields"))
+    return Commit(image, remaining, hops)
+
+
+def _decode_commit_ack(r: _Reader) -> CommitAck:
+    return CommitAck(r.take(IMAGE_ID_BYTES, "image id"))
+
+
+def _decode_report(r: _Reader) -> Report:
+    tag, seq, outcome, version, left = r.unpack(">HHBIB", "report fields")
+    try:
+        kind = Outcome(outcome)
+    except ValueError:
+        raise DecodeError(f"{r.what}: unknown outcome {outcome}") from None
+    path = r.path()
+    if not 1 <= left <= len(path):
+        raise DecodeError(f"{r.what}: {left} hops left of a {len(path)}-hop path")
+    verdict = r.text("verdict", MAX_VERDICT, ascii_only=True)
+    reason = r.text("reason", MAX_REASON, ascii_only=False)
+    return Report(tag, seq, kind, version, left, path, verdict, reason)
+
+
+def _decode_report_ack(r: _Reader) -> ReportAck:
+    (seq,) = r.unpack(">H", "report seq")
+    return ReportAck(seq)
+
+
+_DECODERS: dict[MessageType, Callable[[_Reader], Message]] = {
+    MessageType.OFFER: _decode_offer,
+    MessageType.REQUEST: _decode_request,
+    MessageType.SEGMENT: _decode_segment,
+    MessageType.ACK: _decode_ack,
+    MessageType.DECLINE: _decode_decline,
+    MessageType.CANCEL: _decode_cancel,
+    MessageType.COMMIT: _decode_commit,
+    MessageType.COMMIT_ACK: _decode_commit_ack,
+    MessageType.REPORT: _decode_report,
+    MessageType.REPORT_ACK: _decode_report_ack,
+}
+
+
+# ---------------------------------------------------------------- the Hello with a version
+
+
+class VersionedHello(NamedTuple):
+    """A decoded Hello: sender connector, program digest, program version (None: a 7-byte
+    Hello, which states none)."""
+
+    sender: int
+    digest: bytes
+    version: int | None
+
+
+def encode_hello(sender: int, digest: bytes, version: int) -> bytes:
+    """A Hello (link frame kind 3) that also states the program version: the 7-byte hello
+    and the version as an unsigned LEB128 varint (8 bytes for versions below 128)."""
+    _check_range("sender connector", sender, 1, MAX_CONNECTOR)
+    _check_range("version", version, 0, _U32)
+    if len(digest) != HELLO_DIGEST_BYTES:
+        raise EncodeError(f"hello digest is {len(digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
+    head = (WIRE_VERSION << 6) | (int(FrameKind.HELLO) << 4) | sender
+    return bytes((head,)) + bytes(digest) + _varint(version)
+
+
+def decode_hello(data: bytes) -> VersionedHello:
+    """Decode a Hello of 7 bytes (no version) or 8..12 (with one); DecodeError otherwise."""
+    data = bytes(data)
+    if len(data) < 1 + HELLO_DIGEST_BYTES:
+        raise DecodeError(f"hello frame: {len(data)} bytes, at least {1 + HELLO_DIGEST_BYTES} expected")
+    head = data[0]
+    if head >> 6 != WIRE_VERSION or (head >> 4) & 3 != FrameKind.HELLO or not head & 0x0F:
+        raise DecodeError(f"hello frame: header {head:#04x} is not a hello")
+    digest = data[1 : 1 + HELLO_DIGEST_BYTES]
+    if len(data) == 1 + HELLO_DIGEST_BYTES:
+        return VersionedHello(head & 0x0F, digest, None)
+    return VersionedHello(head & 0x0F, digest, _read_varint(data[1 + HELLO_DIGEST_BYTES :]))
+
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        low, value = value & 0x7F, value >> 7
+        out.append(low | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def _read_varint(data: bytes) -> int:
+    """A canonical unsigned LEB128 u32 filling ``data`` exactly."""
+    value = 0
+    for i, byte in enumerate(data):
+        value |= (byte & 0x7F) << (7 * i)
+        if not byte & 0x80:
+            if i != len(data) - 1:
+                raise DecodeError(f"hello frame: {len(data) - i - 1} trailing byte(s) after the version")
+            if byte == 0 and i > 0:
+                raise DecodeError("hello frame: the version is not in its shortest form")
+            if value > _U32:
+                raise DecodeError(f"hello frame: version {value} exceeds 32 bits")
+            return value
+    raise DecodeError("hello frame: the version is cut short")
+
+
+# ---------------------------------------------------------------- what a frame costs a link
+
+
+#: Serial framing's overhead per frame: CRC-32 (4), COBS code byte (1), delimiter (1).
+SERIAL_OVERHEAD = 6
+
+
+def serial_cost(payload: int) -> int:
+    """Bytes a frame of ``payload`` bytes takes on a serial link (COBS + CRC-32 + delimiter)."""
+    return payload + SERIAL_OVERHEAD + (payload + 4) // 254
+
+
+def can_frame_bits(data: int) -> int:
+    """Worst-case bits of one extended-id CAN frame with ``data`` bytes, stuffing and the
+    interframe space included: 67 + 8n + floor((53 + 8n) / 4)."""
+    return 67 + 8 * data + (53 + 8 * data) // 4
+
+
+def can_cost(payload: int) -> int:
+    """Worst-case bus bits a frame of ``payload`` bytes takes as classic CAN segments."""
+    full, rest = divmod(payload, 8)
+    return full * can_frame_bits(8) + (can_frame_bits(rest) if rest else 0)
