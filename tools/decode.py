@@ -27,7 +27,7 @@ KINDS = ("hormone", "routed", "keepalive", "hello", "link")
 #: Frames decoded once and remembered (see Decoder._memo); cleared when full, so memory stays
 #: bounded whatever the capture.
 MEMO_SIZE = 8192
-#: How a line of :meth:`Hop.describe` starts: the time.
+#: How a line of :meth:`Hop.describe` starts: the time (then :meth:`Hop.rest`).
 TIME_FORMAT = "%17.6f"
 
 
@@ -47,17 +47,20 @@ class Hop(NamedTuple):
     lost: bool = False  # serial: sent and never delivered (the link dropped it)
 
     def describe(self, profile: Profile = CONRO) -> str:
-        """One line, like candump's but in DH2 terms."""
-        at, link, side, kind, sender, text, hormone, error, medium, lost = self
+        """One line, like candump's but in DH2 terms: the time, then :meth:`rest`."""
+        return TIME_FORMAT % self.time + self.rest(profile)
+
+    def rest(self, profile: Profile = CONRO) -> str:
+        """The line :meth:`describe` gives, after the time (hops alike but in time share it)."""
+        _at, link, side, kind, sender, text, hormone, error, medium, lost = self
         label = "ir  " if medium == "serial" else "link"  # an infrared (serial) link, or a bus link id
         through = f" via {sender}" if sender else ""
-        # %-formatting: the text an f-string would give, in half the time (a capture has millions);
-        # the time first, TIME_FORMAT (Decoder.lines reuses the rest of a line)
+        # %-formatting: the text an f-string would give, in half the time (a capture has millions)
         if link is not None:
             shown = "-" if side is None else side  # a management frame names a link, no side
-            line = "%17.6f  %s %4d side %s  %-9s %s%s" % (at, label, link, shown, kind, text, through)  # noqa: UP031
+            line = "  %s %4d side %s  %-9s %s%s" % (label, link, shown, kind, text, through)  # noqa: UP031
         else:
-            line = "%17.6f  %s    ? side ?  %-9s %s%s" % (at, label, kind, text, through)  # noqa: UP031
+            line = "  %s    ? side ?  %-9s %s%s" % (label, kind, text, through)  # noqa: UP031
         if hormone is not None:
             if hormone.path:
                 name = profile.connector_name
@@ -106,33 +109,40 @@ class Decoder:
         self._rebuilding = False  # whether the reassembler has a payload in the making
         #: A single CAN frame's hop, time aside, by (arbitration id, data) (:meth:`_memo_key`):
         #: a capture repeats the same few frames (hormones, beacons) over and over, and each
-        #: is decoded once. With it, for :meth:`lines`, the text of its line after the time.
-        #: Both emptied when a Hello changes the codec of a link end, and when full.
+        #: is decoded once. Emptied when a Hello changes the codec of a link end, and when full.
         self._memo: dict[tuple[int, bytes], tuple[Any, ...]] = {}
-        self._tails: dict[tuple[int, bytes], str] = {}
+        #: For :meth:`lines`, the text after the time (:meth:`Hop.rest`): of a frame the memo
+        #: holds, by its key (emptied with the memo), and of any hop, by the hop time aside.
+        self._rests: dict[tuple[int, bytes], str] = {}
+        self._hop_rests: dict[tuple[Any, ...], str] = {}
 
     def hops(self, records: Iterable[Record]) -> Iterator[Hop]:
         return map(self._record, records)
 
-    def lines(self, records: Iterable[Record], profile: Profile | None = None) -> Iterator[str]:
-        """Each record's hop as :meth:`Hop.describe` puts it (what ``dh2rt dump`` prints), and
-        faster than describing each hop: a frame seen before reuses its text, only the time is
-        formatted anew."""
-        profile = profile or self.profile
-        tails, memo = self._tails, self._memo
+    def lines(self, records: Iterable[Record]) -> Iterator[str]:
+        """Each record's hop as :meth:`Hop.describe` puts it with the decoder's profile (what
+        ``dh2rt dump`` prints), and faster than describing each hop: a frame seen before
+        reuses its text, only the time is formatted anew."""
+        rests, hop_rests, memo = self._rests, self._hop_rests, self._memo
         for rec in records:
-            # a frame seen before? (tails hold only what _memo_key accepts: extended ids, whole frames)
+            # a frame seen before? (rests hold only what _memo_key accepts: extended ids, whole frames)
             if type(rec) is CanRecord and rec.is_extended_id and type(rec.data) is bytes and not self._rebuilding:
-                tail = tails.get((rec.arbitration_id, rec.data))
-                if tail is not None:
-                    yield TIME_FORMAT % rec.timestamp + tail
+                rest = rests.get((rec.arbitration_id, rec.data))
+                if rest is not None:
+                    yield TIME_FORMAT % rec.timestamp + rest
                     continue
-            hop = self._record(rec)
-            line = hop.describe(profile)
             key = self._memo_key(rec)
+            hop = self._keyed(rec, key)
+            alike = hop[1:]
+            rest = hop_rests.get(alike)
+            if rest is None:
+                rest = hop.rest(self.profile)
+                if len(hop_rests) >= MEMO_SIZE:
+                    hop_rests.clear()
+                hop_rests[alike] = rest
             if key is not None and key in memo:
-                tails[key] = line[len(TIME_FORMAT % hop.time) :]
-            yield line
+                rests[key] = rest
+            yield TIME_FORMAT % hop.time + rest
 
     def _memo_key(self, rec: Record) -> tuple[int, bytes] | None:
         """(arbitration id, data) of a whole frame in one CAN frame (a hormone, a beacon, a
@@ -145,7 +155,10 @@ class Decoder:
         return can_id, rec.data if type(rec.data) is bytes else bytes(rec.data)
 
     def _record(self, rec: Record) -> Hop:
-        key = self._memo_key(rec)
+        return self._keyed(rec, self._memo_key(rec))
+
+    def _keyed(self, rec: Record, key: tuple[int, bytes] | None) -> Hop:
+        """The hop of ``rec``, whose :meth:`_memo_key` is ``key``."""
         if key is not None and not self._rebuilding:  # (else a single frame abandons that payload)
             fields = self._memo.get(key)
             if fields is not None:
@@ -156,7 +169,7 @@ class Decoder:
 
     def _forget(self) -> None:
         self._memo.clear()
-        self._tails.clear()
+        self._rests.clear()
 
     def _decode(self, key: tuple[str, int, int], payload: bytes) -> tuple[int, Any]:
         codec = self._by_end.get(key, self._default)

@@ -65,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     continue
                 out.write((json.dumps(hop.to_json()) if ns.json else hop.describe(profile)) + "\n")
         else:  # every frame, as text: the decoder's lines (Hop.describe's, made faster)
-            for line in Decoder(capture.programs).lines(read_records(capture.path), profile):
+            for line in Decoder(capture.programs).lines(read_records(capture.path)):
                 seen += 1
                 out.write(line + "\n")
     except CaptureError as exc:
