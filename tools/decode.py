@@ -111,6 +111,8 @@ class Decoder:
         #: a capture repeats the same few frames (hormones, beacons) over and over, and each
         #: is decoded once. Emptied when a Hello changes the codec of a link end, and when full.
         self._memo: dict[tuple[int, bytes], tuple[Any, ...]] = {}
+        #: The same for payloads reassembled from segments, by (medium, link, side, payload).
+        self._reassembled: dict[tuple[str, int, int, bytes], tuple[Any, ...]] = {}
         #: For :meth:`lines`, the text after the time (:meth:`Hop.rest`): of a frame the memo
         #: holds, by its key (emptied with the memo), and of any hop, by the hop time aside.
         self._rests: dict[tuple[int, bytes], str] = {}
@@ -169,6 +171,7 @@ class Decoder:
 
     def _forget(self) -> None:
         self._memo.clear()
+        self._reassembled.clear()
         self._rests.clear()
 
     def _decode(self, key: tuple[str, int, int], payload: bytes) -> tuple[int, Any]:
@@ -226,15 +229,8 @@ class Decoder:
                 reassembler.feed(can_id, rec.data)  # it abandons what was being rebuilt at this end
                 self._rebuilding = reassembler.pending
             key = key or (can_id, bytes(rec.data))
-            fields = self._memo.get(key)
-            if fields is not None:
-                return Hop._make((rec.timestamp, *fields))
-            hop = self._hop(rec.timestamp, ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1), key[1])
-            if hop.kind != "hello":  # a Hello is always decoded: it may change its end's codec
-                if len(self._memo) >= MEMO_SIZE:
-                    self._forget()
-                self._memo[key] = hop[1:]
-            return hop
+            end = ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1)
+            return self._remembered(self._memo, key, rec.timestamp, end, key[1])
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
         corrupted, dropped = reassembler.corrupted, reassembler.dropped
         whole = reassembler.feed(can_id, rec.data)
@@ -244,7 +240,29 @@ class Decoder:
             if reassembler.corrupted > corrupted or reassembler.dropped > dropped:
                 return Hop(rec.timestamp, link, side, "error", error=f"segment {seq} out of order: lost")
             return Hop(rec.timestamp, link, side, "segment", text=f"#{seq}")
-        return self._hop(rec.timestamp, ("can", link, side), whole, " (reassembled)")
+        end = ("can", link, side)
+        return self._remembered(self._reassembled, (*end, whole), rec.timestamp, end, whole, " (reassembled)")
+
+    def _remembered(
+        self,
+        memo: dict[Any, tuple[Any, ...]],
+        key: Any,
+        at: float,
+        end: tuple[str, int, int],
+        payload: bytes,
+        note: str = "",
+    ) -> Hop:
+        """The hop of ``payload`` from ``end``: as remembered in ``memo`` under ``key``, or
+        decoded and remembered (a Hello is always decoded: it may change its end's codec)."""
+        fields = memo.get(key)
+        if fields is not None:
+            return Hop._make((at, *fields))
+        hop = self._hop(at, end, payload, note)
+        if hop.kind != "hello":
+            if len(memo) >= MEMO_SIZE:
+                self._forget()
+            memo[key] = hop[1:]
+        return hop
 
     @staticmethod
     def _management(rec: CanRecord) -> Hop:
