@@ -18,7 +18,6 @@ threads.
 from __future__ import annotations
 
 import copy
-import struct
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,7 +27,7 @@ from dh2rt.errors import DecodeError, OptionError
 from dh2rt.wire.serial_framing import decode_serial
 from tools import serial_records
 from tools.capture_files import PYTHON_CAN_SUFFIXES, write_sidecar
-from tools.pcap import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, FD_BRS, FD_FDF, CapturedFrame, PcapWriter
+from tools.pcap import CapturedFrame, PcapWriter, socketcan_packet
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
 from tools.serial_records import SerialRecord
 
@@ -68,20 +67,9 @@ class FileSink:
         """One CAN frame as python-can received it (a ``can.Message``)."""
         with self._lock:
             if self._pcapng is not None:
-                self._pcapng.write(CAN_INTERFACE, float(msg.timestamp), _socketcan_packet(msg))
+                self._pcapng.write(CAN_INTERFACE, float(msg.timestamp), socketcan_packet(_captured(msg)))
             elif self._pcap is not None:
-                self._pcap.write(
-                    CapturedFrame(
-                        msg.timestamp,
-                        msg.arbitration_id,
-                        bytes(msg.data),
-                        is_extended_id=msg.is_extended_id,
-                        is_remote_frame=msg.is_remote_frame,
-                        is_error_frame=msg.is_error_frame,
-                        is_fd=msg.is_fd,
-                        bitrate_switch=msg.bitrate_switch,
-                    )
-                )
+                self._pcap.write(_captured(msg))
             else:
                 self._logger.on_message_received(_numbered(msg) if self._numbered_channels else msg)
             self.count += 1
@@ -120,18 +108,18 @@ def open_sink(path: Path, programs: Sequence[bytes] = ()) -> FileSink:
     return FileSink(path, programs)
 
 
-def _socketcan_packet(msg: Any) -> bytes:
-    """A frame as Linux SocketCAN hands it to a capture (link type 227)."""
-    can_id = int(msg.arbitration_id)
-    if msg.is_extended_id:
-        can_id |= CAN_EFF_FLAG
-    if msg.is_remote_frame:
-        can_id |= CAN_RTR_FLAG
-    if msg.is_error_frame:
-        can_id |= CAN_ERR_FLAG
-    fd_flags = (FD_FDF | (FD_BRS if msg.bitrate_switch else 0)) if msg.is_fd else 0
-    data = bytes(msg.data)
-    return struct.pack(">IBBxx", can_id, len(data), fd_flags) + data
+def _captured(msg: Any) -> CapturedFrame:
+    """A python-can message as the capture files hold it."""
+    return CapturedFrame(
+        float(msg.timestamp),
+        int(msg.arbitration_id),
+        bytes(msg.data),
+        is_extended_id=msg.is_extended_id,
+        is_remote_frame=msg.is_remote_frame,
+        is_error_frame=msg.is_error_frame,
+        is_fd=msg.is_fd,
+        bitrate_switch=msg.bitrate_switch,
+    )
 
 
 def _numbered(msg: Any) -> Any:

@@ -62,8 +62,9 @@ def _check(fr: CapturedFrame) -> None:
         raise EncodeError(f"pcap: timestamp {fr.timestamp} is outside the format's 32-bit seconds")
 
 
-def _record(fr: CapturedFrame) -> bytes:
-    """One pcap record: its 16-byte header, the 8-byte SocketCAN header, the data."""
+def socketcan_packet(fr: CapturedFrame) -> bytes:
+    """The frame as Linux SocketCAN hands it to a capture (link type 227, in pcap and pcapng):
+    the 8-byte header (big-endian id with the EFF/RTR/ERR flags, length, FD flags), the data."""
     _check(fr)
     can_id = fr.arbitration_id
     if fr.is_extended_id:
@@ -73,7 +74,12 @@ def _record(fr: CapturedFrame) -> bytes:
     if fr.is_error_frame:
         can_id |= CAN_ERR_FLAG
     fd_flags = (FD_FDF | (FD_BRS if fr.bitrate_switch else 0)) if fr.is_fd else 0
-    body = struct.pack(">IBBxx", can_id, len(fr.data), fd_flags) + bytes(fr.data)
+    return struct.pack(">IBBxx", can_id, len(fr.data), fd_flags) + bytes(fr.data)
+
+
+def _record(fr: CapturedFrame) -> bytes:
+    """One pcap record: its 16-byte header, the 8-byte SocketCAN header, the data."""
+    body = socketcan_packet(fr)
     sec = int(fr.timestamp)
     usec = min(round((fr.timestamp - sec) * 1e6), 999_999)
     return struct.pack("<IIII", sec, usec, len(body), len(body)) + body

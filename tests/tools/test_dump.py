@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import struct
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -31,12 +32,10 @@ CATERPILLAR = str(ROOT / "examples" / "caterpillar.dh2")
 FRONT, BACK = 1, 2
 
 
-def capture(program: CompiledProgram, tmp_path: Path, suffix: str) -> Path:
-    """A head and a tail on a virtual bus for 45 cycles, every frame logged by python-can."""
-    channel = f"dump-{suffix[1:]}-robot"  # no digits: BLF and ASC would make a channel number of them
-    path = tmp_path / f"robot{suffix}"
+def run_pair(program: CompiledProgram, channel: str, on_message: Callable[[can.Message], None]) -> None:
+    """A head and a tail on a virtual bus for 45 cycles; every frame a listener on the bus
+    sees, in order, handed to ``on_message``."""
     tap = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-    logger = can.Logger(str(path))
     codec = FrameCodec(program.vocabulary, program.profile.connector_count)
     mods = [
         ModuleRuntime(program, open_transport(f"virtual:{channel}", codec), clock=FakeClock(0.001), module=i)
@@ -48,13 +47,23 @@ def capture(program: CompiledProgram, tmp_path: Path, suffix: str) -> Path:
         for _ in range(45):
             for m in mods:
                 m.step()
-            while (msg := tap.recv(0)) is not None:  # what a listener on the bus sees, in order
-                logger.on_message_received(msg)
+            while (msg := tap.recv(0)) is not None:
+                on_message(msg)
     finally:
         for m in mods:
             m.close()
-        logger.stop()
         tap.shutdown()
+
+
+def capture(program: CompiledProgram, tmp_path: Path, suffix: str) -> Path:
+    """The pair's traffic logged by python-can's own Logger."""
+    channel = f"dump-{suffix[1:]}-robot"  # no digits: BLF and ASC would make a channel number of them
+    path = tmp_path / f"robot{suffix}"
+    logger = can.Logger(str(path))
+    try:
+        run_pair(program, channel, logger.on_message_received)
+    finally:
+        logger.stop()
     return path
 
 
@@ -134,31 +143,19 @@ def test_the_same_frames_from_pcapng_candump_asc_and_blf(
 ) -> None:
     """One bus, four files written at once (ours and python-can's writers): dump reads the
     same frames from each, and the pcapng and the sidecars carry the program."""
-    channel = "dump-all-formats"
-    tap = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     sinks = [
         FileSink(tmp_path / f"robot{suffix}", [caterpillar.image]) for suffix in (".pcapng", ".log", ".asc", ".blf")
     ]
-    codec = FrameCodec(caterpillar.vocabulary, caterpillar.profile.connector_count)
-    mods = [
-        ModuleRuntime(caterpillar, open_transport(f"virtual:{channel}", codec), clock=FakeClock(0.001), module=i)
-        for i in range(2)
-    ]
+
+    def write_all(msg: can.Message) -> None:
+        for sink in sinks:
+            sink.write_message(msg)
+
     try:
-        mods[0].attach(BACK, BusEnd(5, 0))
-        mods[1].attach(FRONT, BusEnd(5, 1))
-        for _ in range(45):
-            for m in mods:
-                m.step()
-            while (msg := tap.recv(0)) is not None:
-                for sink in sinks:
-                    sink.write_message(msg)
+        run_pair(caterpillar, "dump-all-formats", write_all)
     finally:
-        for m in mods:
-            m.close()
         for sink in sinks:
             sink.close()
-        tap.shutdown()
     seen = {}
     for sink in sinks:
         assert main([str(sink.path), "--json"]) == 0, sink.path  # the program comes with the capture
