@@ -181,8 +181,12 @@ def test_impairments_lose_and_garble_frames_the_same_way_for_the_same_seed() -> 
     got, lost, flipped, corrupted = first
     assert lost > 0 and flipped > 0 and corrupted > 0
     assert 0 < len(got) < 200 - lost
-    assert run_impaired(seed=42) == first
-    assert run_impaired(seed=43) != first
+    # what the seed decides: which frames are lost and which bits flip, hence what gets
+    # through; how many damaged frames the receiver has counted when the test looks also
+    # depends on how far it has read (a frame whose delimiter flipped waits for the next)
+    again = run_impaired(seed=42)
+    assert again[:3] == first[:3]
+    assert run_impaired(seed=43)[:3] != first[:3]
 
 
 def test_misuse_is_refused(em: ContactEmulator) -> None:
