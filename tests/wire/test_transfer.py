@@ -5,7 +5,7 @@ what a frame costs a serial line or a CAN bus."""
 from __future__ import annotations
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dh2rt.errors import DecodeError, EncodeError
@@ -100,7 +100,7 @@ def test_sizes_of_the_frames_sent_most() -> None:
 
 
 @given(messages, connector)
-@settings(max_examples=400)
+@settings(max_examples=400, suppress_health_check=[HealthCheck.too_slow], deadline=None)
 def test_round_trip(message: tw.Message, sender: int) -> None:
     data = tw.encode(sender, message)
     assert tw.is_transfer(data)
@@ -109,7 +109,7 @@ def test_round_trip(message: tw.Message, sender: int) -> None:
 
 
 @given(messages, connector)
-@settings(max_examples=300)
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow], deadline=None)
 def test_every_cut_and_every_trailing_byte_is_refused(message: tw.Message, sender: int) -> None:
     data = tw.encode(sender, message)
     for end in range(len(data)):
@@ -187,7 +187,7 @@ def test_reasons_are_cut_at_a_character_boundary() -> None:
 
 
 @given(st.binary(max_size=80))
-@settings(max_examples=500)
+@settings(max_examples=500, suppress_health_check=[HealthCheck.too_slow], deadline=None)
 def test_garbage_only_ever_raises_decode_error(data: bytes) -> None:
     try:
         sender, message = tw.decode(data)
@@ -200,7 +200,7 @@ def test_garbage_only_ever_raises_decode_error(data: bytes) -> None:
 
 
 @given(messages, connector)
-@settings(max_examples=400)
+@settings(max_examples=400, suppress_health_check=[HealthCheck.too_slow], deadline=None)
 def test_a_link_frame_decoder_rejects_every_transfer_frame(message: tw.Message, sender: int) -> None:
     """Today's FrameCodec (every hormone index declared) raises DecodeError on a transfer
     frame: the family sits where it reads the wire version. Never a hormone."""
