@@ -29,7 +29,6 @@ import os
 import random
 import selectors
 import threading
-import tty
 from dataclasses import dataclass, field, replace
 
 from dh2rt.closing import Closing
@@ -44,6 +43,7 @@ from drivers.connector_channel import (
     encode_local,
     local_decoder,
 )
+from hil.ptys import close_fd, open_raw_pty
 
 #: A connector of a module: ``(module, connector)``.
 End = tuple[int, int]
@@ -111,11 +111,8 @@ class ContactEmulator(Closing):
                 raise ContactEmulatorError("contact emulator is closed")
             if end in self._connectors:
                 raise ContactEmulatorError(f"contact emulator: connector {end} already exists")
-            master, slave = os.openpty()
-            tty.setraw(master)
-            tty.setraw(slave)
-            os.set_blocking(master, False)
-            conn = _Connector(end, master, slave, os.ttyname(slave))
+            master, slave, path = open_raw_pty()
+            conn = _Connector(end, master, slave, path)
             self._connectors[end] = conn
             self._by_master[master] = conn
             self._sel.register(master, selectors.EVENT_READ)
@@ -186,10 +183,10 @@ class ContactEmulator(Closing):
         self._thread.join(5)
         self._sel.close()
         for conn in self._connectors.values():
-            _close_fd(conn.master)
-            _close_fd(conn.slave)
-        _close_fd(self._wake_r)
-        _close_fd(self._wake_w)
+            close_fd(conn.master)
+            close_fd(conn.slave)
+        close_fd(self._wake_r)
+        close_fd(self._wake_w)
         self._connectors.clear()
         self._by_master.clear()
 
@@ -270,7 +267,3 @@ class ContactEmulator(Closing):
         conn.resync = written != len(wire)
         return not conn.resync
 
-
-def _close_fd(fd: int) -> None:
-    with contextlib.suppress(OSError):
-        os.close(fd)

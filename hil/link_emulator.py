@@ -30,13 +30,13 @@ import random
 import selectors
 import threading
 import time
-import tty
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 from dh2rt.closing import Closing
 from dh2rt.errors import TransportError
 from dh2rt.topology import Topology
+from hil.ptys import close_fd, open_raw_pty
 
 #: Bytes held while waiting for a delimiter before they are relayed as they are.
 _MAX_PENDING = 2048
@@ -215,9 +215,9 @@ class LinkEmulator(Closing):
         for link in self._links.values():
             for side in link.sides:
                 for fd in (side.master, side.slave):
-                    _close_fd(fd)
-        _close_fd(self._wake_r)
-        _close_fd(self._wake_w)
+                    close_fd(fd)
+        close_fd(self._wake_r)
+        close_fd(self._wake_w)
         self._links.clear()
         self._by_fd.clear()
 
@@ -346,13 +346,4 @@ class LinkEmulator(Closing):
 
 
 def _open_side() -> _Side:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    return _Side(master, slave, os.ttyname(slave))
-
-
-def _close_fd(fd: int) -> None:
-    with contextlib.suppress(OSError):
-        os.close(fd)
+    return _Side(*open_raw_pty())

@@ -23,10 +23,10 @@ import contextlib
 import os
 import selectors
 import threading
-import tty
 from dataclasses import dataclass, field
 
 from dh2rt.closing import Closing
+from hil.ptys import close_fd, open_raw_pty
 
 #: slcan's bitrate commands S0..S8, in bit/s.
 BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
@@ -65,11 +65,8 @@ class SlcanBusEmulator(Closing):
 
     def add_adapter(self) -> Adapter:
         """A new adapter on the bus; open ``adapter.path`` with ``can.Bus(interface="slcan", ...)``."""
-        master, slave = os.openpty()
-        tty.setraw(master)
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        adapter = Adapter(master, slave, os.ttyname(slave))
+        master, slave, path = open_raw_pty()
+        adapter = Adapter(master, slave, path)
         with self._lock:
             self._adapters[master] = adapter
             self._sel.register(master, selectors.EVENT_READ)
@@ -92,12 +89,10 @@ class SlcanBusEmulator(Closing):
         self._thread.join(5)
         self._sel.close()
         for adapter in self._adapters.values():
-            for fd in (adapter.master, adapter.slave):
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-        for fd in (self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+            close_fd(adapter.master)
+            close_fd(adapter.slave)
+        close_fd(self._wake_r)
+        close_fd(self._wake_w)
         self._adapters.clear()
 
     # -- the bus thread -------------------------------------------------------------------
