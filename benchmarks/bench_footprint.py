@@ -392,7 +392,7 @@ def measure(children: list[Child], window: float, status_every: int, period: flo
         again.stop()
         again.status.unlink(missing_ok=True)
         again.spawn()
-        wait_first_cycle([again], 30)
+        wait_first_cycle([again], 90)  # a loaded machine can take tens of seconds
         restart_st = again.read_status()
         assert restart_st is not None
         first_restart = float(restart_st["first_cycle_at"]) - again.spawned
