@@ -369,7 +369,9 @@ class ModuleRuntime:
         the next cycle would start at or after ``until`` (a reading of this runtime's clock:
         modules told to stop at one instant stop together, however many cycles each managed).
 
-        Between cycles the loop sleeps (frames that arrive meanwhile are read by the next cycle).
+        Between cycles the loop takes frames in as they arrive, or on a transport that says not
+        to (a shared bus: ``Transport.read_between_cycles``) sleeps and reads them at the next
+        cycle's start.
         A cycle that starts more than LATE_TOLERANCE periods after its deadline counts as
         late; the schedule then restarts from now rather than bursting to catch up.
         ``on_cycle`` runs after each cycle (the host reads commands there). Returns cycles run.
@@ -408,13 +410,18 @@ class ModuleRuntime:
         return got
 
     def _wait_until(self, deadline: float, sleep: Callable[[float], None] | None) -> None:
-        # Sleep to the deadline: what arrives meanwhile waits in the medium's buffers and is
-        # read at the start of the next cycle (step polls), one wake-up a cycle however many
-        # frames come (reading each frame as it came woke the loop for every frame, and one
-        # arriving just before the deadline made the next cycle start late).
-        left = deadline - self.clock()
-        if left > 0:
-            (time.sleep if sleep is None else sleep)(left)
+        """Until ``deadline``: take frames in as they come (the transport's
+        ``read_between_cycles``), or sleep, leaving them in the medium for the next cycle."""
+        if sleep is None and not self.transport.read_between_cycles:
+            sleep = time.sleep
+        while True:
+            left = deadline - self.clock()
+            if left <= 0:
+                return
+            if sleep is not None:
+                sleep(left)
+                return
+            self._absorb(self.transport.poll(left))
 
     # ------------------------------------------------------------ reading
 

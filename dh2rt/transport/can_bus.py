@@ -65,6 +65,8 @@ class CanTransport(Transport):
     interface: str = "virtual"
     #: whether the interface filters in the kernel (set_filters costs nothing per frame)
     kernel_filters: ClassVar[bool] = False
+    #: Without kernel filters every module's frames would wake every module between cycles.
+    read_between_cycles: ClassVar[bool] = False
     default_channel: ClassVar[str] = "dh2rt"
 
     def __init__(
@@ -260,6 +262,7 @@ class SocketCanTransport(CanTransport):
     name = "socketcan"
     interface = "socketcan"
     kernel_filters = True
+    read_between_cycles = True
     default_channel = "vcan0"
 
     def _open_bus(self, options: dict[str, Any]) -> Any:
