@@ -204,9 +204,8 @@ def test_a_module_with_servos_imports_no_pybullet(tmp_path: Path) -> None:
 def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
     """python-can imports asyncio, which would load OpenSSL; a module process never does
     (docs/firmware.md, "Footprint"), and python-can works without it."""
-    config = module_dir(
-        tmp_path, "m", '[transport]\nkind = "virtual"\nchannel = "lean"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
-    )
+    bus = '[transport]\nkind = "virtual"\nchannel = "lean"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
+    config = module_dir(tmp_path, "m", bus)
     code = (
         "import os, signal, sys\n"
         "import hil.module_process as mp\n"
