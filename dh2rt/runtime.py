@@ -35,6 +35,7 @@ machine's; this module only does the I/O they call for.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
@@ -61,6 +62,11 @@ LATE_TOLERANCE = 0.5
 HEALTH_EVERY = 25
 #: Cycles whose start lateness the status reports percentiles of.
 LATENESS_WINDOW = 4096
+#: Upper edges (ms) of the buckets of the lateness histogram every status carries, as
+#: cyclictest keeps one: counts since the first cycle, so that two statuses give the lateness
+#: over the cycles between them (the last bucket is everything later than 1 s).
+LATENESS_EDGES_MS = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0)
+_LATENESS_EDGES_S = tuple(e / 1000 for e in LATENESS_EDGES_MS)
 
 
 class Driver(Protocol):
@@ -133,6 +139,8 @@ class ModuleRuntime:
         self.stats = RuntimeCounters()
         #: how late each recent cycle started (seconds after its deadline), and when the first did
         self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)
+        #: cycles per lateness bucket (LATENESS_EDGES_MS) since the first
+        self.lateness_counts = [0] * (len(LATENESS_EDGES_MS) + 1)
         self.first_cycle_at: float | None = None
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[str, tuple[Any, ...]]] = []
@@ -384,7 +392,9 @@ class ModuleRuntime:
             if last_start is not None and deadline >= last_start:
                 break
             now = self.clock()
-            self.lateness.append(now - deadline)
+            late = now - deadline
+            self.lateness.append(late)
+            self.lateness_counts[bisect.bisect_left(_LATENESS_EDGES_S, late)] += 1
             if self.first_cycle_at is None:
                 self.first_cycle_at = now
             if now - deadline > LATE_TOLERANCE * period:
@@ -479,6 +489,7 @@ class ModuleRuntime:
             "DOF2": e.dof[1],
             "status": list(e.status),
             "lateness_ms": self.lateness_ms(),
+            "lateness_hist": {"edges_ms": list(LATENESS_EDGES_MS), "counts": list(self.lateness_counts)},
             "first_cycle_at": self.first_cycle_at,
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,
