@@ -2,6 +2,6 @@
 
 import sys
 
-from dh2rt.cli import main
+from dh2rt.entry import main
 
 sys.exit(main())

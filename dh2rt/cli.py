@@ -54,6 +54,7 @@ from dh2rt.cmdline import (
     timed_run,
 )
 from dh2rt.compiler import load_image
+from dh2rt.entry import COMMAND_GROUP, CORE_COMMANDS
 from dh2rt.errors import DH2Error, ImageError, KeyFileError, OutputError, ProgramError
 from dh2rt.lint import lint
 from dh2rt.natives import STANDARD_NATIVES
@@ -74,11 +75,9 @@ from dh2rt.signed_image import (
 )
 from dh2rt.trace import TraceWriter
 
-COMMAND_GROUP = "dh2rt.commands"
 SIMULATOR_GROUP = "dh2rt.simulators"
 #: What ``dh2rt`` runs when its first argument is an option (``dh2rt --transport vcan0``).
 DEFAULT_COMMAND = "launch"
-CORE_COMMANDS = ("check", "run", "image", "keys", "types", "demo")
 
 
 def registered(group: str) -> dict[str, EntryPoint]:

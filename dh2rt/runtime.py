@@ -35,6 +35,7 @@ machine's; this module only does the I/O they call for.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
@@ -61,6 +62,11 @@ LATE_TOLERANCE = 0.5
 HEALTH_EVERY = 25
 #: Cycles whose start lateness the status reports percentiles of.
 LATENESS_WINDOW = 4096
+#: Upper edges (ms) of the buckets of the lateness histogram every status carries, as
+#: cyclictest keeps one: counts since the first cycle, so that two statuses give the lateness
+#: over the cycles between them (the last bucket is everything later than 1 s).
+LATENESS_EDGES_MS = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0)
+_LATENESS_EDGES_S = tuple(e / 1000 for e in LATENESS_EDGES_MS)
 
 
 class Driver(Protocol):
@@ -133,6 +139,8 @@ class ModuleRuntime:
         self.stats = RuntimeCounters()
         #: how late each recent cycle started (seconds after its deadline), and when the first did
         self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)
+        #: cycles per lateness bucket (LATENESS_EDGES_MS) since the first
+        self.lateness_counts = [0] * (len(LATENESS_EDGES_MS) + 1)
         self.first_cycle_at: float | None = None
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[str, tuple[Any, ...]]] = []
@@ -369,7 +377,9 @@ class ModuleRuntime:
         the next cycle would start at or after ``until`` (a reading of this runtime's clock:
         modules told to stop at one instant stop together, however many cycles each managed).
 
-        Between cycles the loop waits on the transport (frames are kept for the next cycle).
+        Between cycles the loop takes frames in as they arrive, or on a transport that says not
+        to (a shared bus: ``Transport.read_between_cycles``) sleeps and reads them at the next
+        cycle's start.
         A cycle that starts more than LATE_TOLERANCE periods after its deadline counts as
         late; the schedule then restarts from now rather than bursting to catch up.
         ``on_cycle`` runs after each cycle (the host reads commands there). Returns cycles run.
@@ -382,7 +392,9 @@ class ModuleRuntime:
             if last_start is not None and deadline >= last_start:
                 break
             now = self.clock()
-            self.lateness.append(now - deadline)
+            late = now - deadline
+            self.lateness.append(late)
+            self.lateness_counts[bisect.bisect_left(_LATENESS_EDGES_S, late)] += 1
             if self.first_cycle_at is None:
                 self.first_cycle_at = now
             if now - deadline > LATE_TOLERANCE * period:
@@ -408,6 +420,10 @@ class ModuleRuntime:
         return got
 
     def _wait_until(self, deadline: float, sleep: Callable[[float], None] | None) -> None:
+        """Until ``deadline``: take frames in as they come (the transport's
+        ``read_between_cycles``), or sleep, leaving them in the medium for the next cycle."""
+        if sleep is None and not self.transport.read_between_cycles:
+            sleep = time.sleep
         while True:
             left = deadline - self.clock()
             if left <= 0:
@@ -473,6 +489,7 @@ class ModuleRuntime:
             "DOF2": e.dof[1],
             "status": list(e.status),
             "lateness_ms": self.lateness_ms(),
+            "lateness_hist": {"edges_ms": list(LATENESS_EDGES_MS), "counts": list(self.lateness_counts)},
             "first_cycle_at": self.first_cycle_at,
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,

@@ -108,6 +108,12 @@ class Transport(Closing, ABC):
 
     #: The registry name of the backend.
     name: ClassVar[str] = "abstract"
+    #: Whether a module should take frames in as they arrive between its cycles (True), or
+    #: sleep to its next cycle and read them all then (False). Reading as they come keeps
+    #: arrival times exact; it costs a wake-up per frame, which is cheap on point-to-point
+    #: links (a module's own few frames a cycle) and dear on a shared bus with no filter in
+    #: the kernel, where every module's frames wake every module.
+    read_between_cycles: ClassVar[bool] = True
 
     def __init__(self, codec: FrameCodec) -> None:
         self.codec = codec

@@ -12,6 +12,7 @@ python-can is imported lazily, when a bus opens. Every ``can.Message`` is built 
 from __future__ import annotations
 
 import socket
+import time
 from typing import Any, ClassVar
 
 from dh2rt.errors import TransportError, TransportUnavailable
@@ -64,6 +65,8 @@ class CanTransport(Transport):
     interface: str = "virtual"
     #: whether the interface filters in the kernel (set_filters costs nothing per frame)
     kernel_filters: ClassVar[bool] = False
+    #: Without kernel filters every module's frames would wake every module between cycles.
+    read_between_cycles: ClassVar[bool] = False
     default_channel: ClassVar[str] = "dh2rt"
 
     def __init__(
@@ -193,7 +196,14 @@ class CanTransport(Transport):
         can = self._can
         out: list[tuple[int, bytes]] = []
         wait: float = timeout
+        deadline = time.monotonic() + timeout if timeout > 0 else 0.0
+        first = True
         while True:
+            if not first:
+                # after a frame of ours, take what else is there; after only other modules'
+                # frames (on a shared bus, most of them), wait on for the rest of the timeout
+                wait = 0.0 if out or timeout <= 0 else max(0.0, deadline - time.monotonic())
+            first = False
             try:
                 msg = self._bus.recv(timeout=wait)
             except can.CanOperationError:
@@ -203,7 +213,6 @@ class CanTransport(Transport):
                 return out
             if msg is None:
                 return out
-            wait = 0.0
             if not msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                 continue  # not dh2rt traffic
             if msg.arbitration_id == self.management_id:
@@ -253,6 +262,7 @@ class SocketCanTransport(CanTransport):
     name = "socketcan"
     interface = "socketcan"
     kernel_filters = True
+    read_between_cycles = True
     default_channel = "vcan0"
 
     def _open_bus(self, options: dict[str, Any]) -> Any:

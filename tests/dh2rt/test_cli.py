@@ -194,8 +194,9 @@ def test_second_ctrl_c_stops_at_once() -> None:
 def test_registered_commands_are_listed_and_dispatched(capsys: pytest.CaptureFixture[str]) -> None:
     """Upper layers' commands come through the entry-point groups, not imports in the core."""
     from dh2rt import cli
+    from dh2rt.entry import COMMAND_GROUP
 
-    assert "launch" in cli.registered(cli.COMMAND_GROUP)
+    assert "launch" in cli.registered(COMMAND_GROUP)
     assert "pybullet" in cli.registered(cli.SIMULATOR_GROUP)
     with pytest.raises(SystemExit) as exc:
         main(["--help"])

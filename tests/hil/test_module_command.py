@@ -170,15 +170,27 @@ def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
     assert json.loads((config.parent / "status.json").read_text())["event"] == "final"
 
 
+#: Run in a module process before ``main``: SIGTERM ``seconds`` after it starts serving (its
+#: signal handlers are in place by then; on a loaded machine start-up alone can take seconds).
+STOP_ONCE_SERVING = (
+    "import hil.module_process as mp\n"
+    "from hil.module_process import main\n"
+    "serve = mp.ModuleHost.serve\n"
+    "def timed(host):\n"
+    "    threading.Timer({seconds}, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
+    "    return serve(host)\n"
+    "mp.ModuleHost.serve = timed\n"
+)
+
+
 def test_a_module_with_servos_imports_no_pybullet(tmp_path: Path) -> None:
     with ServoEmulator((1, 2)) as emulator:
         emulator.start()
         config = module_dir(tmp_path, "m", INPROC + f'[servos]\nport = "{emulator.port_path}"\n')
         code = (
             "import os, signal, sys, threading\n"
-            "from hil.module_process import main\n"
-            "threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
-            f"rc = main(['--config', {str(config)!r}])\n"
+            + STOP_ONCE_SERVING.format(seconds=1.5)
+            + f"rc = main(['--config', {str(config)!r}])\n"
             "print(sorted(m for m in ('pybullet', 'matplotlib', 'PIL', 'numpy', 'sim') if m in sys.modules))\n"
             "sys.exit(rc)\n"
         )
@@ -187,6 +199,33 @@ def test_a_module_with_servos_imports_no_pybullet(tmp_path: Path) -> None:
     assert proc.stdout.strip() == "[]", proc.stdout
     lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
     assert lines[-1]["event"] == "final" and lines[-1]["actuator_fault"] is None  # the servos were driven
+
+
+def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
+    """python-can imports asyncio, which would load OpenSSL; a module process never does
+    (docs/firmware.md, "Footprint"), and python-can works without it."""
+    bus = '[transport]\nkind = "virtual"\nchannel = "lean"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
+    config = module_dir(tmp_path, "m", bus)
+    code = (
+        "import os, signal, sys\n"
+        "import hil.module_process as mp\n"
+        "from hil.module_process import main\n"
+        "on_cycle = mp.ModuleHost._on_cycle\n"
+        "def counted(host, rt):\n"  # stop after 30 cycles however slow the machine
+        "    on_cycle(host, rt)\n"
+        "    if rt.cycle == 30:\n"
+        "        os.kill(os.getpid(), signal.SIGTERM)\n"
+        "mp.ModuleHost._on_cycle = counted\n"
+        f"rc = main(['--config', {str(config)!r}])\n"
+        "import can\n"
+        "print(sorted(m for m in ('ssl', '_ssl') if sys.modules.get(m) is not None))\n"
+        "sys.exit(rc)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "[]", proc.stdout
+    lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
+    assert lines[-1]["event"] == "final" and lines[-1]["cycle"] >= 30, lines[-1]
 
 
 @pytest.mark.parametrize("count", [2, 8])

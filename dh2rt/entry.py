@@ -1,0 +1,51 @@
+"""The ``dh2rt`` command's front door: a registered command starts with its own imports only.
+
+``dh2rt module`` is what a module processor runs at power-up, and it pays for every module
+imported before it starts cycling (time and resident memory on a small board). The core's
+own commands (``check``, ``run``, ``image``, ...) need the compiler, the robot, the trace
+writer and the signing code; a registered command (``module``, ``launch``, ``dump``, ...)
+needs none of them. So this module looks the command up in the ``dh2rt.commands`` entry
+points first and runs it directly; anything else (a core command, ``--help``, an option
+first, a command that does not load) goes to :func:`dh2rt.cli.main`, which does the rest and
+reports the errors.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+
+#: The entry-point group upper layers register their commands in (``pyproject.toml``).
+COMMAND_GROUP = "dh2rt.commands"
+#: The core's own subcommands: never looked up among the registered ones.
+CORE_COMMANDS = ("check", "run", "image", "keys", "types", "demo")
+
+
+def registered_command(name: str) -> Callable[[list[str]], int] | None:
+    """The ``main(argv)`` registered as ``name``, imported now; None if there is none or it
+    does not load (:mod:`dh2rt.cli` then says why)."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=COMMAND_GROUP, name=name):
+        try:
+            command: Callable[[list[str]], int] = ep.load()
+        except ImportError:
+            return None
+        return command
+    return None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    first = args[0] if args else None
+    if first is not None and not first.startswith("-") and first not in CORE_COMMANDS:
+        command = registered_command(first)
+        if command is not None:
+            return command(args[1:])
+    from dh2rt.cli import main as cli_main
+
+    return cli_main(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
