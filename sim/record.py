@@ -65,7 +65,7 @@ def _floor_shade(view: tuple[float, ...], projection: tuple[float, ...], size: t
     ones = np.ones_like(nx)
 
     def unproject(z: float) -> NDArray[np.float64]:
-        pts = np.stack([nx, ny, z * ones, ones], axis=-1) @ inv.T
+        pts: NDArray[np.float64] = np.stack([nx, ny, z * ones, ones], axis=-1) @ inv.T
         return pts[..., :3] / pts[..., 3:4]
 
     near, far = unproject(-1.0), unproject(1.0)
