@@ -7,11 +7,13 @@ does not grow with the length of the run.
 What a frame shows:
 
 - a checkered floor (10 cm squares, a darker line every metre) at fixed world coordinates, so
-  motion shows against it whatever the camera does. It is painted on the world's plain floor
-  after rendering (the pixels PyBullet's segmentation says are the floor, darkened where the
-  ray through them meets a dark square or a line): nothing is added to the world, so the
-  physics is the same with and without a recording, and a textured floor in PyBullet's
-  software renderer costs seconds a frame;
+  motion shows against it whatever the camera does. The floor is not rendered: PyBullet's
+  software renderer spends nearly all of a frame (15 to 150 ms at 320x240) shading a floor
+  that fills the picture, against 1 to 2 ms for the robot alone. So the world's floor is made
+  transparent for the render (its look only, restored at once: the physics is the same with
+  and without a recording), and the pixels nothing was drawn on (segmentation -1) take a
+  painted floor image: where each pixel's ray meets z=0, a few whole-array numpy operations
+  (:func:`_floor_image`), made again only when the camera moves. The robot casts no shadow;
 - the camera ``fixed`` (default): aimed at the robot's start, high enough that the robot and
   some floor around it fit; when the robot's centroid walks out of the middle of the picture
   the camera jumps to it once and stays there again. ``follow``: aimed at the centroid every
@@ -33,7 +35,7 @@ from typing import Literal
 import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from dh2rt.errors import RecordError
 from sim.gif import RESERVED, GifStream
@@ -50,37 +52,40 @@ CAMERAS: tuple[Camera, ...] = ("fixed", "follow")
 _SQUARE_M = 0.1  # checker square
 _LINE_M = 0.012  # width of the line drawn every metre
 _DARK_SQUARE, _LINE = 0.88, 0.55  # brightness of the darker squares and of the lines
+_SKY = (255, 255, 255)  # PyBullet's software renderer's background, where no floor is seen
+_LIT = 0.94  # the floor's colour as rendered, over its own colour (measured: (196, 201, 191))
 
 
-def _floor_shade(view: tuple[float, ...], projection: tuple[float, ...], size: tuple[int, int]) -> NDArray[np.float32]:
-    """Per pixel, how much the floor there is darkened: a checker of 10 cm squares and a line
-    every metre, at fixed world coordinates (the ray through each pixel meets the floor z=0)."""
+def _floor_image(
+    view: tuple[float, ...], projection: tuple[float, ...], size: tuple[int, int], colour: tuple[int, int, int]
+) -> NDArray[np.uint8]:
+    """The floor as the camera sees it, ``colour`` checkered (10 cm squares, a line every metre)
+    at fixed world coordinates; the sky where the floor is beyond the far plane.
+
+    Each pixel's NDC depth where its ray meets the floor z=0 is linear in the pixel's NDC
+    (x, y), and the world point there a ratio of linear functions: a handful of whole-array
+    operations, no per-pixel loop."""
     w, h = size
     # PyBullet's matrices are column-major: reshape gives the transpose
     pv = np.asarray(projection, dtype=np.float64).reshape(4, 4).T @ np.asarray(view, dtype=np.float64).reshape(4, 4).T
     inv = np.linalg.inv(pv)
-    xs = (np.arange(w) + 0.5) / w * 2 - 1
-    ys = 1 - (np.arange(h) + 0.5) / h * 2
-    nx, ny = np.meshgrid(xs, ys)
-    ones = np.ones_like(nx)
-
-    def unproject(z: float) -> NDArray[np.float64]:
-        pts: NDArray[np.float64] = np.stack([nx, ny, z * ones, ones], axis=-1) @ inv.T
-        return pts[..., :3] / pts[..., 3:4]
-
-    near, far = unproject(-1.0), unproject(1.0)
-    d = far - near
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(np.abs(d[..., 2]) > 1e-12, -near[..., 2] / d[..., 2], np.inf)
-    x = near[..., 0] + t * d[..., 0]
-    y = near[..., 1] + t * d[..., 1]
+    nx = ((np.arange(w) + 0.5) / w * 2 - 1)[None, :]
+    ny = (1 - (np.arange(h) + 0.5) / h * 2)[:, None]
+    if abs(inv[2, 2]) < 1e-12:  # the camera looks along the floor: no floor seen
+        return np.broadcast_to(np.asarray(_SKY, dtype=np.uint8), (h, w, 3)).copy()
+    nz = -(inv[2, 0] * nx + inv[2, 1] * ny + inv[2, 3]) / inv[2, 2]  # NDC depth of the floor
+    wh = inv[3, 0] * nx + inv[3, 1] * ny + inv[3, 2] * nz + inv[3, 3]
+    x = (inv[0, 0] * nx + inv[0, 1] * ny + inv[0, 2] * nz + inv[0, 3]) / wh
+    y = (inv[1, 0] * nx + inv[1, 1] * ny + inv[1, 2] * nz + inv[1, 3]) / wh
     checker = (np.floor(x / _SQUARE_M) + np.floor(y / _SQUARE_M)) % 2 == 1
     shade = np.where(checker, _DARK_SQUARE, 1.0)
     half = _LINE_M / 2
     line = (np.abs(x - np.round(x)) < half) | (np.abs(y - np.round(y)) < half)
     shade = np.where(line, _LINE, shade)
-    shade = np.where(np.isfinite(t) & (t > 0), shade, 1.0)
-    return shade.astype(np.float32)[..., None]
+    floor = (shade[..., None] * np.asarray(colour, dtype=np.float64)).astype(np.uint8)
+    # between the near and the far plane (behind the camera is beyond the far plane too)
+    seen = (nz >= -1.0) & (nz <= 1.0)
+    return np.where(seen[..., None], floor, np.asarray(_SKY, dtype=np.uint8))
 
 
 def head_modules(world: World) -> list[int]:
@@ -183,7 +188,14 @@ class Recorder:
         w, h = self.size
         self._projection = p.computeProjectionMatrixFOV(fov=50.0, aspect=w / h, nearVal=0.02, farVal=40.0)
         self.floor = floor
-        self._shade: tuple[tuple[float, ...], NDArray[np.float32]] | None = None  # (view, shade)
+        # the floor is painted, not rendered: PyBullet's software renderer costs 15 to 150 ms a
+        # frame on a floor that fills the picture, against 1 to 2 ms on the robot alone
+        ground = p.getVisualShapeData(world.ground, physicsClientId=world.client)
+        self._ground_rgba: tuple[float, float, float, float] = tuple(ground[0][7]) if ground else (0.8, 0.8, 0.8, 1.0)
+        r, g, b, _ = self._ground_rgba
+        self._floor_colour = (round(255 * _LIT * r), round(255 * _LIT * g), round(255 * _LIT * b))
+        self._background: tuple[tuple[float, ...], NDArray[np.uint8]] | None = None  # (view, floor image)
+        self._font = ImageFont.load_default()
 
     @property
     def frame_count(self) -> int:
@@ -243,25 +255,31 @@ class Recorder:
         """Render one frame now and write it: the caption is ``label`` and the simulated time."""
         w, h = self.size
         view = self._view()
-        _, _, rgba, _, seg = p.getCameraImage(
-            w,
-            h,
-            view,
-            self._projection,
-            renderer=p.ER_TINY_RENDERER,
-            physicsClientId=self.world.client,
-        )
+        world = self.world
+        r, g, b, a = self._ground_rgba
+        # the floor is hidden while rendering (a transparent shape is not drawn) and painted
+        # where nothing was drawn: its look only, the physics is untouched
+        p.changeVisualShape(world.ground, -1, rgbaColor=(r, g, b, 0.0), physicsClientId=world.client)
+        try:
+            _, _, rgba, _, seg = p.getCameraImage(
+                w, h, view, self._projection, renderer=p.ER_TINY_RENDERER, physicsClientId=world.client
+            )
+        finally:
+            p.changeVisualShape(world.ground, -1, rgbaColor=(r, g, b, a), physicsClientId=world.client)
         pixels = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[..., :3]
-        if self.floor:
-            if self._shade is None or self._shade[0] != view:
-                self._shade = (view, _floor_shade(view, tuple(self._projection), self.size))
-            ground = np.asarray(seg).reshape(h, w) == self.world.ground
-            shaded = (pixels * self._shade[1]).astype(np.uint8)
-            pixels = np.where(ground[..., None], shaded, pixels)
+        if self._background is None or self._background[0] != view:
+            if self.floor:
+                floor = _floor_image(view, tuple(self._projection), self.size, self._floor_colour)
+            else:
+                floor = np.empty((h, w, 3), dtype=np.uint8)
+                floor[...] = self._floor_colour
+            self._background = (view, floor)
+        empty = np.asarray(seg).reshape(h, w) < 0
+        pixels = np.where(empty[..., None], self._background[1], pixels)
         frame = Image.fromarray(np.ascontiguousarray(pixels), "RGB")
         self._overlay(frame, view, label)
         self._stream.add(frame)
-        self._next_time = self.world.time + self.frame_interval - 1e-9
+        self._next_time = world.time + self.frame_interval - 1e-9
 
     def _overlay(self, frame: Image.Image, view: tuple[float, ...], label: str) -> None:
         black, white, red = RESERVED
@@ -273,9 +291,9 @@ class Recorder:
             r = max(4.0, self.size[1] / 48)
             draw.polygon([(px - r, py - 1.6 * r), (px + r, py - 1.6 * r), (px, py)], fill=red, outline=black)
         caption = "  ".join(s for s in (label, f"t = {self.world.time:.1f} s") if s)
-        box = draw.textbbox((4, 3), caption)
+        box = draw.textbbox((4, 3), caption, font=self._font)
         draw.rectangle((box[0] - 3, box[1] - 2, box[2] + 3, box[3] + 2), fill=white)
-        draw.text((4, 3), caption, fill=black)
+        draw.text((4, 3), caption, fill=black, font=self._font)
 
     def save(self) -> Path:
         """Finish the GIF and return its path."""
