@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -102,22 +103,20 @@ def _time_plain(n: int, hz: float, cycles: int) -> float:
 
 
 def _time_frames(n: int, frames: int, tmp_gif: str) -> float:
-    """Milliseconds per captured 320x240 frame (ER_TINY_RENDERER) of an n-module snake."""
+    """Median milliseconds of one captured 320x240 frame (ER_TINY_RENDERER, fixed camera) of an
+    n-module snake: each capture timed alone (render, painted floor, overlay, GIF encoding), the
+    median so that a moment of load on the machine does not count."""
     with World(parse_spec(f"snake:{n}")) as w:
         rec = Recorder(w, path=Path(tmp_gif), size=(320, 240))
-        rec.capture()  # warm-up
-        t0 = time.perf_counter()
+        rec.capture()  # warm-up: the palette and the floor image
+        times = []
         for _ in range(frames):
             w.step(rec.steps_per_frame)
+            t0 = time.perf_counter()
             rec.capture()
-        elapsed = time.perf_counter() - t0
-        step_s = frames * rec.steps_per_frame
-    # Subtract the stepping so the figure is the frame alone; measured separately.
-    with World(parse_spec(f"snake:{n}")) as w:
-        t1 = time.perf_counter()
-        w.step(step_s)
-        stepping = time.perf_counter() - t1
-    return max(0.0, elapsed - stepping) / frames * 1000.0
+            times.append(time.perf_counter() - t0)
+        rec.save()
+    return statistics.median(times) * 1000.0
 
 
 def _travel_per_period(n: int, periods: int, seed: int) -> float:

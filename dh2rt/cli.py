@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
+import math
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -55,7 +56,7 @@ from dh2rt.cmdline import (
 )
 from dh2rt.compiler import load_image
 from dh2rt.entry import COMMAND_GROUP, CORE_COMMANDS
-from dh2rt.errors import DH2Error, ImageError, KeyFileError, OutputError, ProgramError
+from dh2rt.errors import DH2Error, ImageError, KeyFileError, OptionError, OutputError, ProgramError
 from dh2rt.lint import lint
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.profile import CONRO
@@ -124,7 +125,24 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
     run.add_argument("--sim", choices=sorted(registered(SIMULATOR_GROUP)), help="run the modules' joints in physics")
     run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation (.gif)")
     run.add_argument(
-        "--plot", type=Path, metavar="PNG", help="with --sim: plot joint angles and displacement (.png, .svg, .pdf)"
+        "--camera",
+        choices=("fixed", "follow"),
+        default="fixed",
+        help="with --record: the camera stays put over a checkered floor and jumps when the robot leaves "
+        "the middle of the picture (fixed, the default), or follows the robot",
+    )
+    run.add_argument(
+        "--record-speed",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="with --record: play back X times faster than simulated time (fewer frames; default 1)",
+    )
+    run.add_argument(
+        "--plot",
+        type=Path,
+        metavar="PNG",
+        help="with --sim: plot the path, heading and joint angles (.png, .svg, .pdf)",
     )
     run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -384,6 +402,8 @@ def check_outputs(ns: argparse.Namespace) -> None:
         ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES, stdout=True)
     if ns.record is not None:
         ns.record = output_path(ns.record, "--record", (".gif",))
+    if not (math.isfinite(ns.record_speed) and 0.1 <= ns.record_speed <= 100.0):
+        raise OptionError(f"--record-speed {ns.record_speed:g}: must be between 0.1 and 100")
     if ns.plot is not None:
         ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import signal
@@ -121,7 +122,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     view = p.add_argument_group("with --stand-in pybullet, as dh2rt run --sim pybullet")
     view.add_argument("--record", type=Path, metavar="GIF", help="write an animation of the robot (.gif)")
-    view.add_argument("--plot", type=Path, metavar="FILE", help="plot joint angles and displacement (.png .svg .pdf)")
+    view.add_argument(
+        "--camera",
+        choices=("fixed", "follow"),
+        default="fixed",
+        help="with --record: a fixed camera over a checkered floor (default) or one that follows the robot",
+    )
+    view.add_argument(
+        "--record-speed", type=float, default=1.0, metavar="X", help="with --record: play back X times faster"
+    )
+    view.add_argument(
+        "--plot", type=Path, metavar="FILE", help="plot the path, heading and joint angles (.png .svg .pdf)"
+    )
     view.add_argument("--gui", action="store_true", help="open PyBullet's window (needs a display)")
     p.add_argument(
         "--capture",
@@ -379,6 +391,8 @@ def check_views(ns: argparse.Namespace) -> None:
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
     if ns.record is not None:
         ns.record = output_path(ns.record, "--record", (".gif",))
+    if not (math.isfinite(ns.record_speed) and 0.1 <= ns.record_speed <= 100.0):
+        raise OptionError(f"--record-speed {ns.record_speed:g}: must be between 0.1 and 100")
     if ns.plot is not None:
         ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
     if ns.gui and not os.environ.get("DISPLAY"):
@@ -426,7 +440,11 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     interrupted = False
     failed = False
     started = time.monotonic()
-    views = RunVisuals(world.physics, ns.record, ns.plot) if world.physics is not None else None
+    views = (
+        RunVisuals(world.physics, ns.record, ns.plot, camera=ns.camera, speed=ns.record_speed)
+        if world.physics is not None
+        else None
+    )
     try:
         world.start()
         applied: set[int] = set()
@@ -435,7 +453,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             world.run_events(events, applied)
             world.tick()
             if views is not None:
-                views.after_tick()
+                views.after_tick(world.cycle)
             now = time.monotonic()
             if now - last_draw >= (0.5 if tty else 2.0):
                 last_draw = now

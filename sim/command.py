@@ -1,4 +1,5 @@
-"""``dh2rt run PROGRAM --sim pybullet [--record run.gif] [--plot run.png] [--trace t.jsonl]``:
+"""``dh2rt run PROGRAM --sim pybullet [--record run.gif [--camera fixed|follow] [--record-speed X]]
+[--plot run.png] [--trace t.jsonl]``:
 the command body of a physics run (registered as the ``pybullet`` simulator in the
 ``dh2rt.simulators`` entry-point group)."""
 
@@ -13,7 +14,7 @@ from dh2rt.errors import DH2Error
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from dh2rt.trace import TraceWriter
-from sim.record import Recorder, plot_run
+from sim.record import Recorder, plot_run, sample_world
 from sim.runner import STEPS_PER_CYCLE, PhysicsRun
 
 
@@ -25,18 +26,22 @@ def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> in
     if ns.trace:
         world = run.world
         trace = TraceWriter.open(ns.trace, robot, extra=lambda m: {"pos": list(world.module_position(m))})
-    recorder = Recorder(run.world, Path(ns.record)) if ns.record else None
-    frame_every = max(1, round(run.world.physics_hz / (recorder.fps if recorder else 10) / steps))
+    recorder = Recorder(run.world, Path(ns.record), camera=ns.camera, speed=ns.record_speed) if ns.record else None
+    samples = run.samples = []  # filled here: sample_world adds the head and its heading
 
     def on_cycle(c: int) -> None:
         if trace is not None:
             trace.write_cycle()
-        if recorder is not None and c % frame_every == 0:
-            recorder.capture()
+        if ns.plot:
+            samples.append(sample_world(run.world))
+        if recorder is not None and recorder.due():
+            recorder.capture(f"cycle {c + 1}")
 
     try:
-        elapsed, interrupted = timed_run(lambda: run.run(ns.cycles, events, on_cycle, sample=bool(ns.plot)), trace)
+        elapsed, interrupted = timed_run(lambda: run.run(ns.cycles, events, on_cycle), trace)
     except DH2Error as exc:  # an event that the robot's own docking made impossible
+        if recorder is not None:
+            recorder.abandon()
         run.close()
         err(str(exc))
         return EXIT_USAGE
@@ -54,10 +59,14 @@ def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> in
         f"({gait} cycles of {steps / run.world.physics_hz * 1000:.0f} ms)",
         file=out,
     )
-    if recorder is not None and recorder.frame_count:
-        print(f"animation: {recorder.save()} ({recorder.frame_count} frames)", file=out)
-    if ns.plot:
+    if recorder is not None:
+        if recorder.frame_count:
+            print(f"animation: {recorder.save()} ({recorder.frame_count} frames)", file=out)
+        else:
+            recorder.abandon()
+    if ns.plot and samples:
         title = f"{robot.program.name} on {robot.topology.spec}"
-        print(f"plot: {plot_run(run.samples, Path(ns.plot), title=title)}", file=out)
+        names = list(robot.topology.names)
+        print(f"plot: {plot_run(samples, Path(ns.plot), title=title, names=names)}", file=out)
     run.close()
     return EXIT_INTERRUPTED if interrupted else EXIT_OK
