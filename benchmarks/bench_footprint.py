@@ -411,6 +411,18 @@ def measure(children: list[Child], window: float, status_every: int, period: flo
     return summarise(children, first_all, first_restart, period)
 
 
+def strict_json(value: Any) -> Any:
+    """``value`` with every infinite or NaN float as null (a p99 beyond the last bucket, a
+    ratio of two of them), so that the last line is JSON that any reader takes."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [strict_json(v) for v in value]
+    return value
+
+
 def histogram_p99(before: dict[str, Any], after: dict[str, Any]) -> float:
     """The 99th percentile of the lateness of the cycles between two statuses, from their
     histograms (cumulative counts): the upper edge of the bucket it falls in, in ms (inf in
@@ -725,9 +737,9 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         table(r, sys.stdout)
     met = {r["transport"]: r["met"] for r in results if "met" in r}
-    print(json.dumps({"bench": "footprint", "quick": args.quick, "modules": MODULES, "period_ms": PERIOD_MS,
-                      "status_every": status_every, "targets": TARGETS, "met": met,
-                      "transports": results}))  # fmt: skip
+    print(json.dumps(strict_json({"bench": "footprint", "quick": args.quick, "modules": MODULES,
+                                  "period_ms": PERIOD_MS, "status_every": status_every, "targets": TARGETS,
+                                  "met": met, "transports": results})))  # fmt: skip
     return 0
 
 
