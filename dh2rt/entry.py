@@ -12,8 +12,10 @@ reports the errors.
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable, Sequence
+from types import FrameType
 
 #: The entry-point group upper layers register their commands in (``pyproject.toml``).
 COMMAND_GROUP = "dh2rt.commands"
@@ -35,7 +37,14 @@ def registered_command(name: str) -> Callable[[list[str]], int] | None:
     return None
 
 
+def _interrupted_while_starting(_signum: int, _frame: FrameType | None) -> None:
+    """Ctrl-C before the command has its own handler (while it imports): exit 130, quietly."""
+    raise SystemExit(130)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # run as the command: no traceback for a Ctrl-C during start-up
+        signal.signal(signal.SIGINT, _interrupted_while_starting)
     args = list(sys.argv[1:] if argv is None else argv)
     first = args[0] if args else None
     if first is not None and not first.startswith("-") and first not in CORE_COMMANDS:

@@ -153,9 +153,13 @@ def test_ctrl_c_stops_at_a_whole_cycle(examples: Path, caterpillar: object) -> N
     args = ["run", str(examples / "caterpillar.dh2"), "--topology", "snake:3000", "--cycles", "10000000", "--json"]
     exe = Path(sys.executable).with_name("dh2rt")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
+    # how long start-up takes on this machine now (about 1 s; much more on a loaded one)
+    started = time.monotonic()
+    subprocess.run([*cmd, *args[:-3], "--cycles", "1"], capture_output=True, cwd=ROOT, timeout=120, check=True)
+    startup = time.monotonic() - started
     proc = subprocess.Popen([*cmd, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
-        time.sleep(3.0)  # well into the run: start-up takes about 1 s
+        time.sleep(max(3.0, 2 * startup))  # well into the run
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
