@@ -170,62 +170,52 @@ def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
     assert json.loads((config.parent / "status.json").read_text())["event"] == "final"
 
 
-#: Run in a module process before ``main``: SIGTERM ``seconds`` after it starts serving (its
-#: signal handlers are in place by then; on a loaded machine start-up alone can take seconds).
-STOP_ONCE_SERVING = (
+#: Run in a module process before ``main``: SIGTERM after its 30th cycle, however slow the machine
+#: (its signal handlers are in place by then).
+STOP_AFTER_30_CYCLES = (
     "import hil.module_process as mp\n"
-    "from hil.module_process import main\n"
-    "serve = mp.ModuleHost.serve\n"
-    "def timed(host):\n"
-    "    threading.Timer({seconds}, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
-    "    return serve(host)\n"
-    "mp.ModuleHost.serve = timed\n"
+    "on_cycle = mp.ModuleHost._on_cycle\n"
+    "def counted(host, rt):\n"
+    "    on_cycle(host, rt)\n"
+    "    if rt.cycle == 30:\n"
+    "        os.kill(os.getpid(), signal.SIGTERM)\n"
+    "mp.ModuleHost._on_cycle = counted\n"
 )
+
+
+def run_probed(config: Path, modules: tuple[str, ...]) -> tuple[list[str], dict[str, Any]]:
+    """``dh2rt module`` (its ``main``) in a subprocess for 30 cycles; which of ``modules`` it had
+    imported when it stopped, and its final log line. It must exit 0."""
+    code = (
+        "import os, signal, sys\n"
+        + STOP_AFTER_30_CYCLES
+        + f"rc = mp.main(['--config', {str(config)!r}])\n"
+        + f"print(json.dumps(sorted(m for m in {modules!r} if sys.modules.get(m) is not None)))\n"
+        "sys.exit(rc)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", "import json\n" + code], capture_output=True, text=True, timeout=120,
+                          cwd=ROOT)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
+    assert lines[-1]["event"] == "final" and lines[-1]["cycle"] >= 30, lines[-1]
+    return json.loads(proc.stdout), lines[-1]
 
 
 def test_a_module_with_servos_imports_no_pybullet(tmp_path: Path) -> None:
     with ServoEmulator((1, 2)) as emulator:
         emulator.start()
         config = module_dir(tmp_path, "m", INPROC + f'[servos]\nport = "{emulator.port_path}"\n')
-        code = (
-            "import os, signal, sys, threading\n"
-            + STOP_ONCE_SERVING.format(seconds=1.5)
-            + f"rc = main(['--config', {str(config)!r}])\n"
-            "print(sorted(m for m in ('pybullet', 'matplotlib', 'PIL', 'numpy', 'sim') if m in sys.modules))\n"
-            "sys.exit(rc)\n"
-        )
-        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.strip() == "[]", proc.stdout
-    lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
-    assert lines[-1]["event"] == "final" and lines[-1]["actuator_fault"] is None  # the servos were driven
+        loaded, final = run_probed(config, ("pybullet", "matplotlib", "PIL", "numpy", "sim"))
+    assert loaded == []
+    assert final["actuator_fault"] is None  # the servos were driven
 
 
 def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
     """python-can imports asyncio, which would load OpenSSL; a module process never does
     (docs/firmware.md, "Footprint"), and python-can works without it."""
     bus = '[transport]\nkind = "virtual"\nchannel = "lean"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
-    config = module_dir(tmp_path, "m", bus)
-    code = (
-        "import os, signal, sys\n"
-        "import hil.module_process as mp\n"
-        "from hil.module_process import main\n"
-        "on_cycle = mp.ModuleHost._on_cycle\n"
-        "def counted(host, rt):\n"  # stop after 30 cycles however slow the machine
-        "    on_cycle(host, rt)\n"
-        "    if rt.cycle == 30:\n"
-        "        os.kill(os.getpid(), signal.SIGTERM)\n"
-        "mp.ModuleHost._on_cycle = counted\n"
-        f"rc = main(['--config', {str(config)!r}])\n"
-        "import can\n"
-        "print(sorted(m for m in ('ssl', '_ssl') if sys.modules.get(m) is not None))\n"
-        "sys.exit(rc)\n"
-    )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.strip() == "[]", proc.stdout
-    lines = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
-    assert lines[-1]["event"] == "final" and lines[-1]["cycle"] >= 30, lines[-1]
+    loaded, _final = run_probed(module_dir(tmp_path, "m", bus), ("can", "ssl", "_ssl"))
+    assert loaded == ["can"]
 
 
 @pytest.mark.parametrize("count", [2, 8])
