@@ -397,9 +397,9 @@ class ModuleRuntime:
             self.lateness_counts[bisect.bisect_left(_LATENESS_EDGES_S, late)] += 1
             if self.first_cycle_at is None:
                 self.first_cycle_at = now
-            if now - deadline > LATE_TOLERANCE * period:
+            if late > LATE_TOLERANCE * period:
                 self.stats.late_cycles += 1
-                self.stats.cycles_skipped += int((now - deadline) / period)
+                self.stats.cycles_skipped += int(late / period)
                 deadline = now
             self.step()
             done += 1
