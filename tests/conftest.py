@@ -11,6 +11,7 @@ import pytest
 from dh2rt.compiler import compile_file
 from dh2rt.program import CompiledProgram
 from dh2rt.testing import FaultWatch
+from hil.pace import MachineTooSlow
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -47,3 +48,22 @@ def locomotion() -> CompiledProgram:
 @pytest.fixture(scope="session")
 def legs_to_snake() -> CompiledProgram:
     return compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item: pytest.Item) -> Iterator[None]:
+    return (yield from _skip_if_too_slow())
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
+    return (yield from _skip_if_too_slow())
+
+
+def _skip_if_too_slow() -> Iterator[None]:
+    """A loop run that the machine could not keep at any period hil.pace tries is no verdict
+    on dh2rt: the test is skipped, saying what the launcher said (visible with -ra)."""
+    try:
+        return (yield)
+    except MachineTooSlow as exc:
+        pytest.skip(f"this machine cannot keep real time: {exc}")

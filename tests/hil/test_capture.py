@@ -25,6 +25,7 @@ from dh2rt.bundled import compile_bundled
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import socketcan_problem
 from dh2rt.wire.frame import program_digest
+from hil.pace import PACE
 from tools.capture_files import capture_programs
 from tools.reading import open_capture
 
@@ -40,7 +41,7 @@ def launch(transport: str, tmp_path: Path, *extra: str) -> tuple[int, dict[str, 
         "--cycles", str(CYCLES), "--cycle-ms", "30", "--stand-in", "none", "--silence-cycles", "6",
         "--capture", str(capture), "--trace", str(trace), "--json", "--log", str(tmp_path / "run.log"), *extra,
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=120, cwd=ROOT)
     summary = json.loads(proc.stdout) if proc.stdout.strip() else {}
     return proc.returncode, summary, proc.stderr, capture, trace
 

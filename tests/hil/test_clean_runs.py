@@ -6,12 +6,13 @@ of the GIL, PINGs went unanswered and links were lost."""
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+from hil.pace import PACE
 
 ROOT = Path(__file__).resolve().parents[2]
 #: 8 module processes, 16 emulated servos and PyBullet share 2 cores here: 40 ms cycles keep
@@ -31,7 +32,7 @@ def launch(transport: str, tmp_path: Path, run: int) -> tuple[int, dict[str, Any
         "--cycles", "300", "--cycle-ms", str(CYCLE_MS), "--silence-cycles", str(SILENCE),
         "--json", "--log", str(tmp_path / f"{transport}-{run}.log"),
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=120, cwd=ROOT)
     return proc.returncode, json.loads(proc.stdout), proc.stderr
 
 

@@ -25,6 +25,7 @@ from dh2rt.events import parse_event
 from dh2rt.robot import Robot
 from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import parse_spec
+from hil.pace import PACE
 from hil.world import World, module_pids
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +57,7 @@ def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[di
         "--cycles", str(cycles), "--cycle-ms", str(PERIOD_MS), "--trace", str(trace), "--json",
         "--stand-in", "recording", *extra,
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=90, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=90, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr + proc.stdout[-2000:]
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     records = [json.loads(line) for line in trace.read_text().splitlines()]
@@ -97,7 +98,7 @@ def emissions(records: list[dict[str, Any]], module: int) -> list[dict[str, Any]
 
 
 def check_wave_matches_robot(records: list[dict[str, Any]], cycles: int) -> None:
-    period = PERIOD_MS / 1000
+    period = PACE.ms(PERIOD_MS) / 1000
     records = steady(records, period)
     reference = robot_receptions(cycles + 40)
     for k in range(1, N):
@@ -151,8 +152,8 @@ def test_udp_processes_reproduce_the_robot_wave(tmp_path: Path) -> None:
 
 
 def test_killed_module_splits_the_snake_in_two(tmp_path: Path) -> None:
-    period = PERIOD_MS / 1000
     summary, records = launch("serial", 160, tmp_path, "--event", "60:kill:m3")
+    period = PACE.ms(PERIOD_MS) / 1000
     (kill,) = summary["events"]
     t_kill = kill["t"]
     states = {row["name"]: row["state"] for row in summary["modules"]}

@@ -24,6 +24,7 @@ import pytest
 from dh2rt.bundled import compile_bundled
 from dh2rt.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.topology import parse_spec
+from hil.pace import PACE
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -57,7 +58,7 @@ def current_links(log: list[str]) -> dict[int, set[tuple[str, int, int]]]:
 
 def launch(*args: str, timeout: float = 180) -> tuple[int, dict[str, Any], str]:
     cmd = [sys.executable, "-m", "hil.launcher", "--json", "--stand-in", "none", *args]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=timeout, cwd=ROOT)
     return proc.returncode, json.loads(proc.stdout), proc.stderr
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import pytest
 
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from hil.link_emulator import LinkEmulator
+from hil.pace import PACE
 from hil.servo_emulator import ServoEmulator
 from hil.slcan_emulator import SlcanBusEmulator
 
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def launch(*args: str, timeout: float = 120) -> tuple[int, dict[str, Any], str]:
     cmd = [sys.executable, "-m", "hil.launcher", "--json", *args]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=timeout, cwd=ROOT)
     summary = json.loads(proc.stdout) if proc.stdout.strip().startswith("{") else {}
     return proc.returncode, summary, proc.stderr
 

@@ -22,6 +22,7 @@ from dh2rt.topology import parse_spec
 from dh2rt.wire.can_frames import segment
 from dh2rt.wire.frame import FrameCodec
 from hil import launcher
+from hil.pace import PACE
 from tools.diff import main
 from tools.pcap import CapturedFrame, write_pcap
 
@@ -39,7 +40,8 @@ def in_process(path: Path, seed: int) -> Path:
 
 
 def in_the_loop(path: Path, seed: int) -> Path:
-    code = launcher.main(
+    code = PACE.call(
+        launcher.main,
         ["--transport", "virtual", "--module-count", "8", "--cycles", str(CYCLES), "--seed", str(seed),
          "--stand-in", "none", "--trace", str(path)]
     )  # fmt: skip

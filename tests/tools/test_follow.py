@@ -13,6 +13,7 @@ from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id, segment
 from dh2rt.wire.frame import FrameCodec
+from hil.pace import PACE
 from tools.follow import main
 from tools.pcap import CapturedFrame, write_pcap
 
@@ -83,7 +84,7 @@ def test_follow_a_caterpillar_hormone_down_the_snake_as_table_i_implies(tmp_path
     capture = tmp_path / "snake.pcapng"
     cmd = [sys.executable, "-m", "hil.launcher", "--transport", "virtual", "--module-count", "8", "--cycles", "150",
            "--cycle-ms", "30", "--stand-in", "none", "--capture", str(capture), "--json"]  # fmt: skip
-    assert subprocess.run(cmd, capture_output=True, timeout=120, cwd=root).returncode == 0
+    assert PACE.run(cmd, timeout=120, cwd=root).returncode == 0
     rebuilt = rebuild(Traffic(CONRO).extend(open_capture(capture).hops()))
     head = next(s for s in rebuilt.snapshots[-1].modules if s.type_name == "head")
     (head_end,) = [e for m in rebuilt.modules if m.label == head.label for e in m.ends]

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ from dh2rt.hormone import Hormone
 from dh2rt.profile import CONRO
 from dh2rt.wire.can_frames import segment
 from dh2rt.wire.frame import Frame, FrameCodec, Hello, KeepAlive, program_digest
+from hil.pace import PACE
 from tools.pcap import CapturedFrame, write_pcap
 from tools.reading import open_capture
 from tools.topo import main
@@ -340,7 +340,7 @@ def launch(tmp: Path, name: str, *args: str) -> Run:
         sys.executable, "-m", "hil.launcher", "--transport", "virtual", "--stand-in", "none", "--cycle-ms", "30",
         "--capture", str(capture), "--trace", str(trace), "--json", "--log", str(tmp / f"{name}.log"), *args,
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, cwd=ROOT)
+    proc = PACE.run(cmd, text=True, timeout=180, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     truth = {}
