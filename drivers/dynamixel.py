@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import select
 import threading
 import time
 from collections.abc import Iterator
@@ -79,18 +80,69 @@ _COMM_MEANING = {
 }
 
 
+#: PINGs after a REBOOT before the servo counts as not coming back (with reboot_timeout_s).
+REBOOT_PINGS: Final = 3
+#: The longest one wait for reply bytes blocks (the SDK then checks its timeout and reads
+#: again): long enough not to spin, short next to any reply timeout.
+_READ_WAIT_S: Final = 0.005
+#: Time (ms) beyond what this process asked to wait, or between two of its reads of the
+#: port, that means the process was not running (a busy machine, a paused VM): that time is
+#: not counted against the servo's reply.
+_STALL_MS: Final = 25.0
+
+
 def _port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) -> Any:
-    """A PortHandler; with ``latency_timer_ms`` its reply timeout uses that instead of the
-    process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the FTDI default)."""
-    if latency_timer_ms is None:
-        return sdk.PortHandler(path)
-    latency = float(latency_timer_ms)
+    """A PortHandler that waits for reply bytes instead of spinning and counts only the time
+    this process ran against a reply's timeout; with ``latency_timer_ms``, whose timeout uses
+    that instead of the process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the
+    FTDI default).
+
+    The SDK opens its port with ``timeout=0`` and, awaiting a status packet, calls
+    ``readPort`` in a tight loop until the bytes or its timeout come: the process burns a
+    core for every reply it awaits, and a servo emulator sharing that core (the HIL world's,
+    or one in the same process, which then also fights it for the GIL) answers late, often
+    past the 34 ms timeout. Here ``readPort`` first waits in ``select`` (no CPU, GIL
+    released) until a byte is there, the packet's timeout is due, or ``_READ_WAIT_S`` passed.
+
+    When this process was not running for more than ``_STALL_MS`` (a wait that returned that
+    much later than asked, or that long between two reads), the stall is added to the
+    packet's deadline. A real servo's reply waits in the kernel's buffer meanwhile and is
+    read at once; an emulated one (a thread, stalled too) gets the time it was owed. A servo
+    that is missing still times out after the full timeout of running time."""
+    latency = None if latency_timer_ms is None else float(latency_timer_ms)
 
     class _PortHandler(sdk.PortHandler):  # type: ignore[misc, name-defined]
+        _seen_ms = 0.0  # when this process last read the port, on the SDK's clock (ms)
+
         def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK's name
-            # Same formula as the SDK, with this port's latency timer.
-            self.packet_start_time = self.getCurrentTime()
-            self.packet_timeout = self.tx_time_per_byte * packet_length + latency * 2.0 + 2.0
+            if latency is None:
+                super().setPacketTimeout(packet_length)
+            else:  # same formula as the SDK, with this port's latency timer
+                self.packet_start_time = self.getCurrentTime()
+                self.packet_timeout = self.tx_time_per_byte * packet_length + latency * 2.0 + 2.0
+            self._seen_ms = self.packet_start_time
+
+        def setPacketTimeoutMillis(self, msec: float) -> None:  # noqa: N802 - SDK's name
+            super().setPacketTimeoutMillis(msec)
+            self._seen_ms = self.packet_start_time
+
+        def readPort(self, length: int) -> bytes:  # noqa: N802 - SDK's name
+            ser = self.ser
+            if length > 0 and self.packet_timeout > 0:
+                now = self.getCurrentTime()
+                if now - self._seen_ms > _STALL_MS:  # not running since the last read
+                    self.packet_start_time += now - self._seen_ms
+                if not ser.in_waiting:
+                    left_ms = self.packet_timeout - self.getTimeSinceStart()
+                    if left_ms > 0:
+                        wait_s = min(left_ms / 1000.0, _READ_WAIT_S)
+                        with contextlib.suppress(OSError, ValueError):
+                            select.select([ser.fileno()], [], [], wait_s)
+                        late = self.getCurrentTime() - now - wait_s * 1000.0
+                        if late > _STALL_MS:  # the wait ended long after it was due
+                            self.packet_start_time += late
+                self._seen_ms = self.getCurrentTime()
+            return ser.read(length)  # type: ignore[no-any-return]
 
     return _PortHandler(path)
 
@@ -331,13 +383,18 @@ class DynamixelDriver(ModuleDriver):
         if result != 0:
             raise ServoCommError(f"REBOOT of {self._who(joint)}: {self._result(result)}")
         deadline = time.monotonic() + self.reboot_timeout_s
+        attempts = 0
         while True:  # the servo is silent while it restarts
             time.sleep(0.02)
+            attempts += 1
             try:
                 self._ping(joint)
                 return
             except ServoNotFound:
-                if time.monotonic() > deadline:
+                # a PING sent while the servo restarts goes unanswered and costs a whole reply
+                # timeout, longer on a machine that stalls (see _port_handler): give up only
+                # after REBOOT_PINGS, not after the first because its timeout ran past the deadline
+                if attempts >= REBOOT_PINGS and time.monotonic() > deadline:
                     raise
 
     # -- bus helpers (callers hold the lock) --

@@ -25,10 +25,12 @@ from drivers.recording import RecordingDriver
 from hil.servo_emulator import ServoEmulator
 from hil.servo_table import Fault
 
-# The SDK's default 16 ms latency timer (34 ms reply timeout). Shorter is possible on a pty, but
-# the in-process emulator shares the GIL with the SDK's busy wait, which can delay a reply by a
-# switch interval (5 ms): a 4 ms timer failed about one health() in 200.
-LATENCY_MS = None
+# A 250 ms latency timer (502 ms reply timeout), not the SDK's 16 ms (34 ms): the emulator is
+# a thread of this process, and on a loaded 2-core virtual machine one of its replies now and
+# then comes 50-300 ms late while this thread runs on (seen here: the driver does not count a
+# stall of the whole process against a reply, but one thread left out alone is not seen).
+# These tests are about what the driver does with replies, not about their latency.
+LATENCY_MS = 250.0
 
 
 @pytest.fixture
@@ -203,6 +205,8 @@ def test_runtime_thread_survives_every_fault(emu: ServoEmulator, driver: Dynamix
             assert driver.health().faults  # reported, not raised
             emu.set_fault(2, fault, active=False)
             driver.recover()
+            ok = ticks["ok"]
+            wait_for(lambda ok=ok: ticks["ok"] >= ok + 3)  # commanding again after the fault
         stop.set()
         thread.join(timeout=5)
         assert not thread.is_alive()
@@ -239,10 +243,10 @@ def test_missing_port_is_a_comm_error() -> None:
 def test_latency_timer_sets_this_ports_reply_timeout(emu: ServoEmulator) -> None:
     import dynamixel_sdk.port_handler as sdk_port
 
-    with DynamixelDriver(emu.port_path, latency_timer_ms=8) as drv:
+    with DynamixelDriver(emu.port_path, latency_timer_ms=LATENCY_MS) as drv:
         port = drv._port
         port.setPacketTimeout(11)
-        assert port.packet_timeout == pytest.approx(port.tx_time_per_byte * 11 + 2 * 8 + 2)
+        assert port.packet_timeout == pytest.approx(port.tx_time_per_byte * 11 + 2 * LATENCY_MS + 2)
         assert drv.read_positions()
     assert sdk_port.LATENCY_TIMER == 16  # the process-wide default is untouched
 

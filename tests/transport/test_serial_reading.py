@@ -90,7 +90,12 @@ def test_a_port_whose_device_vanishes_is_lost_and_never_spins(monkeypatch: pytes
     master, slave, path = open_raw_pty()
     codec = contract_codec()
     pollers: list[CountingPoll] = []
-    monkeypatch.setattr(select, "poll", lambda: pollers.append(CountingPoll()) or pollers[-1])
+
+    def counting_poll() -> CountingPoll:
+        pollers.append(CountingPoll())
+        return pollers[-1]
+
+    monkeypatch.setattr(select, "poll", counting_poll)
     try:
         with SerialTransport(codec) as t:
             t.attach(1, path)
