@@ -11,7 +11,7 @@ import pytest
 from dh2rt.compiler import compile_file
 from dh2rt.program import CompiledProgram
 from dh2rt.testing import FaultWatch
-from hil.pace import MachineTooSlow
+from hil.pace import MachineTooSlow, realtime_problem
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -58,6 +58,13 @@ def pytest_runtest_setup(item: pytest.Item) -> Iterator[None]:
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
     return (yield from _skip_if_too_slow())
+
+
+@pytest.fixture(autouse=True)
+def _realtime(request: pytest.FixtureRequest) -> None:
+    """A test marked ``realtime`` is skipped, saying why, on a machine that keeps no real time."""
+    if request.node.get_closest_marker("realtime") is not None and (why := realtime_problem()):
+        pytest.skip(why)
 
 
 def _skip_if_too_slow() -> Iterator[None]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import sys
 import threading
@@ -177,6 +178,10 @@ def test_hardware_alert_bits_are_all_named(emu: ServoEmulator, driver: Dynamixel
         driver.read_positions()
 
 
+def commanding_again(ticks: dict[str, int], ok: int) -> bool:
+    return ticks["ok"] >= ok
+
+
 def test_runtime_thread_survives_every_fault(emu: ServoEmulator, driver: DynamixelDriver) -> None:
     """A stand-in for the module runtime keeps commanding through every fault."""
     stop = threading.Event()
@@ -205,8 +210,7 @@ def test_runtime_thread_survives_every_fault(emu: ServoEmulator, driver: Dynamix
             assert driver.health().faults  # reported, not raised
             emu.set_fault(2, fault, active=False)
             driver.recover()
-            ok = ticks["ok"]
-            wait_for(lambda ok=ok: ticks["ok"] >= ok + 3)  # commanding again after the fault
+            wait_for(functools.partial(commanding_again, ticks, ticks["ok"] + 3))
         stop.set()
         thread.join(timeout=5)
         assert not thread.is_alive()

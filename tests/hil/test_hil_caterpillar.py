@@ -178,6 +178,7 @@ def test_killed_module_splits_the_snake_in_two(tmp_path: Path) -> None:
             assert nxt["hormone"][2] == NEXT[prev["hormone"][2]], f"m{k}: {prev} then {nxt}"
 
 
+@pytest.mark.realtime
 def test_impaired_serial_links_never_feed_a_corrupted_hormone_and_recover() -> None:
     program = compile_file(str(PROGRAM))
     topology = parse_spec(f"snake:{N}")
@@ -235,6 +236,7 @@ NEGOTIATION_CYCLES = 16
 CUT_CYCLES = 8
 
 
+@pytest.mark.realtime
 def test_world_events_change_links() -> None:
     """cut, dock and inject over CAN-style link ids (python-can virtual, modules as threads)."""
     program = compile_file(str(PROGRAM))

@@ -16,6 +16,7 @@ import pytest
 from dh2rt import cli
 from dh2rt.transport.can_bus import socketcan_problem
 from hil import launcher
+from hil.pace import PACE
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = Path(sys.executable).parent / "dh2rt"
@@ -75,7 +76,8 @@ def test_bad_input_exits_2(argv: list[str], needle: str, capsys: pytest.CaptureF
 
 def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trace = tmp_path / "t.jsonl"
-    code = cli.main(
+    code = PACE.call(
+        cli.main,
         ["--transport", "virtual", "--module-count", "4", "--cycles", "60", "--cycle-ms", "10", "--json",
          "--trace", str(trace), "--event", "30:inject:m2:X(A)", "--stand-in", "recording"]
     )  # fmt: skip
@@ -181,7 +183,8 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
 
     Eleven processes share two cores: 40 ms cycles and a 6-cycle liveness bound leave the
     slack that 25 ms and 3 cycles did not (a late module was taken for a silent one)."""
-    code = cli.main(
+    code = PACE.call(
+        cli.main,
         ["--transport", "serial", "--program", str(ROOT / "examples" / "legs_to_snake.dh2"), "--topology",
          "dragon", "--cycles", "400", "--cycle-ms", "40", "--silence-cycles", "6", "--event", "5:inject:tail2:LTS",
          "--json",
@@ -196,7 +199,8 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
 
 def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     trace = tmp_path / "t.jsonl"
-    code = cli.main(
+    code = PACE.call(
+        cli.main,
         ["--transport", "serial", "--module-count", "4", "--cycles", "150", "--cycle-ms", "20",
          "--event", "30:kill:m2", "--event", "70:restart:m2", "--json", "--stand-in", "recording",
          "--trace", str(trace)]
@@ -220,7 +224,9 @@ def test_default_stand_in_is_the_physics_world_through_the_servo_firmware_path(
 ) -> None:
     """By default each module process drives Dynamixel servos (dynamixel-sdk over a pty) that an
     emulator maps onto PyBullet joints: the caterpillar crawls forward in the loop."""
-    code = cli.main(["--transport", "serial", "--module-count", "6", "--cycles", "200", "--cycle-ms", "20", "--json"])
+    code = PACE.call(
+        cli.main, ["--transport", "serial", "--module-count", "6", "--cycles", "200", "--cycle-ms", "20", "--json"]
+    )
     assert code == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["stand_in"] == "pybullet"
@@ -242,7 +248,8 @@ def test_a_run_with_faults_exits_1_naming_them(tmp_path: Path, capsys: pytest.Ca
     in the JSON and on stderr, writes the log where it says, and exits 1."""
     program, log = tmp_path / "dividing.dh2", tmp_path / "run.log"
     program.write_text(DIVIDING)
-    code = cli.main(
+    code = PACE.call(
+        cli.main,
         ["--transport", "inproc", "--program", str(program), "--module-count", "3", "--cycles", "40",
          "--cycle-ms", "10", "--stand-in", "recording", "--json", "--log", str(log)]
     )  # fmt: skip
@@ -256,7 +263,8 @@ def test_a_run_with_faults_exits_1_naming_them(tmp_path: Path, capsys: pytest.Ca
 
 
 def test_a_clean_run_exits_0_with_no_problems(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code = cli.main(
+    code = PACE.call(
+        cli.main,
         ["--transport", "inproc", "--module-count", "3", "--cycles", "40", "--cycle-ms", "10",
          "--stand-in", "recording", "--json", "--log", str(tmp_path / "run.log")]
     )  # fmt: skip

@@ -218,6 +218,7 @@ def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
     assert loaded == ["can"]
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("count", [2, 8])
 def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: int, tmp_path: Path) -> None:
     """A snake of `count` modules: each given only its module.toml naming its connectors'

@@ -144,6 +144,7 @@ def _netns_problem() -> str | None:
     return None if probe.returncode == 0 else "this machine cannot create a private network namespace"
 
 
+@pytest.mark.realtime
 def test_eight_modules_alone_on_a_shared_bus(tmp_path: Path) -> None:
     """Eight `dh2rt module` processes on python-can udp_multicast (inside a private network
     namespace), each with only its module.toml; the contact emulator plays the infrared pairs.

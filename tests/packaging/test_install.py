@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from hil.pace import PACE
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -49,10 +51,10 @@ def test_installed_demo_runs_away_from_the_checkout(installed: Path, tmp_path: P
 
 def test_installed_launcher_runs_its_default_program(installed: Path, tmp_path: Path) -> None:
     """The launcher's default program ships in the package: no checkout, no --program."""
-    proc = subprocess.run(
+    proc = PACE.run(
         [str(installed / "dh2rt"), "--transport", "inproc", "--module-count", "3", "--cycles", "20",
          "--stand-in", "recording", "--log", str(tmp_path / "run.log")],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        text=True, timeout=120, cwd=tmp_path,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-1000:] + proc.stderr[-1000:]
     assert "caterpillar on snake:3 over inproc" in proc.stdout
