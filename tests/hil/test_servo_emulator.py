@@ -6,12 +6,14 @@ import os
 import time
 from collections.abc import Iterator
 
+import dynamixel_sdk
 import pytest
 from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
 
 from dh2rt.errors import EmulatorError
 from dh2rt.testing import FakeClock
 from drivers import dxl_table as dxt
+from drivers.dynamixel import _port_handler
 from drivers.recording import RecordingDriver
 from hil.dxl_protocol import (
     BROADCAST_ID,
@@ -53,7 +55,10 @@ def core() -> Iterator[ServoEmulator]:
 @pytest.fixture
 def sdk() -> Iterator[tuple[ServoEmulator, PortHandler, PacketHandler]]:
     with ServoEmulator((1, 2)) as emu:
-        port = PortHandler(emu.port_path)
+        # the SDK's PortHandler as the driver makes it: replies awaited in select, a 250 ms
+        # latency timer (an emulator thread's reply can come hundreds of ms late on a loaded
+        # machine; these tests are about what the replies say)
+        port = _port_handler(dynamixel_sdk, emu.port_path, 250.0)
         assert port.openPort() and port.setBaudRate(1_000_000)
         try:
             yield emu, port, PacketHandler(2.0)

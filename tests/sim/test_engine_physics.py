@@ -55,10 +55,10 @@ def test_dynamixel_path_moves_like_the_stand_in(caterpillar: CompiledProgram) ->
         for m in range(n):
             emulator = stack.enter_context(ServoEmulator.for_module(run.world.driver(m)))
             emulator.start()
-            # The emulator shares this process's GIL with the SDK's busy wait: a generous reply
+            # The emulator shares this process's GIL with PyBullet's steps: a generous reply
             # timeout (only ever reached when a reply is really missing) keeps a loaded machine
             # from failing the test.
-            drivers.append(stack.enter_context(DynamixelDriver(emulator.port_path, latency_timer_ms=100)))
+            drivers.append(stack.enter_context(DynamixelDriver(emulator.port_path, latency_timer_ms=250)))
         # Each cycle's commands go through the SDK and the emulator; a sync read after the
         # writes makes sure the emulator applied them before physics steps on.
         run.drivers = list(drivers)
