@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from dh2rt.errors import MachineTooSlow
 from hil.config import CYCLE_PERIOD_S
 
 #: Sleeps the real-time probe makes, and how long each asks for (s).
@@ -49,11 +50,6 @@ TOO_SLOW = "this machine cannot keep"
 #: The pace never stretches periods more than this.
 MAX_FACTOR = 4
 _OPTION = "--cycle-ms"
-
-
-class MachineTooSlow(RuntimeError):
-    """The machine kept no period up to MAX_FACTOR times the one asked for, or keeps no real
-    time at all (realtime_problem)."""
 
 
 @functools.cache

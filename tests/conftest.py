@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 
 from dh2rt.compiler import compile_file
+from dh2rt.errors import MachineTooSlow
 from dh2rt.program import CompiledProgram
 from dh2rt.testing import FaultWatch
-from hil.pace import MachineTooSlow, realtime_problem
+from hil.pace import realtime_problem
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

@@ -100,6 +100,7 @@ def test_undock_and_redock_get_a_fresh_link_and_a_restarted_module_rejoins(seed:
     assert len(current_links(log)) == 4
 
 
+@pytest.mark.realtime
 def test_an_injected_id_collision_is_resolved() -> None:
     """A forged HOLD of a link's id with the lowest tag there is, on the robot's own bus:
     the pair holding that id loses it by the rule, negotiates a fresh one, and the robot runs
