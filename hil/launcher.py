@@ -534,9 +534,13 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
     return out
 
 
+#: How a run's problems begin to say that modules could not keep the period (hil.pace reads it).
+TOO_SLOW = "this machine cannot keep"
+
+
 def _suggest_period(world: World) -> str:
     ms = world.cycle_period * 1000
-    return f"this machine cannot keep {ms:g} ms cycles with {world.topology.size} modules; try --cycle-ms {ms * 2:g}"
+    return f"{TOO_SLOW} {ms:g} ms cycles with {world.topology.size} modules; try --cycle-ms {ms * 2:g}"
 
 
 def _warn_if_late(world: World) -> bool:

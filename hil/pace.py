@@ -39,14 +39,13 @@ from typing import Any
 
 from dh2rt.errors import MachineTooSlow
 from hil.config import CYCLE_PERIOD_S
+from hil.launcher import TOO_SLOW
 
 #: Sleeps the real-time probe makes, and how long each asks for (s).
 PROBE_SLEEPS = 200
 PROBE_SLEEP_S = 0.005
 #: A machine whose 99th-percentile sleep ends later than this (ms) keeps no real time.
 REALTIME_P99_MS = 20.0
-#: What the launcher says (hil.launcher.problems) when modules could not keep the period.
-TOO_SLOW = "this machine cannot keep"
 #: The pace never stretches periods more than this.
 MAX_FACTOR = 4
 _OPTION = "--cycle-ms"

@@ -11,7 +11,8 @@ import pytest
 from dh2rt.errors import MachineTooSlow
 from hil import launcher
 from hil import pace as pace_module
-from hil.pace import MAX_FACTOR, TOO_SLOW, LoopPace
+from hil.launcher import TOO_SLOW
+from hil.pace import MAX_FACTOR, LoopPace
 
 #: A launcher stand-in that keeps any period of at least 50 ms and says, as the launcher
 #: does, that it cannot keep a shorter one; it prints the period it was given.
