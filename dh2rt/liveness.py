@@ -61,6 +61,7 @@ class _Link:
     silent: int = 0
     last_hello: int = -(10**9)  # cycle a counted Hello last went out
     hello_due: bool = True
+    digest: bytes | None = None  # the program digest of the peer's last accepted Hello
     seq_out: int = 0
     seq_in: int | None = None  # last KeepAlive sequence number heard
 
@@ -80,6 +81,11 @@ class Liveness:
         if silence_cycles < 1:
             raise ValueError(f"silence_cycles {silence_cycles!r} must be at least 1")
         self.digest = digest
+        #: the program version this module's Hellos state (None: 7-byte Hellos without one)
+        self.version: int | None = None
+        #: other program digests accepted from a neighbour for now (a rollout's switch window,
+        #: ``dh2rt.rollout.Rollout.tolerated``); its frames are heard but not its hormones
+        self.tolerated: frozenset[bytes] = frozenset()
         self.silence_cycles = silence_cycles
         self.counters = LivenessCounters()
         self._links: dict[int, _Link] = {}
@@ -103,6 +109,20 @@ class Liveness:
         link = self._links.get(connector)
         return link is not None and link.verified
 
+    def foreign(self, connector: int) -> bool:
+        """The peer on ``connector`` was verified on a tolerated program, not this one: its
+        hormones may mean other hormones here (drop them; its frames still count as heard)."""
+        link = self._links.get(connector)
+        return link is not None and link.digest is not None and link.digest != self.digest
+
+    def announce(self, digest: bytes, version: int | None) -> None:
+        """This module now runs another program: every peer is told by a Hello at the next
+        beacon (the host may also send one at once), and peers whose last Hello named another
+        program count as foreign until they say Hello on this one."""
+        self.digest, self.version = digest, version
+        for link in self._links.values():
+            link.hello_due = True
+
     def refused(self, connector: int) -> bool:
         link = self._links.get(connector)
         return link is not None and link.refused
@@ -120,11 +140,13 @@ class Liveness:
         if link is None:
             return Verdict.UNATTACHED
         if isinstance(frame, Hello):
-            if frame.digest != self.digest:
+            foreign = frame.digest != self.digest
+            if foreign and frame.digest not in self.tolerated:
                 link.refused = True
                 link.verified = False
                 self.counters.refused += 1
                 return Verdict.REFUSED
+            link.digest = frame.digest
             link.refused = False
             link.seq_in = None  # a (re)started peer numbers its beacons afresh
             if cycle - link.last_hello >= self.silence_cycles:
@@ -174,7 +196,7 @@ class Liveness:
             if not link.verified or link.hello_due:
                 link.last_hello = cycle
                 link.hello_due = False
-                out.append(Beacon(c, Hello(self.digest)))
+                out.append(Beacon(c, Hello(self.digest, self.version)))
             else:
                 link.seq_out = (link.seq_out + 1) & 0xFF
                 out.append(Beacon(c, KeepAlive(link.seq_out)))

@@ -53,9 +53,9 @@ from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.program import CompiledProgram
 from dh2rt.records import cycle_json
 from dh2rt.transport.base import LinkEnd, Received, Transport
-from dh2rt.wire.frame import Hello, program_digest
+from dh2rt.wire.frame import FrameCodec, Hello, program_digest
 
-__all__ = ["SILENCE_CYCLES", "Driver", "ModuleRuntime", "RuntimeCounters"]
+__all__ = ["SILENCE_CYCLES", "Driver", "LinkObserver", "ModuleRuntime", "RuntimeCounters"]
 #: A cycle that starts later than this fraction of a period after its deadline is late.
 LATE_TOLERANCE = 0.5
 #: Cycles between two reads of the driver's health (servo faults show on reads).
@@ -73,6 +73,22 @@ class Driver(Protocol):
     """What the runtime needs of a servo driver (drivers.base.ModuleDriver fits)."""
 
     def set_targets(self, dof1_deg: float, dof2_deg: float) -> None: ...
+
+
+class LinkObserver(Protocol):
+    """Who else watches the links (a rollout host, :mod:`hil.rollout_host`): told of each
+    cycle's start before the engine runs, of every Hello (verified or refused), and of
+    connectors liveness found silent. It may switch the program at a cycle start."""
+
+    def cycle_start(self, rt: ModuleRuntime, now: float) -> None: ...
+
+    def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None: ...
+
+    def link_down(self, connector: int, now: float) -> None: ...
+
+    def attached(self, connector: int) -> None: ...
+
+    def detached(self, connector: int) -> None: ...
 
 
 class _Recoverable(Protocol):
@@ -95,6 +111,10 @@ class RuntimeCounters:
     hormones_sent: int = 0
     hormones_received: int = 0
     actuator_faults: int = 0
+    #: hormones dropped from a neighbour still on another program (a rollout's switch window)
+    foreign_hormones: int = 0
+    #: programs switched to while running (a rollout)
+    switches: int = 0
     log: list[str] = field(default_factory=list)
 
 
@@ -122,13 +142,14 @@ class ModuleRuntime:
         self.transport = transport
         available = dict(STANDARD_NATIVES)
         available.update(natives or {})
+        self._natives = available
         used = {n: available[n] for n in program.natives if n in available}
         self.engine = Engine(program, timer_phase=timer_phase, natives=used)
         self.driver = driver
         #: The servo fault in force, as the driver reported it (None when all is well).
         self.actuator_fault: str | None = None
         self.cycle_period = cycle_period
-        self.clock = clock
+        self.clock = clock  # the transport stamps arrivals on it too
         self.record = record
         self.module = module
         self.name = name or f"m{module}"
@@ -151,6 +172,18 @@ class ModuleRuntime:
         self._started = 0.0
         self._injected: list[Hormone] = []
         self._commanded: tuple[float, float] | None = (self.engine.dof[0], self.engine.dof[1])
+        #: told of cycle starts, Hellos and silent links (None: nobody)
+        self.observer: LinkObserver | None = None
+
+    @property
+    def clock(self) -> Callable[[], float]:
+        """This module's clock (monotonic seconds); the transport stamps arrivals on it."""
+        return self._clock
+
+    @clock.setter
+    def clock(self, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self.transport.clock = clock
 
     # ------------------------------------------------------------ links
 
@@ -161,6 +194,8 @@ class ModuleRuntime:
         else:
             self.transport.attach(connector, end)
         self.liveness.attach(connector)
+        if self.observer is not None:
+            self.observer.attached(connector)
 
     def detach(self, connector: int) -> None:
         """Detach ``connector``; the engine senses the link gone at once, and what had come
@@ -172,6 +207,8 @@ class ModuleRuntime:
         self.stats.lost_in_flight += lost
         if self.engine.status[connector - 1]:
             self.engine.link_down(connector)
+        if self.observer is not None:
+            self.observer.detached(connector)
 
     def inject(self, hormone: Hormone) -> None:
         """Place a hormone in the mailbox, as if sensed or created here (next cycle)."""
@@ -229,6 +266,9 @@ class ModuleRuntime:
         """One cycle: receive, liveness, engine, send, beacons, driver (see module docs)."""
         engine = self.engine
         self._started = self.clock()
+        if self.observer is not None:
+            self.observer.cycle_start(self, self._started)
+            engine = self.engine  # the observer may have switched the program
         received = self._pending
         self._pending = []
         received.extend(self.transport.poll(0.0))
@@ -239,11 +279,16 @@ class ModuleRuntime:
             if self._on_frame(r):
                 heard.add(r.at)
                 if isinstance(r.frame, Hormone):
-                    arrivals.append(Arrival(r.at, r.remote, r.frame))
+                    if self.liveness.foreign(r.at):
+                        self.stats.foreign_hormones += 1
+                    else:
+                        arrivals.append(Arrival(r.at, r.remote, r.frame))
         linked = {c for c, s in enumerate(engine.status, 1) if s}
         for c, silent in self.liveness.tick(heard, linked):
             engine.link_down(c)
             self._log(f"connector {self._cname(c)} silent for {silent} cycles: status 0")
+            if self.observer is not None:
+                self.observer.link_down(c, self._started)
         arrivals.sort(key=_by_connector)  # as the in-process robot orders a mailbox
         if self._injected:
             arrivals.extend(Arrival(0, 0, h) for h in self._injected)
@@ -276,6 +321,29 @@ class ModuleRuntime:
             self.records.append(self._record(arrivals, sent, faults))
         self.cycle += 1
         self.stats.cycles = self.cycle
+
+    def switch_program(self, program: CompiledProgram, version: int | None, note: str) -> None:
+        """Run ``program`` from this cycle on (a rollout's agreed switch): a new engine whose
+        LocalTimer goes on from the old one's (modulo the new ClockCycle) and which keeps
+        ConnectorStatus and the joints' angles, a codec for its hormones, and a Hello with its
+        digest and ``version`` through every attached connector at once."""
+        old = self.engine
+        used = {n: self._natives[n] for n in program.natives if n in self._natives}
+        engine = Engine(program, timer_phase=old.timer, natives=used)
+        for c, remote in enumerate(old.status, 1):
+            if remote:
+                engine.link_up(c, remote)
+        engine.dof[0], engine.dof[1] = old.dof[0], old.dof[1]
+        self.program, self.engine = program, engine
+        self.transport.codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+        self.digest = program_digest(program.image)
+        self.liveness.announce(self.digest, version)
+        self.stats.switches += 1
+        self._log(note)
+        hello = Hello(self.digest, version)
+        for c in self.liveness.connectors:
+            if self.transport.send(c, hello):
+                self.stats.hellos_sent += 1
 
     def attach_driver(self, driver: Driver, note: str) -> None:
         """Actuators that were missing are back: drive them from now on (the current targets
@@ -341,6 +409,8 @@ class ModuleRuntime:
         frame = r.frame
         was_refused = self.liveness.refused(r.at)
         verdict = self.liveness.receive(r.at, frame, self.cycle)
+        if self.observer is not None and isinstance(frame, Hello) and verdict is not Verdict.UNATTACHED:
+            self.observer.hello(r.at, r.remote, frame, self.clock())
         if verdict is Verdict.REFUSED:
             assert isinstance(frame, Hello)
             if not was_refused:

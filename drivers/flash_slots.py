@@ -136,11 +136,14 @@ class SlotRecord:
 
 @dataclass(frozen=True, slots=True)
 class TrialRecord:
-    """A program on trial: its slot, the clean cycles it must run, and how often it booted."""
+    """A program on trial: its slot, the clean cycles it must run, and how often it booted.
+    ``hold``: staged by a rollout, it waits for the robot's agreed switch (a boot runs the
+    confirmed program meanwhile; :meth:`Flash.start_trial` boots it at the switch)."""
 
     program: SlotRecord
     cycles: int
     boots: int = 0
+    hold: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,6 +157,8 @@ class FlashState:
         trial = None
         if self.trial is not None:
             trial = {**_record_json(self.trial.program), "cycles": self.trial.cycles, "boots": self.trial.boots}
+            if self.trial.hold:
+                trial["hold"] = True
         doc = {"format": STATE_FORMAT, "confirmed": _record_json(self.confirmed), "trial": trial}
         return json.dumps(doc, indent=1, sort_keys=True).encode() + b"\n"
 
@@ -166,7 +171,10 @@ class FlashState:
         confirmed, trial = _record(doc["confirmed"]), doc["trial"]
         if trial is None:
             return cls(confirmed)
-        return cls(confirmed, TrialRecord(_record(trial), _count(trial, "cycles"), _count(trial, "boots")))
+        hold = trial.get("hold", False)
+        if type(hold) is not bool:
+            raise ValueError(f"hold {hold!r} is not true or false")
+        return cls(confirmed, TrialRecord(_record(trial), _count(trial, "cycles"), _count(trial, "boots"), hold))
 
 
 def _record_json(record: SlotRecord) -> dict[str, Any]:
@@ -244,6 +252,11 @@ class Flash:
         self.last_refusal: str | None = None
         #: Trials reverted (by a fault, a crash or a restart) since this Flash was made.
         self.reverts = 0
+        #: signed images of the trials reverted since this Flash was made (a rollout never
+        #: takes them again)
+        self.reverted: list[bytes] = []
+        #: a rollout's staged image that waits for the switch (found by :meth:`boot`), else None
+        self.held: bytes | None = None
         self._running: Boot | None = None
 
     @property
@@ -289,8 +302,14 @@ class Flash:
                 "stage a signed image (dh2rt image PROGRAM --sign KEY --version N)"
             )
         trial = state.trial
+        self.held = None
         if trial is not None:
             checked = self._check_slot(trial.program) if trial.boots == 0 else "restarted before it was confirmed"
+            if trial.hold and isinstance(checked, bytes):
+                # staged by a rollout before its switch: the old program runs until then
+                self.held = self.files.read(slot_file(trial.program.slot))
+                log.info("%s: slot %s waits for the rollout's switch", self.directory, trial.program.slot)
+                return self._boot_confirmed(state)
             if isinstance(checked, bytes):
                 self._write_state(replace(state, trial=replace(trial, boots=trial.boots + 1)))
                 log.info("%s: slot %s boots on trial", self.directory, trial.program.slot)
@@ -323,7 +342,28 @@ class Flash:
 
     # -------------------------------------------------------- stage
 
-    def stage(self, data: bytes, trial_cycles: int | None = None) -> Staged:
+    def start_trial(self) -> Boot:
+        """The rollout's switch: boot the held image on trial (its boot counted first, so a
+        restart before it is confirmed reverts). Raises FlashError when none is held."""
+        state = self._read_state()
+        trial = None if state is None else state.trial
+        if state is None or trial is None or not trial.hold or trial.boots:
+            raise FlashError(f"{self.directory}: no staged image waits for a switch")
+        checked = self._check_slot(trial.program)
+        if isinstance(checked, str):
+            self._boot_confirmed(self._revert(state, checked))
+            raise FlashError(f"{self.directory}: the staged image cannot boot: {checked}")
+        self._write_state(replace(state, trial=replace(trial, boots=1, hold=False)))
+        log.info("%s: slot %s boots on trial at the switch", self.directory, trial.program.slot)
+        self.held = None
+        self._running = _boot(trial.program, checked, trial=True, cycles=trial.cycles)
+        return self._running
+
+    def image(self, slot: str) -> bytes | None:
+        """The signed image in ``slot`` as stored (a rollout offers the running one)."""
+        return self.files.read(slot_file(slot))
+
+    def stage(self, data: bytes, trial_cycles: int | None = None, *, hold: bool = False) -> Staged:
         """Check ``data`` (signature, trust, version) and write it to the slot that is not
         confirmed, to boot on trial at the next :meth:`boot` (after ``trial_cycles`` clean
         cycles, the Flash's default when None, it may be confirmed). An empty flash confirms
@@ -334,9 +374,9 @@ class Flash:
         cycles = self.trial_cycles if trial_cycles is None else trial_cycles
         if cycles < 0:
             raise FlashError(f"trial_cycles {cycles}: must be 0 or more")
-        return self._install(data, self._state(), cycles)
+        return self._install(data, self._state(), cycles, hold)
 
-    def _install(self, data: bytes, state: FlashState | None, cycles: int) -> Staged:
+    def _install(self, data: bytes, state: FlashState | None, cycles: int, hold: bool = False) -> Staged:
         """Write an image that passes its checks: on trial beside ``state``'s confirmed
         program, or confirmed at once into an empty flash (``state`` None)."""
         exam = examine(data, self.trust)
@@ -352,7 +392,7 @@ class Flash:
             self._write_state(FlashState(record))
             log.info("%s: slot %s (version %d) confirmed: the first program", self.directory, slot, image.version)
         else:
-            self._write_state(replace(state, trial=TrialRecord(record, cycles)))
+            self._write_state(replace(state, trial=TrialRecord(record, cycles, hold=hold)))
             log.info("%s: slot %s (version %d) staged for a trial boot", self.directory, slot, image.version)
         return Staged(True, exam.verdict, exam.reason, slot)
 
@@ -407,6 +447,9 @@ class Flash:
     def _revert(self, state: FlashState, reason: str) -> FlashState:
         assert state.trial is not None
         trial = state.trial.program
+        image = self.files.read(slot_file(trial.slot))
+        if image is not None:
+            self.reverted.append(image)
         reverted = FlashState(state.confirmed)
         self._write_state(reverted)
         self.reverts += 1

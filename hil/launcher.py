@@ -47,11 +47,13 @@ from dh2rt.cmdline import (
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
 from dh2rt.events import Event, check_events, parse_event
+from dh2rt.signed_image import read_private_key
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
 from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
+from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash_event
 from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.supervisor import reap_exited_children
 from hil.visuals import RunVisuals
@@ -71,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hardware-in-the-loop: run each module of a robot as its own process over a real "
         "link layer (SocketCAN, python-can udp_multicast in a private network namespace, emulated "
         "serial infrared links) or as threads over an in-process bus.",
-        epilog="Without SocketCAN, try: dh2rt --transport serial --module-count 8 --cycles 300",
+        epilog="Without SocketCAN, try: dh2rt --transport serial --module-count 8 --cycles 300. "
+        "With --transport serial, --event CYCLE:flash:M:IMAGE plugs a programming cable into module M's "
+        "first free connector at CYCLE and flashes the signed IMAGE into the running robot "
+        "(docs/flashing.md); the run fails unless every module commits it.",
     )
     p.add_argument(
         "--program", type=Path, default=None, help="a .dh2 file (default: the caterpillar shipped with dh2rt)"
@@ -141,6 +146,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="record every frame on the robot's links: .pcapng (CAN and serial, the program inside; "
         "open it with dh2rt dump or Wireshark), or on a bus .pcap, .log (candump -L), .blf, .asc",
+    )
+    p.add_argument(
+        "--key",
+        type=Path,
+        metavar="KEY",
+        help="the robot's signing key (dh2rt keys new): the modules' program is signed with it and their "
+        "trust stores hold it, so that --event CYCLE:flash:M:IMAGE images signed with it are accepted "
+        "(default: a key of this run's)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
     p.add_argument(
@@ -265,7 +278,10 @@ def _main(argv: list[str] | None) -> int:
             raise OptionError(
                 f"--topology {ns.topology} has {topology.size} modules but --module-count is {ns.module_count}"
             )
-        events = [parse_event(e, topology, program.vocabulary) for e in ns.event]
+        events = [parse_event(e, topology, program.vocabulary) for e in ns.event if not is_flash_event(e)]
+        ns.flash_events = [parse_flash_event(e, topology) for e in ns.event if is_flash_event(e)]
+        ns.signer = read_private_key(ns.key) if ns.key is not None else None
+        check_flash_events(ns.flash_events, ns.transport, ns.cycles)
         if ns.cycles is not None:
             check_events(events, topology, ns.cycles)
         kind, _ = parse_transport_spec(ns.transport)
@@ -431,6 +447,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             hardware=hardware,
             bus_options=ns.bus_options,
             gui=ns.gui,
+            signer=ns.signer,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:
@@ -439,6 +456,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         return EXIT_USAGE
     interrupted = False
     failed = False
+    flashes = FlashEvents(ns.flash_events, world, progress)
     started = time.monotonic()
     views = (
         RunVisuals(world.physics, ns.record, ns.plot, camera=ns.camera, speed=ns.record_speed)
@@ -451,6 +469,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         last_draw = 0.0
         while not world.done():
             world.run_events(events, applied)
+            flashes.step()
             world.tick()
             if views is not None:
                 views.after_tick(world.cycle)
@@ -468,6 +487,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         _err(str(exc))
         failed = True
     finally:
+        flashes.close()
         try:
             world.stop()
         except KeyboardInterrupt:
@@ -482,8 +502,10 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     wrong = problems(world, events, clean_links=ns.frame_loss == 0 and ns.bit_error == 0)
     if failed:
         wrong.insert(0, "the world failed (see above)")
+    wrong += [f"{e.text}: not every module committed ({e.result.failure if e.result else 'never started'})"
+              for e in flashes.events if not (e.result and e.result.succeeded)]  # fmt: skip
     _write_log(log_path, world, wrong)
-    _summary(world, elapsed, out, ns.json, wrong, log_path)
+    _summary(world, elapsed, out, ns.json, wrong, log_path, flashes)
     if views is not None:
         views.finish(f"{program.name} on {topology.spec} over {ns.transport}", progress)
     if interrupted:
@@ -581,15 +603,29 @@ def _write_trace(path: Path, records: list[dict[str, Any]]) -> None:
 def _table(world: World) -> list[str]:
     lines = [
         f"{'module':<8} {'state':<8} {'cycle':>6} {'type':<10} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
-        f"{'frames/s':>9} {'errors':>6}"
+        f"{'frames/s':>9} {'errors':>6} {'version':>7} {'sha256':<16}"
     ]
     for r in world.rows():
         alias = "" if r["T"] is None else str(r["T"])
         lines.append(
             f"{r['name']:<8} {r['state']:<8} {r['cycle']:>6} {r['type']:<10} {alias:>3} {r['DOF1']:>6.0f} "
-            f"{r['DOF2']:>6.0f} {r['frames_per_s']:>9.0f} {r['errors']:>6}"
+            f"{r['DOF2']:>6.0f} {r['frames_per_s']:>9.0f} {r['errors']:>6} {_or_dash(r.get('version')):>7} "
+            f"{_or_dash(r.get('sha256'))[:16]:<16}"
         )
     return lines
+
+
+def _or_dash(value: object) -> str:
+    return "-" if value is None else str(value)
+
+
+def check_flash_events(events: list[FlashEvent], transport: str, cycles: int | None) -> None:
+    """Flash events need cables (the serial link emulator) and a cycle the run reaches."""
+    for ev in events:
+        if parse_transport_spec(transport)[0] != "serial":
+            raise OptionError(f"--event {ev.text}: a programming cable needs --transport serial")
+        if cycles is not None and ev.cycle >= cycles:
+            raise OptionError(f"--event {ev.text}: cycle {ev.cycle} never happens: the run's last is {cycles - 1}")
 
 
 def _draw(world: World, out: IO[str], tty: bool) -> None:
@@ -605,7 +641,10 @@ def _draw(world: World, out: IO[str], tty: bool) -> None:
     out.flush()
 
 
-def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path) -> None:
+def _summary(
+    world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path,
+    flashes: FlashEvents | None = None,
+) -> None:  # fmt: skip
     rows = world.rows()
     if as_json:
         summary = {
@@ -620,6 +659,7 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: l
             "modules": rows,
             "events": [{"text": text, "t": t} for text, t in world.event_times],
             "log": world.log[-200:],
+            "rollouts": [] if flashes is None else flashes.report(),
         }
         json.dump(summary, out)
         out.write("\n")
@@ -660,6 +700,8 @@ def _summary(world: World, elapsed: float, out: IO[str], as_json: bool, wrong: l
         out.write(f"modules with a fault at the end: {', '.join(faulted)}\n")
     for line in world.log[-20:]:
         out.write(f"  {line}\n")
+    for line in [] if flashes is None else flashes.lines():
+        out.write(f"{line}\n")
     out.write(f"log: {log_path} ({len(world.log)} lines)\n")
     out.flush()
 

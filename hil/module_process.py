@@ -63,6 +63,7 @@ from hil.config import ModuleConfig
 if TYPE_CHECKING:
     from drivers.flash_slots import Boot, Flash
     from hil.negotiated_links import NegotiatedLinks
+    from hil.rollout_host import RolloutHost
 from hil.control import (
     Attach,
     Command,
@@ -156,6 +157,8 @@ class ModuleHost:
             except BaseException:
                 rt.close()
                 raise
+        #: the rollout of new programs over the links (a module booted from its flash)
+        self.rollout: RolloutHost | None = self._start_rollout()
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -249,6 +252,22 @@ class ModuleHost:
             self.boot = self.flash.reject(f"the program does not load: {exc}")
             return load_image(self.boot.program)
 
+    def _start_rollout(self) -> RolloutHost | None:
+        """Take part in rollouts (docs/flashing.md) when booted from a flash."""
+        if self.flash is None or self.boot is None:
+            return None
+        from hil.rollout_host import RolloutHost
+
+        bitrate = int(self.config.bus_options.get("bitrate", 1_000_000))
+        return RolloutHost.for_module(
+            self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate
+        )
+
+    def _switched(self, program: CompiledProgram, boot: Boot) -> None:
+        """The rollout switched the running program (at a cycle start): it runs on trial."""
+        self.program, self.boot = program, boot
+        self._trial = TrialWatch()
+
     def _check_trial(self, rt: ModuleRuntime) -> None:
         """A program on trial is confirmed after its clean cycles (no receptor or actuator
         fault, every neighbour verified); a fault rejects it, and the module stops so that
@@ -260,6 +279,17 @@ class ModuleHost:
             self.flash.confirm()
             self.boot = self.flash.running
             rt.log.append(f"program version {self.boot.version if self.boot else '?'} confirmed after its trial")
+            if self.rollout is not None:
+                self.rollout.confirmed()
+        elif verdict is not None and self.rollout is not None and self.rollout.switched:
+            # switched to by a rollout: back to the confirmed program in the running loop,
+            # and the entry point is told (its neighbours offer it again; it declines for good)
+            boot = self.flash.reject(verdict)
+            program = load_image(boot.program)
+            note = f"program on trial rejected ({verdict}): back to version {boot.version}"
+            rt.switch_program(program, boot.version, note)
+            self.program, self.boot = program, boot
+            self.rollout.reverted(verdict)
         elif verdict is not None:
             self.flash.reject(verdict)
             rt.log.append(f"program on trial rejected ({verdict}): the next start boots the confirmed one")
@@ -275,6 +305,7 @@ class ModuleHost:
             "version": self.boot.version,
             "digest": self.boot.digest.hex(),
             "trial": self.boot.trial,
+            "sha256": self.program.hash,
             "refused": {str(k): v for k, v in self.flash.refused.items()},
             "reverts": self.flash.reverts,
         }

@@ -68,6 +68,9 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 "actuator_fault": s.get("actuator_fault"),
                 "last_fault": s.get("last_fault"),
                 "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),
+                # the program it runs, booted from its flash (a rollout may have switched it)
+                "version": s.get("program", {}).get("version"),
+                "sha256": s.get("program", {}).get("sha256"),
             }
         )
     return out

@@ -49,6 +49,7 @@ from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
+from dh2rt.transport.base import PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
@@ -81,6 +82,8 @@ from hil.supervisor import ModuleHandle, ProcessModule, Reports, deferred_interr
 THREAD_TRANSPORTS = ("inproc", "virtual")
 #: Transports on a shared bus: the modules negotiate their link ids (inproc keeps the world's).
 NEGOTIATED = ("virtual", "udp", "socketcan", "can")
+#: Emulator link ids of programming cables start here (the link map numbers docks from 0).
+CABLE_LINK_IDS = 10_000
 #: The bus transports' channels when the spec names none.
 _DEFAULT_CHANNELS = {
     cls.name: cls.default_channel for cls in (VirtualCanTransport, UdpCanTransport, SocketCanTransport)
@@ -115,6 +118,7 @@ class World:
         hardware: HardwareMap | None = None,
         bus_options: Mapping[str, Any] | None = None,
         gui: bool = False,
+        signer: bytes | None = None,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -184,10 +188,12 @@ class World:
         #: a key of this run's, which their trust stores hold (threads run the image as it is)
         self.signed_image: bytes | None = None
         self.trust: tuple[bytes, ...] = ()
+        #: the run's signing key (a rollout's new images are signed with it: tests, --event flash)
+        self.signer: bytes | None = None
         if not self.threads:
             from dh2rt.signed_image import new_private_key, pack, public_key
 
-            signer = new_private_key()
+            signer = self.signer = signer if signer is not None else new_private_key()
             self.signed_image = pack(program.image, 1, signer)
             self.trust = (public_key(signer),)
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
@@ -462,6 +468,23 @@ class World:
                 self._send(m, Attach(c, self.link_map.end(link, m, c)))
         if self.physics is not None:
             self.physics.dock(a, a_conn, b, b_conn)  # latches only if aligned within tolerance
+
+    def plug_cable(self, module: int, connector: int) -> tuple[int, str]:
+        """A programming cable into ``module``'s free ``connector`` (serial): an emulated
+        link whose other end is a pty for the flasher. Returns (link id, the flasher's path)."""
+        if self.emulator is None:
+            raise HilWorldError("a programming cable needs the serial transport's link emulator")
+        if self.link_map.peer_of((module, connector)) is not None:
+            raise HilWorldError(f"{self.where(module, connector)} is docked: a cable needs a free connector")
+        link = self.emulator.add_link(max(self.emulator.links, default=0) + CABLE_LINK_IDS)  # apart from the dock's
+        self._send(module, Attach(connector, PortEnd(link.paths[0])))
+        return link.link_id, link.paths[1]
+
+    def unplug_cable(self, module: int, connector: int, link_id: int) -> None:
+        """The cable is pulled out: the module's connector is free again."""
+        self._send(module, Detach(connector))
+        if self.emulator is not None:
+            self.emulator.undock(link_id)
 
     def kill(self, module: int) -> None:
         h = self.handles[module]

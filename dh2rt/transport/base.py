@@ -45,14 +45,16 @@ and the open/closed state; register the class in :mod:`dh2rt.transport.registry`
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
 from dh2rt.closing import Closing
 from dh2rt.errors import CodecError, TransportError
 from dh2rt.wire.frame import Frame, FrameCodec
+from dh2rt.wire.transfer import TRANSFER_FAMILY
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +126,14 @@ class Transport(Closing, ABC):
         self._dropped = 0
         self._corrupted = 0
         self._send_failed = 0
+        #: Where transfer frames (:mod:`dh2rt.wire.transfer`, a second frame family: byte 0's
+        #: top bits 2) go as they are polled: ``(connector, payload)``, before any link-frame
+        #: decoding (None: they are counted corrupted, as any frame this codec cannot read).
+        self.on_transfer: Callable[[int, bytes, float], None] | None = None
+        #: The clock arrivals are stamped on (the module runtime sets its own): a transfer
+        #: frame goes to ``on_transfer`` with the instant it arrived, which may be well before
+        #: it was polled (a loop that sleeps between cycles, a frame read at the next cycle).
+        self.clock: Callable[[], float] = time.monotonic
 
     # -- public API -------------------------------------------------------------------------
 
@@ -175,14 +185,31 @@ class Transport(Closing, ABC):
         self._send_failed += 1
         return False
 
+    def send_raw(self, through: int, payload: bytes) -> bool:
+        """Send an already encoded frame (a transfer frame) through ``through``; counted as
+        ``send`` counts. False if nothing is attached there or the medium refused it."""
+        end = self._links.get(through)
+        if self._closed or end is None:
+            self._send_failed += 1
+            return False
+        if self._transmit(through, end, payload):
+            self._sent += 1
+            return True
+        self._send_failed += 1
+        return False
+
     def poll(self, timeout: float = 0.0) -> list[Received]:
         """Frames received since the last call; waits up to ``timeout`` s for the first one."""
         if self._closed:
             return []
         out: list[Received] = []
-        for connector, payload in self._receive(max(0.0, timeout)):
+        for connector, payload, arrived in self._receive(max(0.0, timeout)):
             if connector not in self._links:
                 self._dropped += 1  # raced with a detach
+                continue
+            if payload and payload[0] >> 6 == TRANSFER_FAMILY and self.on_transfer is not None:
+                self._received += 1
+                self.on_transfer(connector, payload, arrived)
                 continue
             try:
                 sender, frame = self.codec.decode(payload)
@@ -237,8 +264,9 @@ class Transport(Closing, ABC):
         """Put one encoded frame on the medium; False if the medium refused it."""
 
     @abstractmethod
-    def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
-        """Whole payloads received, as ``(connector, payload)``; wait up to ``timeout`` s."""
+    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
+        """Whole payloads received, as ``(connector, payload, arrived)``; wait up to
+        ``timeout`` s. ``arrived``: when the medium had it whole, on :attr:`clock`."""
 
     @abstractmethod
     def _close(self) -> None:

@@ -192,9 +192,9 @@ class CanTransport(Transport):
                 return False
         return True
 
-    def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
+    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
         can = self._can
-        out: list[tuple[int, bytes]] = []
+        out: list[tuple[int, bytes, float]] = []
         wait: float = timeout
         deadline = time.monotonic() + timeout if timeout > 0 else 0.0
         first = True
@@ -223,7 +223,15 @@ class CanTransport(Transport):
                 continue  # another module's link, or our own frame echoed back
             payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data))
             if payload is not None:
-                out.append((connector, payload))
+                out.append((connector, payload, self._arrived(msg.timestamp)))
+
+    def _arrived(self, stamp: float) -> float:
+        """python-can's receive timestamp (wall-clock seconds: the kernel's on SocketCAN and
+        udp_multicast, the sender's on ``virtual``) on this transport's clock; now if none."""
+        now = self.clock()
+        if not stamp:
+            return now
+        return now - min(1.0, max(0.0, time.time() - stamp))
 
     def _medium_counts(self) -> tuple[int, int]:
         return self._reassembler.dropped, self._reassembler.corrupted

@@ -189,8 +189,8 @@ class SerialTransport(Transport):
     def _transmit(self, connector: int, end: LinkEnd, payload: bytes) -> bool:
         return self._ports[connector].write(encode_serial(payload))
 
-    def _receive(self, timeout: float) -> list[tuple[int, bytes]]:
-        out: list[tuple[int, bytes]] = []
+    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
+        out: list[tuple[int, bytes, float]] = []
         deadline: float | None = None
         wait_ms = 0
         while True:
@@ -202,13 +202,15 @@ class SerialTransport(Transport):
                         os.read(self._wake[0], READ_CHUNK)
                     continue
                 connector = port.connector
-                out.extend((connector, p) for p in port.read())
+                arrived = self.clock()  # read as it came (read_between_cycles)
+                out.extend((connector, p, arrived) for p in port.read())
                 if port.lost is not None:
                     self._forget_fd(port)  # a dead descriptor stays ready: never poll it again
             if self._wake is not None:
                 with contextlib.suppress(queue.Empty):
                     while True:
-                        out.append(self._inbox.get_nowait())
+                        connector, p = self._inbox.get_nowait()
+                        out.append((connector, p, self.clock()))
             if out or timeout <= 0:
                 return out
             # nothing whole yet (or only part of a frame): wait for the rest of the timeout

@@ -64,9 +64,12 @@ class KeepAlive:
 
 @dataclass(frozen=True, slots=True)
 class Hello:
-    """Announces the sender's program digest (see :func:`program_digest`)."""
+    """Announces the sender's program digest (see :func:`program_digest`) and, from a module
+    that runs a versioned program, its version (``dh2rt.wire.transfer.encode_hello``: a LEB128
+    varint after the digest; None: the 7-byte Hello without one)."""
 
     digest: bytes
+    version: int | None = None
 
 
 #: Anything a link carries. A hormone is sent as-is (its path as sent).
@@ -142,6 +145,10 @@ class FrameCodec:
         if isinstance(frame, Hello):
             if len(frame.digest) != HELLO_DIGEST_BYTES:
                 raise FrameEncodeError(f"hello digest is {len(frame.digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
+            if frame.version is not None:
+                from dh2rt.wire.transfer import encode_hello
+
+                return encode_hello(sender, frame.digest, frame.version)
             return bytes((_header(FrameKind.HELLO, sender),)) + bytes(frame.digest)
         raise FrameEncodeError(f"not a frame: {frame!r}")
 
@@ -176,9 +183,14 @@ class FrameCodec:
                 raise DecodeError(f"keep-alive frame: {len(data)} bytes, expected 2")
             return Decoded(sender, KeepAlive(data[1]))
         if kind == FrameKind.HELLO:
-            if len(data) != 1 + HELLO_DIGEST_BYTES:
-                raise DecodeError(f"hello frame: {len(data)} bytes, expected {1 + HELLO_DIGEST_BYTES}")
-            return Decoded(sender, Hello(data[1:]))
+            if len(data) == 1 + HELLO_DIGEST_BYTES:
+                return Decoded(sender, Hello(data[1:]))
+            if not 1 + HELLO_DIGEST_BYTES < len(data) <= 1 + HELLO_DIGEST_BYTES + 5:
+                raise DecodeError(f"hello frame: {len(data)} bytes, expected 7 (or 8..12 with a version)")
+            from dh2rt.wire.transfer import decode_hello
+
+            hello = decode_hello(data)
+            return Decoded(sender, Hello(hello.digest, hello.version))
         if len(data) < 2:
             raise DecodeError("hormone frame: truncated before the hop count")
         hops = data[1]

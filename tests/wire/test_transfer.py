@@ -270,8 +270,11 @@ def test_hello_with_a_version(version: int, size: int) -> None:
     assert len(data) == size
     assert tw.decode_hello(data) == tw.VersionedHello(4, digest, version)
     assert frame_kind(data) is FrameKind.HELLO
+    # the link codec reads it too (the release that sends it decodes it), and writes it back
+    assert CODEC.decode(data) == (4, Hello(digest, version))
+    assert CODEC.encode(4, Hello(digest, version)) == data
     with pytest.raises(DecodeError, match="hello frame"):
-        CODEC.decode(data)  # a decoder of 7-byte hellos rejects it: never misread
+        CODEC.decode(data + bytes(13 - size))  # longer than any varint: refused
 
 
 def test_a_hello_without_a_version_reads_as_none() -> None:

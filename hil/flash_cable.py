@@ -1,0 +1,119 @@
+"""The entry point of a rollout, with its I/O: :class:`dh2rt.rollout.Flasher` on a transport.
+
+A programming cable into one module's free connector is a serial port (``dh2rt flash
+--port``, or the launcher's ``--event CYCLE:flash:M:IMAGE``, a pty of the link emulator); a
+node on the bus is a CAN transport. Either way :class:`FlashCable` ticks the Flasher at the
+robot's period, hands it the transfer frames and the module's Hellos as they arrive, sends
+what it says, and ends with the Flasher's rollout report (see docs/flashing.md).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from dh2rt.hormone import Vocabulary
+from dh2rt.rollout import Action, Flasher, ModuleReport, Pacing, Progress, Send
+from dh2rt.transport.base import Transport
+from dh2rt.wire.frame import FrameCodec, Hello
+from dh2rt.wire.transfer import MAX_CONNECTOR
+
+#: A codec that reads every connector's Hellos and no hormone (the cable runs no program).
+HELLO_CODEC_CONNECTORS = MAX_CONNECTOR
+
+
+def hello_codec() -> FrameCodec:
+    return FrameCodec(Vocabulary(()), HELLO_CODEC_CONNECTORS)
+
+
+@dataclass(frozen=True, slots=True)
+class FlashResult:
+    """How a rollout ended: the Flasher's report, whether every module committed, why not."""
+
+    succeeded: bool
+    failure: str | None
+    modules: list[ModuleReport]
+    progress: Progress
+    timed_out: bool = False
+
+
+class FlashCable:
+    """The Flasher on ``connector`` of ``transport`` (already attached), at ``period`` s."""
+
+    def __init__(
+        self,
+        image: bytes,
+        transport: Transport,
+        *,
+        period: float,
+        pacing: Pacing,
+        segment_size: int,
+        connector: int = 1,
+        clock: Callable[[], float] = time.monotonic,
+        confirm: bool = False,
+        settle_ticks: int = 250,
+    ) -> None:
+        self.transport = transport
+        self.connector = connector
+        self.period = period
+        self.clock = clock
+        transport.clock = clock
+        self.flasher = Flasher(
+            image, pacing=pacing, period=period, connector=connector, segment_size=segment_size,
+            confirm=confirm, settle_ticks=settle_ticks,
+        )  # fmt: skip
+        self.lock = threading.Lock()
+        transport.on_transfer = self._on_transfer
+
+    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
+        if connector == self.connector:
+            self._send(self.flasher.receive(connector, payload, arrived))
+
+    def _send(self, actions: Sequence[Action]) -> None:
+        for a in actions:
+            if isinstance(a, Send):
+                self.transport.send_raw(a.connector, a.data)
+
+    def step(self, until: float) -> None:
+        """One tick now, then frames in until ``until`` (a reading of the clock)."""
+        with self.lock:
+            self._send(self.flasher.tick(self.clock()))
+            while True:  # at least one poll: what came in since the last step
+                for r in self.transport.poll(max(0.0, until - self.clock())):
+                    if isinstance(r.frame, Hello) and r.at == self.connector:
+                        hello = r.frame
+                        self._send(self.flasher.hello(r.at, r.remote, hello.version, hello.digest, self.clock()))
+                if self.clock() >= until or self.flasher.done:
+                    return
+
+    def run(
+        self,
+        *,
+        timeout: float,
+        stop: threading.Event | None = None,
+        progress: Callable[[Progress], None] | None = None,
+        progress_every: float = 0.5,
+    ) -> FlashResult:
+        """Tick at the period until the Flasher is done, ``timeout`` s passed or ``stop`` is set."""
+        start = self.clock()
+        deadline = start + timeout
+        next_tick = start
+        next_progress = start
+        while not self.flasher.done and not (stop is not None and stop.is_set()):
+            now = self.clock()
+            if now >= deadline:
+                break
+            next_tick = max(next_tick + self.period, now)
+            self.step(next_tick)
+            if progress is not None and self.clock() >= next_progress:
+                next_progress = self.clock() + progress_every
+                progress(self.flasher.progress())
+        return self.result()
+
+    def result(self) -> FlashResult:
+        f = self.flasher
+        timed_out = not f.done
+        return FlashResult(f.succeeded, f.failure or ("timed out" if timed_out else None), f.report(),
+                           f.progress(), timed_out)  # fmt: skip

@@ -1,0 +1,197 @@
+"""The launcher's ``--event CYCLE:flash:M:IMAGE``: a programming cable into module M's free
+connector at a world cycle, the flasher on it (:class:`hil.flash_cable.FlashCable`, in a
+thread of the launcher), its progress, and the rollout report at the end.
+
+Only the serial link emulator has cables to plug in (``--transport serial``); the cable goes
+into M's first free connector (front, back, left, right), and is pulled out when the
+flasher is done, so that the modules' trial can see every neighbour verified.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+from dh2rt.errors import EventError, SignedImageError
+from dh2rt.rollout import ModuleReport, Progress, describe_path
+from dh2rt.signed_image import parse as parse_image
+from dh2rt.topology import Topology, TopologyError
+from dh2rt.transport.base import PortEnd
+from dh2rt.transport.serial_link import SerialTransport
+from hil.flash_cable import FlashCable, FlashResult, hello_codec
+from hil.rollout_host import link_pacing
+from hil.world import World
+
+#: Seconds a rollout may take before the flasher gives up.
+FLASH_TIMEOUT = 120.0
+
+
+@dataclass(slots=True)
+class FlashEvent:
+    """``CYCLE:flash:M:IMAGE``: the image's bytes, flashed through module M's ``connector``."""
+
+    cycle: int
+    module: int
+    connector: int
+    image: bytes
+    text: str
+    result: FlashResult | None = None
+    _thread: threading.Thread | None = field(default=None, repr=False)
+    _cable: tuple[int, SerialTransport] | None = field(default=None, repr=False)
+    _flash: FlashCable | None = field(default=None, repr=False)
+
+
+def is_flash_event(text: str) -> bool:
+    parts = text.split(":", 2)
+    return len(parts) == 3 and parts[1] == "flash"
+
+
+def parse_flash_event(text: str, topology: Topology) -> FlashEvent:
+    """Parse ``CYCLE:flash:M:IMAGE``; EventError naming the event and what is wrong."""
+    cycle_text, _, rest = text.split(":", 2)
+    ref, sep, path = rest.partition(":")
+    if not cycle_text.strip().isdigit() or not sep or not path:
+        raise EventError(f"event {text!r}: expected CYCLE:flash:MODULE:IMAGE")
+    try:
+        module = topology.module_index(ref.strip())
+    except TopologyError as exc:
+        raise EventError(f"event {text!r}: {exc}") from None
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise EventError(f"event {text!r}: cannot read the image {path}: {exc.strerror or exc}") from None
+    try:
+        parse_image(data)
+    except SignedImageError as exc:
+        raise EventError(f"event {text!r}: {path}: {exc}") from None
+    docked = {(lk.a, lk.a_conn) for lk in topology.links} | {(lk.b, lk.b_conn) for lk in topology.links}
+    free = [c for c in range(1, topology.profile.connector_count + 1) if (module, c) not in docked]
+    if not free:
+        raise EventError(f"event {text!r}: module {topology.names[module]} has no free connector for the cable")
+    return FlashEvent(int(cycle_text), module, free[0], data, text)
+
+
+class FlashEvents:
+    """Carries out the flash events of a run as the world reaches their cycles."""
+
+    def __init__(self, events: list[FlashEvent], world: World, progress: IO[str]) -> None:
+        self.events = sorted(events, key=lambda e: e.cycle)
+        self.world = world
+        self.progress = progress
+        self._lock = threading.Lock()
+
+    @property
+    def busy(self) -> bool:
+        """A flasher still runs (the world must go on until it is done)."""
+        return any(e._thread is not None and e.result is None for e in self.events)
+
+    def step(self) -> None:
+        """Plug in the cables whose cycle has come; pull out those whose flasher is done."""
+        world = self.world
+        for ev in self.events:
+            if ev._thread is None and world.cycle >= ev.cycle and not self.busy:
+                self._start(ev)
+            elif ev._thread is not None and ev.result is None and not ev._thread.is_alive():
+                self._finish(ev)
+
+    def _start(self, ev: FlashEvent) -> None:
+        world = self.world
+        link_id, path = world.plug_cable(ev.module, ev.connector)
+        transport = SerialTransport(hello_codec())
+        transport.attach(1, PortEnd(path))
+        pacing, segment, _ = link_pacing("serial", world.cycle_period, 115200, 0)
+        cable = FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment)
+        ev._cable, ev._flash = (link_id, transport), cable
+        world.note(f"{ev.text}: cable into {world.where(ev.module, ev.connector)}")
+
+        def show(p: Progress) -> None:
+            with self._lock:
+                self.progress.write(
+                    f"flash: {p.phase.value}: {p.modules} module(s) heard of, {p.staged} staged, "
+                    f"{p.committed} committed, {p.failed} failed, {p.bytes_acked} bytes acknowledged, "
+                    f"{p.rate:.0f} bytes/s\n"
+                )
+                self.progress.flush()
+
+        ev._thread = threading.Thread(
+            target=lambda: cable.run(timeout=FLASH_TIMEOUT, progress=show),
+            name="dh2rt-flasher", daemon=True,
+        )  # fmt: skip
+        ev._thread.start()
+
+    def _finish(self, ev: FlashEvent) -> None:
+        assert ev._flash is not None and ev._cable is not None
+        ev.result = ev._flash.result()
+        link_id, transport = ev._cable
+        transport.close()
+        self.world.unplug_cable(ev.module, ev.connector, link_id)
+        self.world.note(f"{ev.text}: {'every module committed' if ev.result.succeeded else 'not committed'}")
+
+    def close(self) -> None:
+        """The run ends: flashers still running are stopped and their cables pulled out."""
+        for ev in self.events:
+            if ev._thread is not None and ev.result is None:
+                ev._thread.join(timeout=1.0)
+                if ev._flash is not None and ev._cable is not None:
+                    self._finish(ev)
+
+    def report(self) -> list[dict[str, object]]:
+        """Every flash event's rollout report (for --json)."""
+        out: list[dict[str, object]] = []
+        for ev in self.events:
+            r = ev.result
+            out.append(
+                {
+                    "event": ev.text,
+                    "succeeded": bool(r and r.succeeded),
+                    "failure": None if r is None else r.failure,
+                    "modules": [] if r is None else [self._module(ev, m) for m in r.modules],
+                }
+            )
+        return out
+
+    def _module(self, ev: FlashEvent, m: ModuleReport) -> dict[str, object]:
+        return {
+            "path": describe_path(m.path, self.world.profile.connector_name),
+            "module": self.module_at(ev, m.path),
+            "outcome": m.outcome.name.lower(),
+            "version": m.version,
+            "verdict": m.verdict,
+            "reason": m.reason,
+        }
+
+    def module_at(self, ev: FlashEvent, path: tuple[tuple[int, int], ...]) -> str | None:
+        """The world's name of the module a path names (the world knows; the robot does not)."""
+        here: tuple[int, int] | None = None
+        for i, (sent, received) in enumerate(path):
+            if i == 0:
+                here = (ev.module, received)
+                continue
+            assert here is not None
+            peer = self.world.link_map.peer_of((here[0], sent))
+            if peer is None or peer[1] != received:
+                return None
+            here = peer
+        return None if here is None else self.world.topology.names[here[0]]
+
+    def lines(self) -> list[str]:
+        """The rollout report, one line per module, for the summary."""
+        out: list[str] = []
+        name = self.world.profile.connector_name
+        for ev in self.events:
+            r = ev.result
+            if r is None:
+                out.append(f"{ev.text}: never started (the run ended first)")
+                continue
+            head = "every module committed" if r.succeeded else f"NOT every module committed ({r.failure})"
+            out.append(f"{ev.text}: {head}")
+            for m in r.modules:
+                who = self.module_at(ev, m.path)
+                out.append(f"  {m.describe(name)}" + (f"  [{who}]" if who else ""))
+        return out
+
+    @property
+    def succeeded(self) -> bool:
+        return all(e.result is not None and e.result.succeeded for e in self.events)

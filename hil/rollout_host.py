@@ -1,0 +1,258 @@
+"""A module's rollout in its running loop: the I/O around :class:`dh2rt.rollout.Rollout`.
+
+:class:`RolloutHost` is what ``docs/flashing.md`` ("Driving the state machines") asks of a
+host, for :class:`hil.module_process.ModuleHost`:
+
+* transfer frames reach it as the transport polls them (``Transport.on_transfer``: a
+  *prompt* host, between cycles as they arrive), Hellos, silent links, attaches and detaches
+  from the runtime (it is the runtime's :class:`~dh2rt.runtime.LinkObserver`), and it ticks
+  the Rollout at every cycle start, before the engine;
+* it carries out the actions: ``Send`` through the transport, ``Persist``/``DropPartial``
+  into ``partial.img``/``partial.json`` beside the slots of the module's flash (durably,
+  so that a module restarted mid-staging resumes), ``Stage`` through ``Flash.stage(hold=
+  True)`` (the image waits for the agreed switch; a restart meanwhile boots the old program
+  and hands the staged image back to the Rollout), and ``Switch``: ``Flash.start_trial``
+  and the new program in the running loop (``ModuleRuntime.switch_program``) at that very
+  cycle start;
+* each cycle it gives the runtime's liveness the digests the Rollout tolerates (the switch
+  window), and its Hellos state the running program's version.
+
+The trial itself (confirm after clean cycles, reject on a fault) stays the module host's
+(``TrialWatch``); it tells this host with :meth:`confirmed` and :meth:`reverted`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Callable, Iterable
+
+from dh2rt.compiler import load_image
+from dh2rt.errors import DH2Error, SignedImageError
+from dh2rt.program import CompiledProgram
+from dh2rt.rollout import (
+    Action,
+    DropPartial,
+    ImageInfo,
+    Pacing,
+    Partial,
+    Persist,
+    Program,
+    Rollout,
+    Send,
+    Stage,
+    Switch,
+)
+from dh2rt.runtime import ModuleRuntime
+from dh2rt.transport.base import PortEnd
+from dh2rt.wire.frame import Hello
+from dh2rt.wire.transfer import can_cost, image_id, serial_cost
+from drivers.flash_slots import Boot, Flash, replace_file
+
+#: Files beside the slots: the image being received, and what it is.
+PARTIAL_IMAGE = "partial.img"
+PARTIAL_INFO = "partial.json"
+#: Share of a serial line's bytes per cycle the rollout may take (hormones keep the rest).
+SERIAL_SHARE = 0.8
+#: Segment size on serial links (92 bytes on the wire each) and on a CAN bus (8 frames).
+SERIAL_SEGMENT = 80
+CAN_SEGMENT = 56
+#: Bits per cycle a module may spend on a shared CAN bus, as a share of the bus.
+CAN_SHARE = 0.3
+#: A COMMIT's payload, for its transit time.
+_COMMIT_BYTES = 15
+
+#: What the module host does at the switch: run this program (booted from the flash).
+OnSwitch = Callable[[CompiledProgram, Boot], None]
+
+
+def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> tuple[Pacing, int, float]:
+    """The rollout's pacing, segment size and COMMIT transit time on this module's links:
+    a share of each serial line's bytes per cycle, or of a CAN bus's bits per cycle."""
+    if transport == "serial":
+        per_cycle = int(baudrate / 10 * period * SERIAL_SHARE)
+        budget = max(per_cycle, serial_cost(SERIAL_SEGMENT + 6) + 1)
+        return Pacing(budget, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
+    per_cycle = int(bitrate * period * CAN_SHARE)
+    budget = max(per_cycle, can_cost(CAN_SEGMENT + 6) + 1)
+    return Pacing(budget, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate
+
+
+class RolloutHost:
+    """The rollout of one running module (see the module docs)."""
+
+    def __init__(
+        self,
+        rt: ModuleRuntime,
+        flash: Flash,
+        boot: Boot,
+        on_switch: OnSwitch,
+        *,
+        connectors: Iterable[int],
+        pacing: Pacing,
+        segment_size: int,
+        latency: float,
+    ) -> None:
+        self.rt = rt
+        self.flash = flash
+        self.on_switch = on_switch
+        self.directory = flash.directory
+        signed = flash.image(boot.slot)
+        try:
+            running = Program.from_image(signed) if signed is not None else Program(boot.version, boot.digest)
+        except SignedImageError:
+            running = Program(boot.version, boot.digest)
+        if running.digest != boot.digest:  # not the image booted: nothing to offer
+            running = Program(boot.version, boot.digest)
+        self._partial = self._load_partial()
+        staged = flash.held
+        self.rollout = Rollout(
+            connectors,
+            running,
+            pacing=pacing,
+            segment_size=segment_size,
+            partial=None if staged is not None else self._partial,
+            staged=staged,
+            reverted=[image_id(i) for i in flash.reverted],
+            latency=latency,
+        )
+        self.log: list[str] = []
+        self.stages = 0
+        #: the running program came from a switch of this process (its trial is the rollout's)
+        self.switched = False
+        rt.liveness.version = boot.version
+        rt.observer = self
+        rt.transport.on_transfer = self._on_transfer
+        for c in rt.transport.links:
+            self.attached(c)
+
+    @classmethod
+    def for_module(
+        cls, rt: ModuleRuntime, flash: Flash, boot: Boot, on_switch: OnSwitch, transport: str, bitrate: int
+    ) -> RolloutHost:
+        """A host paced for the module's medium (serial ports at their baud rate, or a bus)."""
+        kind = transport.partition(":")[0]
+        bauds = [e.baudrate for e in rt.transport.links.values() if isinstance(e, PortEnd)]
+        pacing, segment, latency = link_pacing(kind, rt.cycle_period, min(bauds, default=115200), bitrate)
+        connectors = range(1, rt.program.profile.connector_count + 1)
+        return cls(rt, flash, boot, on_switch, connectors=connectors, pacing=pacing, segment_size=segment,
+                   latency=latency)  # fmt: skip
+
+    # -- inputs from the runtime (LinkObserver) ---------------------------------------------
+
+    def cycle_start(self, rt: ModuleRuntime, now: float) -> None:
+        self._do(self.rollout.tick(now))
+        rt.liveness.tolerated = self.rollout.tolerated()
+
+    def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
+        self._do(self.rollout.hello(connector, remote, hello.version, hello.digest, now))
+
+    def link_down(self, connector: int, now: float) -> None:
+        self._do(self.rollout.link_down(connector, now))
+
+    def attached(self, connector: int) -> None:
+        self._do(self.rollout.attach(connector, self.rt.clock()))
+
+    def detached(self, connector: int) -> None:
+        self._do(self.rollout.detach(connector, self.rt.clock()))
+
+    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
+        # when it arrived, not when it was read: a COMMIT's remaining time counts from then
+        self._do(self.rollout.receive(connector, payload, arrived))
+
+    # -- the trial, from the module host -----------------------------------------------------
+
+    def confirmed(self) -> None:
+        self._do(self.rollout.confirmed(self.rt.clock()))
+
+    def reverted(self, reason: str) -> None:
+        self._do(self.rollout.reverted(reason, self.rt.clock()))
+
+    # -- actions ---------------------------------------------------------------------------
+
+    def _do(self, actions: list[Action]) -> None:
+        for action in actions:
+            match action:
+                case Send(connector, data):
+                    self.rt.transport.send_raw(connector, data)
+                case Persist(info, offset, data):
+                    self._persist(info, offset, data)
+                case DropPartial():
+                    self._drop_partial()
+                case Stage(_, data):
+                    self._stage(data)
+                case Switch(program):
+                    self._switch(program)
+
+    def _stage(self, data: bytes) -> None:
+        self.stages += 1
+        try:
+            staged = self.flash.stage(data, hold=True)
+        except DH2Error as exc:  # a trial runs (the rollout declines BUSY before this)
+            self._note(f"image not staged: {exc}")
+            self._do(self.rollout.staged(False, "busy", str(exc), self.rt.clock()))
+            return
+        verdict = str(staged.verdict)
+        if staged.accepted:
+            self._note(f"image staged in slot {staged.slot}: waits for the switch")
+        else:
+            self._note(f"image refused ({verdict}): {staged.reason}")
+        self._do(self.rollout.staged(staged.accepted, verdict, staged.reason, self.rt.clock()))
+
+    def _switch(self, program: Program) -> None:
+        boot = self.flash.start_trial()
+        if boot.digest != program.digest:
+            raise DH2Error(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")
+        compiled = load_image(boot.program)
+        self.rt.switch_program(
+            compiled, boot.version, f"switched to program {compiled.name} version {boot.version} (slot {boot.slot})"
+        )
+        self.switched = True
+        self.on_switch(compiled, boot)
+
+    def _note(self, message: str) -> None:
+        self.rt.log.append(f"cycle {self.rt.cycle}: rollout: {message}")
+
+    # -- the partial image ------------------------------------------------------------------
+
+    def _persist(self, info: ImageInfo, offset: int, data: bytes) -> None:
+        files = self.flash.files
+        if offset == 0:
+            replace_file(files, PARTIAL_IMAGE, data)
+            doc = {
+                "image": info.image.hex(),
+                "version": info.version,
+                "length": info.length,
+                "segment_size": info.segment_size,
+            }
+            replace_file(files, PARTIAL_INFO, json.dumps(doc, sort_keys=True).encode() + b"\n")
+            return
+        path = self.directory / PARTIAL_IMAGE
+        with open(path, "r+b") as f:
+            f.seek(offset)
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+
+    def _drop_partial(self) -> None:
+        for name in (PARTIAL_INFO, PARTIAL_IMAGE):
+            with contextlib.suppress(FileNotFoundError):
+                (self.directory / name).unlink()
+
+    def _load_partial(self) -> Partial | None:
+        """The image received in part before a restart: whole segments only (a write cut
+        short by a power cut is taken again)."""
+        try:
+            doc = json.loads((self.directory / PARTIAL_INFO).read_text(encoding="utf-8"))
+            data = (self.directory / PARTIAL_IMAGE).read_bytes()
+            info = ImageInfo(bytes.fromhex(doc["image"]), int(doc["version"]), int(doc["length"]),
+                             int(doc["segment_size"]))  # fmt: skip
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        if info.segment_size < 1 or info.length < 1:
+            return None
+        data = data[: info.length]
+        if len(data) < info.length:
+            data = data[: len(data) // info.segment_size * info.segment_size]
+        return Partial(info, data) if data else None

@@ -1,0 +1,199 @@
+"""The rollout inside the module program, in one process: ModuleHosts (each booted from its
+own flash directory, a real one) on the in-process bus, stepped on one virtual clock, with a
+FlashCable at the head's free front connector. Deterministic and quick, so the switch and
+the recovery rules are swept over seeds and kill timings here; tests/hil/test_flash_loop.py
+does the same with one OS process per module over serial links.
+"""
+
+from __future__ import annotations
+
+import itertools
+import queue
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dh2rt.compiler import compile_file, compile_source
+from dh2rt.rollout import Outcome, Pacing
+from dh2rt.signed_image import new_private_key, pack, public_key
+from dh2rt.transport.base import BusEnd
+from dh2rt.transport.inproc import InprocTransport
+from dh2rt.wire.transfer import serial_cost
+from hil.config import ModuleConfig
+from hil.control import Command, Report, TraceRecord
+from hil.flash_cable import FlashCable, FlashResult, hello_codec
+from hil.module_process import ModuleHost
+
+ROOT = Path(__file__).resolve().parents[2]
+PROGRAM = ROOT / "examples" / "caterpillar.dh2"
+PERIOD = 0.02
+FRONT, BACK = 1, 2
+NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
+TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
+CABLE_LINK = 999
+
+
+def caterpillar(clock_cycle: int) -> Any:
+    text = PROGRAM.read_text(encoding="utf-8")
+    return compile_source(text.replace("const ClockCycle = 40", f"const ClockCycle = {clock_cycle}"))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Robot:
+    """A snake of ``n`` module hosts on an in-process bus: link k joins m(k).back (side 0)
+    to m(k+1).front (side 1)."""
+
+    def __init__(self, tmp: Path, n: int, seed: int, *, signer: bytes, image: bytes, trial_cycles: int = 30) -> None:
+        self.tmp, self.n, self.signer = tmp, n, signer
+        self.channel = f"rollout-host-{id(self):x}"
+        self.clock = Clock()
+        self.trial_cycles = trial_cycles
+        self.phases = [(seed * 7 + 13 * m) % 40 for m in range(n)]
+        self.records: list[dict[str, Any]] = []
+        self.hosts: list[ModuleHost | None] = [None] * n
+        self.lives = [0] * n
+        self.cycle = 0
+        for m in range(n):
+            flash = tmp / f"m{m}"
+            flash.mkdir()
+            (flash / "program.img").write_bytes(image)
+            self.start(m)
+
+    def start(self, m: int) -> None:
+        attach: dict[int, Any] = {}
+        if m > 0:
+            attach[FRONT] = BusEnd(m - 1, 1)
+        if m < self.n - 1:
+            attach[BACK] = BusEnd(m, 0)
+        config = ModuleConfig(
+            module=m, name=f"m{m}", flash=str(self.tmp / f"m{m}"), trust=(public_key(self.signer),),
+            transport=f"inproc:{self.channel}", timer_phase=self.phases[m], cycle_period=PERIOD, trace=True,
+            trial_cycles=self.trial_cycles, driver="recording", life=self.lives[m],
+        )  # fmt: skip
+        self.lives[m] += 1
+        commands: queue.Queue[Command] = queue.Queue()
+        host = ModuleHost(config, commands, self._report(m))
+        host.runtime.clock = self.clock
+        for c, end in attach.items():
+            host.runtime.attach(c, end)
+        self.hosts[m] = host
+
+    def _report(self, m: int) -> Callable[[Report], None]:
+        def report(rep: Report) -> None:
+            if isinstance(rep, TraceRecord):
+                self.records.append(dict(rep.record))
+
+        return report
+
+    def kill(self, m: int) -> None:
+        host = self.hosts[m]
+        assert host is not None
+        host.runtime.close()
+        self.hosts[m] = None
+
+    def step(self, cable: FlashCable | None = None) -> None:
+        self.clock.t += PERIOD
+        self.cycle += 1
+        # tail first: what a module sends towards the tail is taken in at the next cycle, as
+        # over a real link (the in-process bus delivers at once)
+        for host in reversed(self.hosts):
+            if host is not None and not host.stop_event.is_set():
+                host.runtime.step()
+                host._on_cycle(host.runtime)
+        if cable is not None and not cable.flasher.done:
+            cable.step(self.clock.t)
+        for host in self.hosts:
+            if host is not None:
+                host._flush()
+
+    def run(self, cycles: int, cable: FlashCable | None = None) -> None:
+        for _ in range(cycles):
+            self.step(cable)
+
+    def cable(self, image: bytes) -> FlashCable:
+        head = self.hosts[0]
+        assert head is not None
+        head.runtime.attach(FRONT, BusEnd(CABLE_LINK, 0))
+        transport = InprocTransport(hello_codec(), channel=self.channel)
+        transport.attach(1, BusEnd(CABLE_LINK, 1))
+        pacing = Pacing(184, serial_cost)
+        return FlashCable(image, transport, period=PERIOD, pacing=pacing, segment_size=80, clock=self.clock)
+
+    def flash(self, image: bytes, limit: int = 1500) -> FlashResult:
+        cable = self.cable(image)
+        for _ in range(limit):
+            if cable.flasher.done:
+                break
+            self.step(cable)
+        head = self.hosts[0]
+        if head is not None:
+            head.runtime.detach(FRONT)  # the cable is pulled out
+        return cable.result()
+
+    def program_of(self, m: int) -> dict[str, Any]:
+        host = self.hosts[m]
+        assert host is not None
+        status = host.program_status()
+        assert status is not None
+        return status
+
+
+def switch_cycles(robot: Robot) -> dict[int, int]:
+    """Module -> the robot cycle it switched at, from its log."""
+    out: dict[int, int] = {}
+    for m, host in enumerate(robot.hosts):
+        assert host is not None
+        for line in host.runtime.log:
+            if "switched to program" in line:
+                out[m] = int(line.split()[1].rstrip(":"))
+    return out
+
+
+@pytest.fixture
+def signer() -> bytes:
+    return new_private_key()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 5])
+@pytest.mark.parametrize("start", [3, 47, 101])
+def test_every_module_switches_at_one_cycle_and_the_wave_carries_on(
+    tmp_path: Path, signer: bytes, seed: int, start: int
+) -> None:
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 8, seed, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(start)
+    result = robot.flash(pack(new.image, 2, signer))
+    robot.run(200)
+    assert result.succeeded, (result.failure, [m.describe() for m in result.modules])
+    assert sorted(len(m.path) for m in result.modules) == list(range(1, 9))
+    assert {m.outcome for m in result.modules} <= {Outcome.COMMITTED, Outcome.CONFIRMED}
+    switched = switch_cycles(robot)
+    assert len(switched) == 8 and len(set(switched.values())) == 1, switched
+    at = switched[0]
+    emitted = [r["cycle"] for r in sorted(robot.records, key=lambda r: r["cycle"]) if r["module"] == 0 and r["sent"]]
+    assert {b - a for a, b in itertools.pairwise(emitted) if b < at} == {10}  # the pair across the switch is either
+    assert {b - a for a, b in itertools.pairwise(emitted) if a >= at} == {5}
+    # Table I hop by hop after the switch: module m gets in cycle k+1 what m-1 passed on in k
+    sent = {(r["module"], r["cycle"]): r["sent"][0]["hormone"] for r in robot.records if r["sent"]}
+    for r in robot.records:
+        if r["module"] > 0 and r["cycle"] > at + 1 and r["received"]:
+            (got,) = r["received"]
+            assert sent[(r["module"] - 1, r["cycle"] - 1)] == got["hormone"], r
+            assert r["actuators"]["DOF1"] == TABLE_I[got["hormone"][2]]
+    for m in range(8):
+        program = robot.program_of(m)
+        assert program["version"] == 2 and not program["trial"], (m, program)
+        host = robot.hosts[m]
+        assert host is not None and host.runtime.counters["refused"] == 0
+        # at most the one hormone in flight across the switch (sent by the old program in the
+        # cycle before, read by the new one) is dropped as foreign
+        assert host.runtime.stats.foreign_hormones <= 1
