@@ -86,10 +86,12 @@ from dh2rt.wire.transfer import (
     ReportAck,
     Request,
     Segment,
+    can_cost,
     cut_reason,
     decode,
     encode,
     image_id,
+    serial_cost,
     tag_of,
 )
 
@@ -1918,3 +1920,26 @@ class Flasher(_Node):
             self._fail(f"not committed: {describe_path(first.path)} {first.outcome.name.lower()} the image")
         elif outcome in (Outcome.STAGED, Outcome.CURRENT, Outcome.COMMITTED, Outcome.CONFIRMED):
             self._commit()
+
+
+#: Share of a serial line's bytes per cycle the rollout may take (hormones keep the rest).
+SERIAL_SHARE = 0.8
+#: Segment size on serial links (92 bytes on the wire each) and on a CAN bus (8 frames).
+SERIAL_SEGMENT = 80
+CAN_SEGMENT = 56
+#: Bits per cycle a module may spend on a shared CAN bus, as a share of the bus.
+CAN_SHARE = 0.3
+#: A COMMIT's payload, for its transit time.
+_COMMIT_BYTES = 15
+
+
+def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> tuple[Pacing, int, float]:
+    """The rollout's pacing, segment size and COMMIT transit time on this module's links:
+    a share of each serial line's bytes per cycle, or of a CAN bus's bits per cycle."""
+    if transport == "serial":
+        per_cycle = int(baudrate / 10 * period * SERIAL_SHARE)
+        budget = max(per_cycle, serial_cost(SERIAL_SEGMENT + 6) + 1)
+        return Pacing(budget, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
+    per_cycle = int(bitrate * period * CAN_SHARE)
+    budget = max(per_cycle, can_cost(CAN_SEGMENT + 6) + 1)
+    return Pacing(budget, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate

@@ -14,14 +14,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from dh2rt.errors import EventError, SignedImageError
-from dh2rt.rollout import ModuleReport, Progress, describe_path
+from dh2rt.errors import EventError, SignedImageError, TopologyError
+from dh2rt.rollout import ModuleReport, Progress, describe_path, link_pacing
 from dh2rt.signed_image import parse as parse_image
-from dh2rt.topology import Topology, TopologyError
+from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
-from hil.flash_cable import FlashCable, FlashResult, hello_codec
-from hil.rollout_host import link_pacing
+from drivers.flash_cable import FlashCable, FlashResult, hello_codec
 from hil.world import World
 
 #: Seconds a rollout may take before the flasher gives up.

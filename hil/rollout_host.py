@@ -29,7 +29,7 @@ import os
 from collections.abc import Callable, Iterable
 
 from dh2rt.compiler import load_image
-from dh2rt.errors import DH2Error, SignedImageError
+from dh2rt.errors import DH2Error, FlashError, SignedImageError
 from dh2rt.program import CompiledProgram
 from dh2rt.rollout import (
     Action,
@@ -43,40 +43,19 @@ from dh2rt.rollout import (
     Send,
     Stage,
     Switch,
+    link_pacing,
 )
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import PortEnd
 from dh2rt.wire.frame import Hello
-from dh2rt.wire.transfer import can_cost, image_id, serial_cost
+from dh2rt.wire.transfer import image_id
 from drivers.flash_slots import Boot, Flash, replace_file
 
 #: Files beside the slots: the image being received, and what it is.
 PARTIAL_IMAGE = "partial.img"
 PARTIAL_INFO = "partial.json"
-#: Share of a serial line's bytes per cycle the rollout may take (hormones keep the rest).
-SERIAL_SHARE = 0.8
-#: Segment size on serial links (92 bytes on the wire each) and on a CAN bus (8 frames).
-SERIAL_SEGMENT = 80
-CAN_SEGMENT = 56
-#: Bits per cycle a module may spend on a shared CAN bus, as a share of the bus.
-CAN_SHARE = 0.3
-#: A COMMIT's payload, for its transit time.
-_COMMIT_BYTES = 15
-
 #: What the module host does at the switch: run this program (booted from the flash).
 OnSwitch = Callable[[CompiledProgram, Boot], None]
-
-
-def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> tuple[Pacing, int, float]:
-    """The rollout's pacing, segment size and COMMIT transit time on this module's links:
-    a share of each serial line's bytes per cycle, or of a CAN bus's bits per cycle."""
-    if transport == "serial":
-        per_cycle = int(baudrate / 10 * period * SERIAL_SHARE)
-        budget = max(per_cycle, serial_cost(SERIAL_SEGMENT + 6) + 1)
-        return Pacing(budget, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
-    per_cycle = int(bitrate * period * CAN_SHARE)
-    budget = max(per_cycle, can_cost(CAN_SEGMENT + 6) + 1)
-    return Pacing(budget, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate
 
 
 class RolloutHost:
@@ -203,7 +182,7 @@ class RolloutHost:
     def _switch(self, program: Program) -> None:
         boot = self.flash.start_trial()
         if boot.digest != program.digest:
-            raise DH2Error(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")
+            raise FlashError(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")
         compiled = load_image(boot.program)
         self.rt.switch_program(
             compiled, boot.version, f"switched to program {compiled.name} version {boot.version} (slot {boot.slot})"

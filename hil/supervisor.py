@@ -60,11 +60,14 @@ class ProcessModule:
         env = dict(os.environ)
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         # the module boots as a robot's module does: `dh2rt module --config module.toml`, its
-        # program in a flash directory; [hil] adds the world's control channel
-        folder = workdir / f"{config.label}-life{config.life}"
+        # program in a flash directory; [hil] adds the world's control channel. The flash is
+        # the module's across its lives (a restarted module boots what it last confirmed, or
+        # reverts a trial it did not finish); each life gets its own module.toml
+        folder = workdir / config.label / f"life{config.life}"
         path = folder / "module.toml"
         folder.mkdir(parents=True, exist_ok=True)
-        path.write_text(dump_toml(config, folder / "flash", image=flash_image), encoding="utf-8")
+        flash = workdir / config.label / "flash"
+        path.write_text(dump_toml(config, flash, image=flash_image), encoding="utf-8")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "dh2rt", "module", "--config", str(path)],
             stdin=subprocess.PIPE,

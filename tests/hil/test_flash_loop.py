@@ -18,13 +18,12 @@ from typing import Any
 import pytest
 
 from dh2rt.compiler import compile_file, compile_source
-from dh2rt.rollout import Outcome
+from dh2rt.rollout import Outcome, link_pacing
 from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
-from hil.flash_cable import FlashCable, FlashResult, hello_codec
-from hil.rollout_host import link_pacing
+from drivers.flash_cable import FlashCable, FlashResult, hello_codec
 from hil.world import World, module_pids
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -16,14 +16,14 @@ from typing import Any
 import pytest
 
 from dh2rt.compiler import compile_file, compile_source
-from dh2rt.rollout import Outcome, Pacing
+from dh2rt.rollout import Pacing
 from dh2rt.signed_image import new_private_key, pack, public_key
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocTransport
-from dh2rt.wire.transfer import serial_cost
+from dh2rt.wire.transfer import Outcome, serial_cost
+from drivers.flash_cable import FlashCable, FlashResult, hello_codec
 from hil.config import ModuleConfig
 from hil.control import Command, Report, TraceRecord
-from hil.flash_cable import FlashCable, FlashResult, hello_codec
 from hil.module_process import ModuleHost
 
 ROOT = Path(__file__).resolve().parents[2]
