@@ -525,8 +525,10 @@ LATE_SHARE = 0.10
 
 def problems(world: World, events: list[Event], *, clean_links: bool) -> list[str]:
     """What went wrong in a finished run, one line per module and kind (empty: nothing)."""
-    changes_links = any(ev.kind in ("cut", "dock", "kill", "restart") for ev in events) or any(
-        effect.kind == "reach_and_dock" for _m, effect in world.effects
+    changes_links = (
+        any(ev.kind in ("cut", "dock", "kill", "restart") for ev in events)
+        or any(effect.kind == "reach_and_dock" for _m, effect in world.effects)
+        or world.cables_plugged > 0
     )
     out: list[str] = []
     for v in world.views:

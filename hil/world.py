@@ -119,6 +119,7 @@ class World:
         bus_options: Mapping[str, Any] | None = None,
         gui: bool = False,
         signer: bytes | None = None,
+        trial_cycles: int = DEFAULTS.trial_cycles,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -136,6 +137,11 @@ class World:
         self.status_every = status_every
         self.handshake = handshake
         self.start_delay = start_delay
+        #: clean cycles a module runs a new program on trial before it confirms it
+        self.trial_cycles = trial_cycles
+        #: programming cables plugged in so far: frames to and from a cable are the flasher's,
+        #: and those in flight when it is pulled out are lost, so such a run's links changed
+        self.cables_plugged = 0
         # python-can's virtual bus reaches only its own process: its modules are threads
         in_process = self.kind == "can" and (bus_options or {}).get("interface") == "virtual"
         self.threads = self.kind in THREAD_TRANSPORTS or in_process
@@ -263,6 +269,7 @@ class World:
             trace=self.trace,
             status_every=self.status_every,
             handshake=self.handshake,
+            trial_cycles=self.trial_cycles,
         )
 
     def _channels(self, module: int) -> dict[int, ChannelSpec]:
@@ -476,6 +483,7 @@ class World:
             raise HilWorldError("a programming cable needs the serial transport's link emulator")
         if self.link_map.peer_of((module, connector)) is not None:
             raise HilWorldError(f"{self.where(module, connector)} is docked: a cable needs a free connector")
+        self.cables_plugged += 1
         link = self.emulator.add_link(max(self.emulator.links, default=0) + CABLE_LINK_IDS)  # apart from the dock's
         self._send(module, Attach(connector, PortEnd(link.paths[0])))
         return link.link_id, link.paths[1]

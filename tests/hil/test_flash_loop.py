@@ -17,81 +17,28 @@ from __future__ import annotations
 
 import itertools
 import os
-import re
-import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import pytest
 
-from dh2rt.compiler import compile_file, compile_source
-from dh2rt.program import CompiledProgram
-from dh2rt.rollout import link_pacing
+from dh2rt.compiler import compile_file
 from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
-from dh2rt.transport.base import PortEnd
-from dh2rt.transport.serial_link import SerialTransport
 from dh2rt.wire.transfer import Outcome
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+from drivers.flash_cable import FlashResult
 from hil.world import World, module_pids
+from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
 
-ROOT = Path(__file__).resolve().parents[2]
-PROGRAM = ROOT / "examples" / "caterpillar.dh2"
 TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
 NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
 ORDER = "ABCD"  # the body receptors' order in the program: the last one that fires sets DOF1
 N = 8
-PERIOD = 0.02
-FRONT = 1  # CONRO's front connector: the head's is free
 HOP = 3  # periods a hormone may take over one serial hop
 AFTER = 150  # cycles every module runs the new program before the run ends
 WAIT = 240.0  # seconds the rollout and the confirmations may take on a loaded machine
-
-
-def caterpillar(clock_cycle: int) -> CompiledProgram:
-    text = PROGRAM.read_text(encoding="utf-8")
-    return compile_source(text.replace("const ClockCycle = 40", f"const ClockCycle = {clock_cycle}"))
-
-
-def flash_through_cable(world: World, module: int, image: bytes, *, timeout: float = 120.0) -> FlashResult:
-    """Plug a cable into ``module``'s front, run the flasher on it until it is done (the
-    world ticking meanwhile), pull the cable out; the flasher's result."""
-    link_id, path = world.plug_cable(module, FRONT)
-    transport = SerialTransport(hello_codec())
-    transport.attach(1, PortEnd(path))
-    pacing, segment, _ = link_pacing("serial", PERIOD, 115200, 0)
-    cable = FlashCable(image, transport, period=PERIOD, pacing=pacing, segment_size=segment)
-    out: list[FlashResult] = []
-    thread = threading.Thread(target=lambda: out.append(cable.run(timeout=timeout)), daemon=True)
-    try:
-        thread.start()
-        while thread.is_alive():
-            world.tick()
-            time.sleep(0.01)
-    finally:
-        thread.join(timeout + 5)
-        transport.close()
-        world.unplug_cable(module, FRONT, link_id)
-    return out[0]
-
-
-def run_world(world: World, until_cycle: int) -> None:
-    while world.cycle < until_cycle and not world.done():
-        world.tick()
-        time.sleep(0.01)
-
-
-def switches(log: list[str]) -> dict[int, int]:
-    """Module -> the cycle (its own count) at which it switched, from its log."""
-    out: dict[int, int] = {}
-    for line in log:
-        m = re.match(r"m(\d+): cycle (\d+): switched to program", line)
-        if m:
-            out[int(m.group(1))] = int(m.group(2))
-    return out
 
 
 def settled(world: World) -> bool:

@@ -1,0 +1,78 @@
+"""The launcher's ``--event CYCLE:flash:M:IMAGE``: a signed image flashed into the running
+robot through a cable on module M, the rollout report in the summary, and bad flash events
+refused before anything starts (exit 2, naming the event)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from dh2rt import cli
+from dh2rt.signed_image import new_private_key, pack, read_private_key, write_key_pair
+from hil.pace import PACE
+from tests.hil.flashing import caterpillar
+
+
+def _image(tmp_path: Path, key: bytes, version: int, clock_cycle: int = 20) -> Path:
+    path = tmp_path / f"v{version}.img"
+    path.write_bytes(pack(caterpillar(clock_cycle).image, version, key))
+    return path
+
+
+def test_a_flash_event_switches_every_module_and_the_summary_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    key_file = tmp_path / "robot.key"
+    write_key_pair(key_file)
+    key = read_private_key(key_file)
+    image = _image(tmp_path, key, 2)
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--module-count", "4", "--cycles", "500", "--cycle-ms", "20",
+         "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
+    )  # fmt: skip
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0, summary["problems"]
+    (rollout,) = summary["rollouts"]
+    assert rollout["succeeded"] and rollout["failure"] is None
+    paths = sorted(m["path"] for m in rollout["modules"])
+    assert len(paths) == 4 and len({len(p) for p in paths}) == 4, paths  # one hop further each
+    assert sorted(m["module"] for m in rollout["modules"]) == ["m0", "m1", "m2", "m3"]
+    sha = hashlib.sha256(caterpillar(20).image).hexdigest()
+    for row in summary["modules"]:
+        assert row["version"] == 2, row
+        assert row["sha256"] == sha, (row["name"], row["sha256"], sha)
+
+
+@pytest.mark.parametrize(
+    ("event", "needle"),
+    [
+        ("40:flash:m9:{image}", "m9"),
+        ("40:flash:m0:{missing}", "cannot read the image"),
+        ("40:flash:m0:{garbage}", "garbage.img"),
+        ("x:flash:m0:{image}", "expected CYCLE:flash:MODULE:IMAGE"),
+        ("900:flash:m0:{image}", "never happens"),
+    ],
+)
+def test_a_bad_flash_event_exits_2_naming_it(
+    event: str, needle: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    image = _image(tmp_path, new_private_key(), 2)
+    garbage = tmp_path / "garbage.img"
+    garbage.write_bytes(b"not an image at all")
+    text = event.format(image=image, missing=tmp_path / "missing.img", garbage=garbage)
+    code = cli.main(["--transport", "serial", "--module-count", "4", "--cycles", "500", "--event", text])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert needle in err and "Traceback" not in err, err
+
+
+def test_a_flash_event_needs_cables(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    image = _image(tmp_path, new_private_key(), 2)
+    code = cli.main(["--transport", "inproc", "--module-count", "4", "--cycles", "500",
+                     "--event", f"40:flash:m0:{image}"])  # fmt: skip
+    assert code == 2
+    assert "needs --transport serial" in capsys.readouterr().err
