@@ -7,6 +7,9 @@ slave path ``link.paths[0]`` as its connector's serial port, the module at side 
 * drop whole frames (``frame_loss``; frames are cut at the 0x00 delimiter of the serial
   framing), drop single bytes (``byte_loss``), flip bits (``bit_error``: probability per bit);
 * delay delivery (``latency`` seconds plus uniform ``jitter``), keeping order;
+* pace the bytes at a line's rate (``baudrate``: 10 bits a byte, 8N1): each direction sends
+  one byte after another, so a frame arrives ``len × 10 / baudrate`` s after the line is free,
+  and a sender that writes faster than the line queues behind itself, as a UART would;
 * stop relaying (``undock``): sends still succeed, bytes go nowhere, and the modules'
   liveness notices the silence; ``dock`` resumes.
 
@@ -54,13 +57,14 @@ class Impairments:
     bit_error: float = 0.0
     latency: float = 0.0
     jitter: float = 0.0
+    baudrate: float = 0.0  # 0: bytes cross at once (no line rate)
 
     def __post_init__(self) -> None:
         for name in ("frame_loss", "byte_loss", "bit_error"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"link emulator: {name}={value} is not a probability in [0, 1]")
-        for name in ("latency", "jitter"):
+        for name in ("latency", "jitter", "baudrate"):
             if getattr(self, name) < 0:
                 raise ValueError(f"link emulator: {name}={getattr(self, name)} must not be negative")
 
@@ -111,10 +115,11 @@ class LinkEmulator(Closing):
         bit_error: float = 0.0,
         latency: float = 0.0,
         jitter: float = 0.0,
+        baudrate: float = 0.0,
         seed: int | None = None,
         tap: Tap | None = None,
     ) -> None:
-        self.default = Impairments(frame_loss, byte_loss, bit_error, latency, jitter)
+        self.default = Impairments(frame_loss, byte_loss, bit_error, latency, jitter, baudrate)
         self.tap = tap
         self._rng = random.Random(seed)
         self._lock = threading.Lock()
@@ -126,6 +131,8 @@ class LinkEmulator(Closing):
         self._sel.register(self._wake_r, selectors.EVENT_READ)
         self._queue: list[tuple[float, int, int, bytes, int]] = []  # (due, order, master fd, data, link)
         self._order = itertools.count()
+        #: per target master fd: when the line into it is free again (paced links)
+        self._line_free: dict[int, float] = {}
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="dh2rt-link-emulator", daemon=True)
         self._thread.start()
@@ -272,6 +279,7 @@ class LinkEmulator(Closing):
                     if len(frame) > 1 and imp.frame_loss and self._rng.random() < imp.frame_loss:
                         link.stats.frames_lost += 1
                         self._tapped(link, side_index, frame, lost=True)
+                        self._on_line(target, len(frame), now, imp)  # it took the line all the same
                         continue
                 delivered = self._impair(link, frame, imp)
                 self._tapped(link, side_index, delivered, lost=False)
@@ -312,10 +320,20 @@ class LinkEmulator(Closing):
             out.append(b)
         return bytes(out)
 
+    def _on_line(self, target: int, size: int, now: float, imp: Impairments) -> float:
+        """When ``size`` bytes sent at ``now`` towards ``target`` have crossed the line: at
+        once, or on a paced link one byte after another once the line is free."""
+        if not imp.baudrate:
+            return now
+        done = max(now, self._line_free.get(target, 0.0)) + size * 10.0 / imp.baudrate
+        self._line_free[target] = done
+        return done
+
     def _schedule(self, link: EmulatedLink, target: int, data: bytes, now: float, imp: Impairments) -> None:
         if not data:
             return
         delay = imp.latency + (self._rng.uniform(0.0, imp.jitter) if imp.jitter else 0.0)
+        now = self._on_line(target, len(data), now, imp)
         # Keep order per direction: never schedule before what is already queued for target.
         due = now + delay
         for item in self._queue:

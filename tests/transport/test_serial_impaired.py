@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
+
 from dh2rt.hormone import Hormone
 from dh2rt.testing import collect, contract_codec, long_hormone, quiet
 from dh2rt.transport.base import PortEnd, Received
@@ -109,3 +111,24 @@ def test_for_topology_and_clean_shutdown() -> None:
     while threading.active_count() > before and time.monotonic() < deadline:
         time.sleep(0.02)
     assert threading.active_count() == before
+
+
+@pytest.mark.parametrize("baud", [9600, 57600, 115200])
+def test_a_paced_link_carries_bytes_at_its_baud_rate(baud: int) -> None:
+    """Frames written at once cross one byte after another: the last arrives no sooner than
+    the line could carry them all (10 bits a byte), and not much later."""
+    codec = contract_codec()
+    frames = [_long(i) for i in range(40)]
+    with LinkEmulator(baudrate=baud, seed=3) as em, SerialTransport(codec) as a, SerialTransport(codec) as b:
+        link = em.add_link(7)
+        a.attach(1, link.paths[0])
+        b.attach(1, link.paths[1])
+        t0 = time.monotonic()
+        for h in frames:
+            assert a.send(1, h)
+        got = collect(b, len(frames), 30.0)
+        took = time.monotonic() - t0
+        line = em.stats(7).bytes_relayed * 10 / baud
+    assert [r.frame for r in got] == frames
+    assert took >= 0.95 * line, (took, line)
+    assert took <= line + 0.5, (took, line)

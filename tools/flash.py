@@ -1,0 +1,331 @@
+"""``dh2rt flash IMAGE --port DEV``: deliver a signed image to a robot through a programming
+cable; every module switches to it at one agreed cycle.
+
+The programming cable is a serial port (``--port``: a USB-serial adapter, a pty, any
+pyserial URL) wired to one module's free connector; to the flasher it is connector 1 of a
+serial transport of its own. The flasher (:class:`drivers.flash_cable.FlashCable`, the
+rollout's :class:`dh2rt.rollout.Flasher`) is ticked at the robot's cycle period
+(``--cycle-ms``): it offers the image through the cable, the modules pass it on over their
+own links, stage it, report back along their paths, and switch at the instant the flasher's
+COMMIT names (docs/flashing.md, "Delivery over the links").
+
+Progress goes to standard error (``--quiet``: none): the phase, the modules heard of,
+staged, committed and failed, the image bytes the module at the cable acknowledged and the
+rate (image bytes delivered per second; before any module staged, the bytes the module at
+the cable acknowledged per second). The rollout report goes to standard output: one line per
+module, named by its path from the cable (``front>front back>front``: the connector each hop
+left through and the one it arrived at), its outcome (staged, committed, confirmed, current,
+refused with the verdict and the reason, reverted, withheld, silent) and the version it runs;
+``--json``: one JSON object.
+
+Ctrl-C stops the flasher (the cable stops talking; modules the COMMIT already reached still
+switch), prints the report so far and exits 130.
+
+Exit codes: 0 every module committed (confirmed, with --confirm); 1 the rollout ran but a
+module did not commit, it timed out, or no module answered through the cable; 2 bad input
+(an image that cannot be read or is no signed image, a bad option, a port that cannot be
+opened); 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
+from dh2rt.errors import SignedImageError, TransportError
+from dh2rt.profile import CONRO
+from dh2rt.rollout import COMMITTED, Flasher, ModuleReport, Pacing, Progress, describe_path, link_pacing
+from dh2rt.signed_image import SignedImage, describe_key_id
+from dh2rt.signed_image import parse as parse_image
+from dh2rt.transport.base import PortEnd
+from dh2rt.transport.serial_link import SerialTransport
+from dh2rt.wire.transfer import Outcome
+from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+
+#: The cable is connector 1 of the flasher's own transport.
+CABLE = 1
+#: What the report says when nobody answered through the cable.
+NOBODY = "no module answered through the cable"
+#: How the Flasher's failure starts when a module stopped the commit, and the outcomes that do.
+NOT_COMMITTED = "not committed: "
+BLOCKING = frozenset({Outcome.REFUSED, Outcome.REVERTED, Outcome.WITHHELD})
+
+EXIT_CODES = """\
+exit codes:
+  0    every module committed the image (confirmed it, with --confirm)
+  1    the rollout ran but a module did not commit, it timed out, or no module answered
+  2    bad input: an image that cannot be read or is no signed image, a bad option,
+       a port that cannot be opened
+  130  interrupted (Ctrl-C): the report so far is printed
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dh2rt flash",
+        description="Deliver a signed program image to a robot through a programming cable (a serial\n"
+        "port on one module's free connector); every module switches to it at one agreed cycle.",
+        epilog=EXIT_CODES + "\nexample:\n  dh2rt flash cat2.simg --port /dev/ttyUSB0\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("image", type=Path, help="a signed image (dh2rt image PROGRAM --sign KEY --version N -o IMAGE)")
+    p.add_argument("--port", required=True, help="the cable's serial port: a device path or a pyserial URL")
+    p.add_argument("--baudrate", type=int, default=115200, help="the cable's line speed (default: 115200)")
+    p.add_argument("--cycle-ms", type=float, default=20.0, help="the robot's cycle period (default: 20)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds before the flasher gives up (default: 120)")
+    p.add_argument("--confirm", action="store_true", help="wait until every module confirmed the image (trial over)")
+    p.add_argument("--json", action="store_true", help="the rollout report as one JSON object")
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+    return p
+
+
+@dataclass(frozen=True, slots=True)
+class Image:
+    """The image to flash: its bytes, its fields, the SHA-256 of the program it holds."""
+
+    path: Path
+    data: bytes
+    signed: SignedImage
+    sha256: str
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        ns = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option (2): argparse has said why
+        return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
+    try:
+        _check_options(ns)
+        image = read_image(ns.image)
+        pacing, segment = cable_pacing(ns, image)
+    except ValueError as exc:  # SignedImageError is one
+        err(str(exc))
+        return EXIT_USAGE
+    try:
+        transport = open_cable(ns.port, ns.baudrate)
+    except TransportError as exc:
+        err(str(exc))
+        return EXIT_USAGE
+    try:
+        result, interrupted = _flash(ns, image, transport, pacing, segment)
+    except KeyboardInterrupt:  # a second Ctrl-C: no report
+        err("interrupted")
+        return EXIT_INTERRUPTED
+    finally:
+        transport.close()
+    try:
+        if ns.json:
+            print(json.dumps(to_json(image, result, interrupted=interrupted, confirm=ns.confirm)))
+        else:
+            print("\n".join(report_lines(image, result, interrupted=interrupted, confirm=ns.confirm)))
+    except BrokenPipeError:  # `dh2rt flash ... | head`: the reader has what it wanted
+        pass
+    if interrupted:
+        err(f"interrupted in phase {result.progress.phase.value}: the flasher stopped; modules the commit "
+            "already reached still switch")  # fmt: skip
+        return EXIT_INTERRUPTED
+    return EXIT_OK if result.succeeded else EXIT_FAIL
+
+
+def _check_options(ns: argparse.Namespace) -> None:
+    if not (math.isfinite(ns.cycle_ms) and ns.cycle_ms > 0):
+        raise ValueError(f"--cycle-ms {ns.cycle_ms:g}: must be a positive number of milliseconds")
+    if math.isnan(ns.timeout) or ns.timeout <= 0:
+        raise ValueError(f"--timeout {ns.timeout:g}: must be a positive number of seconds")
+    if ns.baudrate <= 0:
+        raise ValueError(f"--baudrate {ns.baudrate}: must be a positive number of bits per second")
+
+
+def read_image(path: Path) -> Image:
+    """The image at ``path``; ValueError (SignedImageError) naming the file and what is wrong."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SignedImageError(f"{path}: cannot read the image ({exc.strerror or exc})") from None
+    try:
+        signed = parse_image(data)
+        program = signed.program()  # the body must hold the program the header states
+    except SignedImageError as exc:
+        raise SignedImageError(f"{path}: {exc}") from None
+    return Image(path, data, signed, hashlib.sha256(program).hexdigest())
+
+
+def open_cable(port: str, baudrate: int) -> SerialTransport:
+    """The cable's transport, ``port`` attached as its connector 1; TransportError naming
+    the port when it cannot be opened."""
+    transport = SerialTransport(hello_codec())
+    try:
+        transport.attach(CABLE, PortEnd(port, baudrate))
+    except TransportError as exc:
+        transport.close()
+        why = exc.__cause__ or exc
+        raise TransportError(f"--port {port}: cannot open the serial port ({why})") from None
+    return transport
+
+
+@contextmanager
+def _ctrl_c_sets(stop: threading.Event) -> Iterator[None]:
+    """Ctrl-C sets ``stop`` (the flasher ends at its next tick); a second one interrupts at
+    once. Only the main thread can take signals: elsewhere Ctrl-C is not ours."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_sigint(_signum: int, _frame: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def cable_pacing(ns: argparse.Namespace, image: Image) -> tuple[Pacing, int]:
+    """The rollout's pacing and segment size on the cable (a share of the line's bytes per
+    cycle, as on the modules' links); ValueError naming the options when the largest transfer
+    frame does not fit a cycle's share."""
+    pacing, segment, _ = link_pacing("serial", ns.cycle_ms / 1000, ns.baudrate, 0)
+    try:
+        Flasher(image.data, pacing=pacing, period=ns.cycle_ms / 1000, connector=CABLE, segment_size=segment)
+    except ValueError as exc:
+        raise ValueError(
+            f"--baudrate {ns.baudrate} --cycle-ms {ns.cycle_ms:g}: the rollout cannot be paced on the cable ({exc}); "
+            "a faster line or a longer cycle"
+        ) from None
+    return pacing, segment
+
+
+def _flash(
+    ns: argparse.Namespace, image: Image, transport: SerialTransport, pacing: Pacing, segment: int
+) -> tuple[FlashResult, bool]:
+    """Run the flasher until it is done, times out or Ctrl-C; (its result, interrupted)."""
+    cable = FlashCable(
+        image.data, transport, period=ns.cycle_ms / 1000, pacing=pacing, segment_size=segment, connector=CABLE,
+        confirm=ns.confirm,
+    )  # fmt: skip
+    show = None if ns.quiet else ProgressLines()
+    if show is not None:
+        print(
+            f"flash: {image.path}: version {image.signed.version}, {len(image.data)} bytes, key id "
+            f"{describe_key_id(image.signed.key_id)}; cable {ns.port} at {ns.baudrate} baud, "
+            f"cycle {ns.cycle_ms:g} ms, timeout {ns.timeout:g} s",
+            file=sys.stderr,
+            flush=True,
+        )
+    stop = threading.Event()
+    with _ctrl_c_sets(stop):
+        result = cable.run(timeout=ns.timeout, stop=stop, progress=show)
+    if show is not None:
+        show(result.progress)  # where it ended
+    # FlashCable says timed_out for any run that ended before the Flasher was done
+    return result, stop.is_set() and not cable.flasher.done
+
+
+class ProgressLines:
+    """Progress lines on standard error, one whenever something other than time changed."""
+
+    def __init__(self) -> None:
+        self._last: tuple[Any, ...] | None = None
+
+    def __call__(self, p: Progress) -> None:
+        key = (p.phase, p.modules, p.staged, p.committed, p.failed, p.bytes_acked)
+        if key == self._last:
+            return
+        self._last = key
+        print(
+            f"flash: {p.phase.value}: {p.modules} module(s) heard of, {p.staged} staged, {p.committed} committed, "
+            f"{p.failed} failed, {p.bytes_acked} bytes acknowledged, {rate(p):.0f} bytes/s, {p.elapsed:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def rate(p: Progress) -> float:
+    """Image bytes delivered per second: the Flasher's (staged modules' images), or, before
+    any module staged, the bytes the module at the cable acknowledged."""
+    if p.rate == 0 and p.bytes_acked > 0 and p.elapsed > 0:
+        return p.bytes_acked / p.elapsed
+    return p.rate
+
+
+# ----------------------------------------------------------------------------- the report
+
+
+def connector_name(index: int) -> str:
+    """A connector's name in the robot's profile (CONRO), its number when it has none."""
+    return CONRO.connector_name(index) if 0 <= index <= CONRO.connector_count else str(index)
+
+
+def _failure(result: FlashResult, confirm: bool = False) -> str | None:
+    """Why not every module committed (confirmed), modules named by their connectors' names."""
+    if result.succeeded:
+        return None
+    if not result.modules:
+        return NOBODY + (f" ({result.failure})" if result.failure else "")
+    blocking = [m for m in result.modules if m.outcome in BLOCKING]
+    if result.failure is not None and result.failure.startswith(NOT_COMMITTED) and blocking:
+        # the Flasher names the first module that stopped the commit by connector numbers
+        first = blocking[0]
+        return f"{NOT_COMMITTED}{describe_path(first.path, connector_name)} {first.outcome.name.lower()} the image"
+    if result.failure is not None:
+        return result.failure
+    # the Flasher settled with modules short of the goal (silent, staged, not yet confirmed)
+    wanted = {Outcome.CONFIRMED, Outcome.CURRENT} if confirm else COMMITTED
+    short = [m for m in result.modules if m.outcome not in wanted]
+    named = ", ".join(f"{describe_path(m.path, connector_name)} {m.outcome.name.lower()}" for m in short[:3])
+    more = f" and {len(short) - 3} more" if len(short) > 3 else ""
+    return f"not {'confirmed' if confirm else 'committed'}: {named}{more}"
+
+
+def report_lines(image: Image, result: FlashResult, *, interrupted: bool = False, confirm: bool = False) -> list[str]:
+    """The rollout report: a headline, then one line per module by its path from the cable."""
+    what = f"{image.path}: version {image.signed.version}, sha256 {image.sha256[:16]}"
+    goal = "confirmed" if confirm else "committed"
+    if result.succeeded:
+        head = f"every module {goal} ({len(result.modules)} module(s))"
+    elif interrupted:
+        head = f"interrupted in phase {result.progress.phase.value}: NOT every module {goal}"
+    else:
+        head = f"NOT every module {goal} ({_failure(result, confirm)})"
+    return [f"{what}: {head}", *(f"  {m.describe(connector_name)}" for m in result.modules)]
+
+
+def module_json(m: ModuleReport) -> dict[str, Any]:
+    return {
+        "path": describe_path(m.path, connector_name),
+        "outcome": m.outcome.name.lower(),
+        "version": m.version,
+        "verdict": m.verdict,
+        "reason": m.reason,
+    }
+
+
+def to_json(image: Image, result: FlashResult, *, interrupted: bool = False, confirm: bool = False) -> dict[str, Any]:
+    return {
+        "image": str(image.path),
+        "version": image.signed.version,
+        "sha256": image.sha256,
+        "succeeded": result.succeeded,
+        "failure": "interrupted" if interrupted and not result.succeeded else _failure(result, confirm),
+        "timed_out": result.timed_out and not interrupted,
+        "interrupted": interrupted,
+        "modules": [module_json(m) for m in result.modules],
+    }
+
+
+if __name__ == "__main__":
+    sys.exit(main())
