@@ -93,6 +93,9 @@ if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
 
 
+#: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.
+LINE_BAUD = 115_200
+
 class World:
     """Modules of ``topology`` running ``program`` over ``transport`` (see module docs)."""
 
@@ -120,6 +123,7 @@ class World:
         gui: bool = False,
         signer: bytes | None = None,
         trial_cycles: int = DEFAULTS.trial_cycles,
+        line_baud: int = LINE_BAUD,
     ) -> None:
         self.program = program
         self.topology = topology
@@ -170,7 +174,10 @@ class World:
                 def tap(t: float, link: int, side: int, wire: bytes, lost: bool) -> None:
                     sink.serial_frame(t, link, side, wire, lost=lost)
 
-            self.emulator = LinkEmulator(frame_loss=frame_loss, bit_error=bit_error, seed=emulator_seed, tap=tap)
+            # the infrared links carry bytes at the modules' baud rate (0: at once)
+            self.emulator = LinkEmulator(
+                frame_loss=frame_loss, bit_error=bit_error, baudrate=line_baud, seed=emulator_seed, tap=tap
+            )
         #: The modules' body: "recording" (each module records its commanded angles),
         #: "pybullet" (the full firmware path: Dynamixel servos emulated on ptys whose joints
         #: are PyBullet joints; see hil.physics_stand_in) or "none".

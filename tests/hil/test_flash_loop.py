@@ -37,6 +37,7 @@ NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
 ORDER = "ABCD"  # the body receptors' order in the program: the last one that fires sets DOF1
 N = 8
 HOP = 3  # periods a hormone may take over one serial hop
+LATE = 0.25  # periods a cycle may start late on a machine that keeps time
 AFTER = 150  # cycles every module runs the new program before the run ends
 WAIT = 240.0  # seconds the rollout and the confirmations may take on a loaded machine
 
@@ -142,16 +143,23 @@ def test_every_module_sets_table_i_for_what_it_receives(rollout: Run) -> None:
             assert r["actuators"]["DOF1"] == TABLE_I[last], (m, r["cycle"], phases, r["actuators"])
 
 
-def world_cycle(run: Run, module: int, cycle: int) -> int:
-    """The world cycle in which ``module``'s ``cycle`` began, from its trace record's time."""
-    (rec,) = [r for r in run.records if r["module"] == module and r["cycle"] == cycle and r.get("life", 0) == 0]
-    return round((float(rec["t"]) - run.go_at) / PERIOD)
+def switch_instants(run: Run) -> dict[int, float]:
+    """Each module's first cycle on the new program: when it began (its trace record's
+    ``t``, on the one monotonic clock of every process), in periods from the world's go."""
+    out: dict[int, float] = {}
+    for m, cycle in run.switched.items():
+        (rec,) = [r for r in run.records if r["module"] == m and r["cycle"] == cycle and r.get("life", 0) == 0]
+        out[m] = (float(rec["t"]) - run.go_at) / PERIOD
+    return out
 
 
 @pytest.mark.realtime
 def test_one_agreed_switch_cycle_and_table_i_hop_by_hop(rollout: Run) -> None:
-    at = {m: world_cycle(rollout, m, c) for m, c in rollout.switched.items()}
-    assert len(set(at.values())) == 1, at  # one agreed cycle
+    # one agreed cycle: modules keep no common clock, so each switches at its own first cycle
+    # boundary at or after the agreed instant; those boundaries lie within one period (and a
+    # module started late by the machine lies a little after)
+    at = switch_instants(rollout)
+    assert max(at.values()) - min(at.values()) <= 1.0 + LATE, {m: round(t, 2) for m, t in at.items()}
     emitted = head_emissions(rollout.records)
     switch = rollout.switched[0]
     assert {b - a for a, b in itertools.pairwise(emitted) if b <= switch} == {10}

@@ -207,6 +207,7 @@ local F = {
     route = ProtoField.string("dh2rt.route", "Route still to go"),
     keepalive_seq = ProtoField.uint8("dh2rt.keepalive.seq", "Keep-alive sequence number"),
     digest = ProtoField.bytes("dh2rt.hello.digest", "Program digest"),
+    version = ProtoField.uint32("dh2rt.hello.version", "Program version"),
     program = ProtoField.string("dh2rt.program", "Program naming the hormones"),
 }
 local field_list = {}
@@ -462,12 +463,41 @@ function Decode:frame()
         self.tree:add(F.keepalive_seq, self:range(1, 1))
         hop = { kind = "keepalive", text = "#" .. data:byte(2) }
     elseif kind == LAYOUT.kinds.hello then
-        local expected = 1 + LAYOUT.hello_digest_bytes
-        if #data ~= expected then
-            decode_error(string.format("hello frame: %d bytes, expected %d", #data, expected))
+        local short = 1 + LAYOUT.hello_digest_bytes
+        if #data < short or #data > short + 5 then
+            decode_error(string.format("hello frame: %d bytes, expected %d (or %d..%d with a version)",
+                #data, short, short + 1, short + 5))
         end
         self.tree:add(F.digest, self:range(1, LAYOUT.hello_digest_bytes))
-        local digest = tohex(data:sub(2))
+        if #data > short then
+            -- the program's version: a canonical unsigned LEB128 u32 filling the rest
+            -- (dh2rt.wire.transfer.decode_hello)
+            local value, scale = 0, 1
+            local done = false
+            for i = short + 1, #data do
+                local b = data:byte(i)
+                value = value + (b % 128) * scale
+                scale = scale * 128
+                if b < 128 then
+                    if i ~= #data then
+                        decode_error(string.format("hello frame: %d trailing byte(s) after the version", #data - i))
+                    end
+                    if b == 0 and i > short + 1 then
+                        decode_error("hello frame: the version is not in its shortest form")
+                    end
+                    if value > 4294967295 then
+                        decode_error(string.format("hello frame: version %d exceeds 32 bits", value))
+                    end
+                    done = true
+                    break
+                end
+            end
+            if not done then
+                decode_error("hello frame: the version is cut short")
+            end
+            self.tree:add(F.version, self:range(short, #data - short), value)
+        end
+        local digest = tohex(data:sub(2, short))
         local text = digest
         if #PROGRAMS > 0 and KNOWN_DIGESTS[digest] == nil then
             text = text .. " (a program this capture does not carry)"
