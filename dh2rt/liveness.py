@@ -12,6 +12,8 @@ Per attached connector::
         |  +------Hello(same digest)------+ (answered with our Hello, at most once per
         |                                    silence_cycles cycles, so two peers never ping-pong)
         +--Hello(other digest)--> refused (frames ignored; status 0) --Hello(same)--> verified
+        +--Hello(NO_PROGRAM)--> a tool (a programming cable: frames ignored, status 0, not
+                                counted as refused; settled like a verified peer)
 
 - Hello: carries the sender's program digest. A peer running another program is refused
   rather than fed hormones whose indices it would misread.
@@ -30,7 +32,7 @@ import enum
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from dh2rt.wire.frame import Frame, Hello, KeepAlive
+from dh2rt.wire.frame import NO_PROGRAM, Frame, Hello, KeepAlive
 
 #: Consecutive silent cycles after which a linked connector falls to 0.
 SILENCE_CYCLES = 3
@@ -42,6 +44,7 @@ class Verdict(enum.Enum):
     HEARD = "heard"  # from a verified peer: the connector is linked, reset its silence
     IGNORED = "ignored"  # through an unverified connector (counted)
     REFUSED = "refused"  # a Hello from a peer running another program: status must fall to 0
+    TOOL = "tool"  # a Hello from a peer that runs no program (a programming cable): status 0
     UNATTACHED = "unattached"  # through a connector that is not attached (not counted)
 
 
@@ -58,6 +61,7 @@ class _Link:
 
     verified: bool = False
     refused: bool = False
+    tool: bool = False  # the peer said it runs no program (a programming cable)
     silent: int = 0
     last_hello: int = -(10**9)  # cycle a counted Hello last went out
     hello_due: bool = True
@@ -129,8 +133,8 @@ class Liveness:
 
     @property
     def settled(self) -> bool:
-        """Every attached connector's peer was verified or refused."""
-        return all(link.verified or link.refused for link in self._links.values())
+        """Every attached connector's peer was verified or refused, or is a tool."""
+        return all(link.verified or link.refused or link.tool for link in self._links.values())
 
     # ------------------------------------------------------------ frames in
 
@@ -139,7 +143,11 @@ class Liveness:
         link = self._links.get(connector)
         if link is None:
             return Verdict.UNATTACHED
+        if isinstance(frame, Hello) and frame.digest == NO_PROGRAM:
+            link.tool, link.verified, link.refused = True, False, False
+            return Verdict.TOOL
         if isinstance(frame, Hello):
+            link.tool = False
             foreign = frame.digest != self.digest
             if foreign and frame.digest not in self.tolerated:
                 link.refused = True

@@ -1935,11 +1935,22 @@ _COMMIT_BYTES = 15
 
 def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> tuple[Pacing, int, float]:
     """The rollout's pacing, segment size and COMMIT transit time on this module's links:
-    a share of each serial line's bytes per cycle, or of a CAN bus's bits per cycle."""
+    a share of each serial line's bytes per cycle, or of a CAN bus's bits per cycle.
+    Raises ValueError, naming the line and the period, when that share of a cycle cannot
+    carry the largest transfer frame (a slow line at a short period)."""
     if transport == "serial":
         per_cycle = int(baudrate / 10 * period * SERIAL_SHARE)
-        budget = max(per_cycle, serial_cost(SERIAL_SEGMENT + 6) + 1)
-        return Pacing(budget, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
+        _check_share(per_cycle, serial_cost, SERIAL_SEGMENT, "bytes", f"a {baudrate}-baud serial line", period)
+        return Pacing(per_cycle, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
     per_cycle = int(bitrate * period * CAN_SHARE)
-    budget = max(per_cycle, can_cost(CAN_SEGMENT + 6) + 1)
-    return Pacing(budget, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate
+    _check_share(per_cycle, can_cost, CAN_SEGMENT, "bits", f"a {bitrate} bit/s CAN bus", period)
+    return Pacing(per_cycle, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate
+
+
+def _check_share(per_cycle: int, cost: Callable[[int], int], segment: int, unit: str, line: str, period: float) -> None:
+    largest = cost(max(segment + 6, LARGEST_CONTROL))
+    if per_cycle < largest:
+        raise ValueError(
+            f"{line} gives a rollout {per_cycle} {unit} per {period * 1000:g} ms cycle; its largest transfer "
+            f"frame takes {largest}: use a faster line or a longer cycle"
+        )

@@ -140,6 +140,10 @@ class ModuleRuntime:
             raise ValueError(f"cycle_period {cycle_period!r} must be positive")
         self.program = program
         self.transport = transport
+        #: connectors whose peer said it is a tool (runs no program), or docks by a connector
+        #: that cannot dock there: each told once in the log
+        self._tools: set[int] = set()
+        self._misdocked: set[int] = set()
         available = dict(STANDARD_NATIVES)
         available.update(natives or {})
         self._natives = available
@@ -411,6 +415,14 @@ class ModuleRuntime:
         verdict = self.liveness.receive(r.at, frame, self.cycle)
         if self.observer is not None and isinstance(frame, Hello) and verdict is not Verdict.UNATTACHED:
             self.observer.hello(r.at, r.remote, frame, self.clock())
+        if verdict is Verdict.TOOL:
+            if r.at not in self._tools:
+                self._tools.add(r.at)
+                self._log(f"connector {self._cname(r.at)}: a programming cable (a peer that runs no program)")
+            if self.engine.status[r.at - 1]:
+                self.engine.link_down(r.at)
+            return False
+        self._tools.discard(r.at)
         if verdict is Verdict.REFUSED:
             assert isinstance(frame, Hello)
             if not was_refused:
@@ -423,6 +435,17 @@ class ModuleRuntime:
             return False
         if verdict is not Verdict.HEARD:
             return False
+        if not self.program.profile.can_link(r.at, r.remote):
+            # a peer that says it is docked by a connector that cannot dock here (two of one
+            # gender): not a link this module's types know; told once, ignored
+            if r.at not in self._misdocked:
+                self._misdocked.add(r.at)
+                self._log(
+                    f"connector {self._cname(r.at)}: the peer's {self._cname(r.remote)} cannot dock here "
+                    "(connectors of one gender): ignored"
+                )
+            return False
+        self._misdocked.discard(r.at)
         self.engine.link_up(r.at, r.remote)
         return True
 

@@ -17,11 +17,15 @@ from dataclasses import dataclass
 from dh2rt.hormone import Vocabulary
 from dh2rt.rollout import Action, Flasher, ModuleReport, Pacing, Progress, Send
 from dh2rt.transport.base import Transport
-from dh2rt.wire.frame import FrameCodec, Hello
+from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR
 
 #: A codec that reads every connector's Hellos and no hormone (the cable runs no program).
 HELLO_CODEC_CONNECTORS = MAX_CONNECTOR
+
+
+#: Ticks between the cable's Hellos (it runs no program: see _hello).
+HELLO_TICKS = 3
 
 
 def hello_codec() -> FrameCodec:
@@ -65,6 +69,7 @@ class FlashCable:
             confirm=confirm, settle_ticks=settle_ticks,
         )  # fmt: skip
         self.lock = threading.Lock()
+        self._ticks_since_hello = HELLO_TICKS  # the first one at the first tick
         transport.on_transfer = self._on_transfer
 
     def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
@@ -80,6 +85,7 @@ class FlashCable:
         """One tick now, then frames in until ``until`` (a reading of the clock)."""
         with self.lock:
             self._send(self.flasher.tick(self.clock()))
+            self._hello()
             while True:  # at least one poll: what came in since the last step
                 for r in self.transport.poll(max(0.0, until - self.clock())):
                     if isinstance(r.frame, Hello) and r.at == self.connector:
@@ -87,6 +93,15 @@ class FlashCable:
                         self._send(self.flasher.hello(r.at, r.remote, hello.version, hello.digest, self.clock()))
                 if self.clock() >= until or self.flasher.done:
                     return
+
+    def _hello(self) -> None:
+        """Every HELLO_TICKS ticks the cable says it runs no program (a Hello with the digest
+        NO_PROGRAM): the module at the cable neither links to it nor refuses it, and its trial
+        does not wait for it, so it can confirm with the cable still in."""
+        self._ticks_since_hello += 1
+        if self._ticks_since_hello >= HELLO_TICKS:
+            self._ticks_since_hello = 0
+            self.transport.send(self.connector, Hello(NO_PROGRAM))
 
     def run(
         self,

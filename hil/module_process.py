@@ -44,6 +44,7 @@ import socket
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
@@ -201,7 +202,7 @@ class ModuleHost:
                     rt.run(self.cycles, self.stop_event, self._on_cycle)
         except Exception as exc:  # report it to the world rather than die silently
             self.failed = True
-            self.report(Failure(f"{type(exc).__name__}: {exc}"))
+            self.report(Failure(f"{type(exc).__name__}: {exc} ({_where(exc)})"))
         finally:
             self._flush()
             # what was last commanded: the servos themselves may be gone by now
@@ -259,9 +260,13 @@ class ModuleHost:
         from hil.rollout_host import RolloutHost
 
         bitrate = int(self.config.bus_options.get("bitrate", 1_000_000))
-        return RolloutHost.for_module(
-            self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate
-        )
+        try:
+            return RolloutHost.for_module(
+                self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate
+            )
+        except ValueError as exc:  # a line too slow for the cycle: the program runs, no rollouts
+            self.runtime.log.append(f"rollouts off: {exc}")
+            return None
 
     def _switched(self, program: CompiledProgram, boot: Boot) -> None:
         """The rollout switched the running program (at a cycle start): it runs on trial."""
@@ -647,3 +652,10 @@ def _stop_on_signals(host: ModuleHost) -> None:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _where(exc: BaseException) -> str:
+    """Where ``exc`` was raised, innermost frame first, for a failure report: a module's
+    crash names the line (the world's log has no traceback)."""
+    frames = traceback.extract_tb(exc.__traceback__)[-3:]
+    return "; ".join(f"{Path(f.filename).name}:{f.lineno} in {f.name}" for f in reversed(frames)) or "no traceback"

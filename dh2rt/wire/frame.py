@@ -41,6 +41,9 @@ from dh2rt.hormone import MAX_HOPS_LIMIT, Hormone, Vocabulary
 WIRE_VERSION = 1
 #: Bytes of program digest a hello carries.
 HELLO_DIGEST_BYTES = 6
+#: The digest of a peer that runs no program: a programming cable's Hello (dh2rt flash). A
+#: module neither links to it nor refuses it (docs/flashing.md).
+NO_PROGRAM = bytes(HELLO_DIGEST_BYTES)
 #: Largest connector index the 4-bit sender field can carry.
 MAX_CONNECTORS = 15
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from dh2rt.liveness import SILENCE_CYCLES, Beacon, Liveness, Verdict
-from dh2rt.wire.frame import Frame, Hello, KeepAlive
+from dh2rt.wire.frame import NO_PROGRAM, Frame, Hello, KeepAlive
 
 MINE = b"\x01" * 8
 OTHER = b"\x02" * 8
@@ -158,3 +158,19 @@ def test_carried_connectors_send_no_beacon_and_gaps_count_missed() -> None:
 def test_silence_cycles_must_be_positive() -> None:
     with pytest.raises(ValueError, match="silence_cycles"):
         Liveness(MINE, 0)
+
+
+def test_a_programming_cable_is_a_tool_neither_linked_nor_refused() -> None:
+    """A Hello with the NO_PROGRAM digest (dh2rt flash's cable): the connector is settled
+    (a trial does not wait for it), never verified, and nothing counts as refused; a module
+    docked there later is verified by its own Hello."""
+    lv = Liveness(MINE, SILENCE_CYCLES)
+    lv.attach(1)
+    lv.attach(2)
+    assert lv.receive(2, Hello(MINE), 0) is Verdict.HEARD
+    assert not lv.settled
+    assert lv.receive(1, Hello(NO_PROGRAM), 0) is Verdict.TOOL
+    assert lv.settled and not lv.verified(1) and lv.counters.refused == 0
+    assert lv.receive(1, KeepAlive(1), 1) is Verdict.IGNORED  # a tool's other frames mean nothing
+    assert lv.receive(1, Hello(MINE), 2) is Verdict.HEARD and lv.verified(1)
+    assert lv.receive(1, Hello(OTHER), 3) is Verdict.REFUSED and lv.counters.refused == 1

@@ -59,6 +59,7 @@ from dh2rt.rollout import (
     _Sender,
     _Store,
     describe_path,
+    link_pacing,
 )
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.transfer import Outcome
@@ -704,3 +705,26 @@ def test_one_module_on_a_cable(images: Images) -> None:
     assert {r.outcome for r in flasher.report()} <= COMMITTED | {Outcome.STAGED}
     switch = next(a for a in actions if isinstance(a, Switch))
     assert switch.program.version == 2
+
+
+@pytest.mark.parametrize(
+    ("transport", "period", "baud", "bitrate", "needle"),
+    [
+        ("serial", 0.02, 9600, 0, "a 9600-baud serial line gives a rollout 15 bytes per 20 ms cycle"),
+        ("serial", 0.01, 115200, 0, "per 10 ms cycle"),
+        ("can", 0.02, 0, 125_000, "a 125000 bit/s CAN bus gives a rollout 750 bits"),
+    ],
+)
+def test_a_line_too_slow_for_the_largest_frame_is_named(
+    transport: str, period: float, baud: int, bitrate: int, needle: str
+) -> None:
+    with pytest.raises(ValueError, match="use a faster line or a longer cycle") as exc:
+        link_pacing(transport, period, baud, bitrate)
+    assert needle in str(exc.value)
+
+
+@pytest.mark.parametrize(("transport", "period"), [("serial", 0.02), ("serial", 0.04), ("can", 0.02), ("can", 0.01)])
+def test_the_default_lines_carry_every_transfer_frame(transport: str, period: float) -> None:
+    pacing, segment, transit = link_pacing(transport, period, 115_200, 1_000_000)
+    assert pacing.cost(max(segment + 6, LARGEST_CONTROL)) <= pacing.budget
+    assert pacing.shared == (transport == "can") and 0 < transit < period

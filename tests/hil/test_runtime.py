@@ -18,7 +18,7 @@ from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
 from dh2rt.testing import FakeClock, runtime_chain, step_all
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocBus, InprocTransport
-from dh2rt.wire.frame import FrameCodec
+from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from drivers.recording import RecordingDriver
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -154,6 +154,40 @@ def test_neighbour_with_another_program_is_refused(
     assert a.counters["ignored"] == 1
     assert any("another program" in line for line in a.log)
     assert not a.verified(BACK)
+
+
+def test_a_peer_on_a_connector_that_cannot_dock_there_is_ignored_not_a_crash(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime]
+) -> None:
+    """Two fronts (both female) cannot dock: a peer that says so (a bad cable, a miswired
+    harness) is told once in the log and ignored; the module keeps its type and runs on."""
+    bus = InprocBus()
+    a = make(caterpillar, bus)
+    b = make(caterpillar, bus)
+    closing.extend((a, b))
+    a.attach(FRONT, BusEnd(5, 0))
+    b.attach(FRONT, BusEnd(5, 1))
+    step_all([a, b], 6)
+    assert a.engine.status == [0, 0, 0, 0] and b.engine.status == [0, 0, 0, 0]
+    assert sum("cannot dock here" in line for line in a.log) == 1
+    assert a.cycle == 6 and b.cycle == 6
+
+
+def test_a_programming_cable_is_neither_linked_nor_refused(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime]
+) -> None:
+    bus = InprocBus()
+    a = make(caterpillar, bus)
+    closing.append(a)
+    cable = InprocTransport(FrameCodec(caterpillar.vocabulary, 4), bus=bus)
+    a.attach(FRONT, BusEnd(6, 0))
+    cable.attach(FRONT, BusEnd(6, 1))  # front to front: a cable claims no connector that docks
+    for _ in range(5):
+        assert cable.send(FRONT, Hello(NO_PROGRAM))
+        a.step()
+    cable.close()
+    assert a.engine.status == [0, 0, 0, 0] and a.counters["refused"] == 0
+    assert a.liveness.settled and sum("a programming cable" in line for line in a.log) == 1
 
 
 def test_run_paces_cycles_on_the_injected_clock(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
