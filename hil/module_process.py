@@ -63,7 +63,7 @@ from hil.config import ModuleConfig
 
 if TYPE_CHECKING:
     from drivers.flash_slots import Boot, Flash
-    from hil.negotiated_links import NegotiatedLinks
+    from drivers.negotiated_links import NegotiatedLinks
     from hil.rollout_host import RolloutHost
 from hil.control import (
     Attach,
@@ -147,7 +147,8 @@ class ModuleHost:
         #: links negotiated over the connectors' local channels (on a bus), or None
         self.links: NegotiatedLinks | None = None
         if config.connector_channels:
-            from hil.negotiated_links import NegotiatedLinks, open_channels
+            from drivers.negotiated_links import NegotiatedLinks
+            from hil.negotiated_links import open_channels
 
             rt = self.runtime
             try:
