@@ -14,11 +14,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from dh2rt.closing import Closing
 from dh2rt.hormone import Vocabulary
 from dh2rt.rollout import Action, Flasher, ModuleReport, Pacing, Progress, Send
 from dh2rt.transport.base import Transport
 from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR
+from drivers.connector_channel import ConnectorChannels
+from drivers.negotiated_links import NegotiatedLinks
 
 #: A codec that reads every connector's Hellos and no hormone (the cable runs no program).
 HELLO_CODEC_CONNECTORS = MAX_CONNECTOR
@@ -58,6 +61,7 @@ class FlashCable:
         clock: Callable[[], float] = time.monotonic,
         confirm: bool = False,
         settle_ticks: int = 250,
+        on_step: Callable[[float], None] | None = None,
     ) -> None:
         self.transport = transport
         self.connector = connector
@@ -68,6 +72,8 @@ class FlashCable:
             image, pacing=pacing, period=period, connector=connector, segment_size=segment_size,
             confirm=confirm, settle_ticks=settle_ticks,
         )  # fmt: skip
+        #: called with the clock at the start of every step (a bus cable's link negotiation)
+        self.on_step = on_step
         self.lock = threading.Lock()
         self._ticks_since_hello = HELLO_TICKS  # the first one at the first tick
         transport.on_transfer = self._on_transfer
@@ -84,6 +90,8 @@ class FlashCable:
     def step(self, until: float) -> None:
         """One tick now, then frames in until ``until`` (a reading of the clock)."""
         with self.lock:
+            if self.on_step is not None:
+                self.on_step(self.clock())
             self._send(self.flasher.tick(self.clock()))
             self._hello()
             while True:  # at least one poll: what came in since the last step
@@ -132,3 +140,34 @@ class FlashCable:
         timed_out = not f.done
         return FlashResult(f.succeeded, f.failure or ("timed out" if timed_out else None), f.report(),
                            f.progress(), timed_out)  # fmt: skip
+
+
+class BusCable(Closing):
+    """The flasher's end of a programming cable on a robot whose modules share a bus: its
+    connector-local channel touches one module's free connector, the two negotiate a link id
+    over it as two modules would (:class:`drivers.negotiated_links.NegotiatedLinks`), and the
+    rollout runs over the bus on that link. ``connector`` is the cable's own connector (one
+    that may dock to the module's: CONRO's front for a free male connector, back for a free
+    front); pass :meth:`step` as the FlashCable's ``on_step``."""
+
+    def __init__(
+        self,
+        channels: ConnectorChannels,
+        transport: Transport,
+        connector: int,
+        *,
+        now: float,
+        log: Callable[[str], None],
+    ) -> None:
+        self.transport = transport
+        self.links = NegotiatedLinks(channels, transport, [connector], now, transport.attach, self._detach, log)
+
+    def _detach(self, connector: int) -> None:
+        self.transport.detach(connector)
+
+    def step(self, now: float) -> None:
+        self.links.step(now)
+
+    def close(self) -> None:
+        """Release the link on the bus and close the channel (the transport is the caller's)."""
+        self.links.close()

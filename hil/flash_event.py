@@ -1,15 +1,17 @@
 """The launcher's ``--event CYCLE:flash:M:IMAGE``: a programming cable into module M's free
-connector at a world cycle, the flasher on it (:class:`hil.flash_cable.FlashCable`, in a
+connector at a world cycle, the flasher on it (:class:`drivers.flash_cable.FlashCable`, in a
 thread of the launcher), its progress, and the rollout report at the end.
 
-Only the serial link emulator has cables to plug in (``--transport serial``); the cable goes
-into M's first free connector (front, back, left, right), and is pulled out when the
-flasher is done, so that the modules' trial can see every neighbour verified.
+On serial links the cable is one more emulated link into M's first free connector (front,
+back, left, right); on a bus it is a node of its own whose connector-local channel touches
+that connector, so that the two negotiate a link as modules do. It is pulled out when the
+flasher is done.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -18,9 +20,11 @@ from dh2rt.errors import EventError, SignedImageError, TopologyError
 from dh2rt.rollout import ModuleReport, Progress, describe_path, link_pacing
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.topology import Topology
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import PortEnd, Transport
+from dh2rt.transport.registry import open_transport
 from dh2rt.transport.serial_link import SerialTransport
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+from drivers.connector_channel import ConnectorChannels
+from drivers.flash_cable import BusCable, FlashCable, FlashResult, hello_codec
 from hil.world import World
 
 #: Seconds a rollout may take before the flasher gives up.
@@ -38,7 +42,9 @@ class FlashEvent:
     text: str
     result: FlashResult | None = None
     _thread: threading.Thread | None = field(default=None, repr=False)
-    _cable: tuple[int, SerialTransport] | None = field(default=None, repr=False)
+    # (the serial cable's link id, or the bus cable's connector; its transport)
+    _cable: tuple[int, Transport] | None = field(default=None, repr=False)
+    _bus: BusCable | None = field(default=None, repr=False)
     _flash: FlashCable | None = field(default=None, repr=False)
 
 
@@ -97,12 +103,8 @@ class FlashEvents:
 
     def _start(self, ev: FlashEvent) -> None:
         world = self.world
-        link_id, path = world.plug_cable(ev.module, ev.connector)
-        transport = SerialTransport(hello_codec())
-        transport.attach(1, PortEnd(path))
-        pacing, segment, _ = link_pacing("serial", world.cycle_period, 115200, 0)
-        cable = FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment)
-        ev._cable, ev._flash = (link_id, transport), cable
+        cable = self._serial_cable(ev) if world.contacts is None else self._bus_cable(ev)
+        ev._flash = cable
         world.note(f"{ev.text}: cable into {world.where(ev.module, ev.connector)}")
 
         def show(p: Progress) -> None:
@@ -120,12 +122,48 @@ class FlashEvents:
         )  # fmt: skip
         ev._thread.start()
 
+    def _serial_cable(self, ev: FlashEvent) -> FlashCable:
+        """A cable is one more emulated serial link, into M's free connector."""
+        world = self.world
+        link_id, path = world.plug_cable(ev.module, ev.connector)
+        transport = SerialTransport(hello_codec())
+        transport.attach(1, PortEnd(path))
+        pacing, segment, _ = link_pacing("serial", world.cycle_period, 115200, 0)
+        ev._cable = (link_id, transport)
+        return FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment)
+
+    def _bus_cable(self, ev: FlashEvent) -> FlashCable:
+        """On a bus the cable is a node of its own: its connector-local channel touches M's
+        free connector, the link is negotiated as modules negotiate theirs, and the rollout
+        crosses the bus on it (paced as a module's share of the bus)."""
+        world = self.world
+        mate, path = world.touch_cable(ev.module, ev.connector)
+        transport = open_transport(world.transport_spec, hello_codec(), **world.bus_options)
+        try:
+            bus_cable = BusCable(ConnectorChannels.open_emulated({mate: path}), transport, mate,
+                                 now=time.monotonic(), log=lambda line: world.note(f"{ev.text}: {line}"))  # fmt: skip
+        except BaseException:
+            transport.close()
+            raise
+        bitrate = int(world.bus_options.get("bitrate", 1_000_000))
+        pacing, segment, _ = link_pacing("can", world.cycle_period, 0, bitrate)
+        ev._cable = (mate, transport)
+        ev._bus = bus_cable
+        return FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment,
+                          connector=mate, on_step=bus_cable.step)  # fmt: skip
+
     def _finish(self, ev: FlashEvent) -> None:
         assert ev._flash is not None and ev._cable is not None
         ev.result = ev._flash.result()
-        link_id, transport = ev._cable
-        transport.close()
-        self.world.unplug_cable(ev.module, ev.connector, link_id)
+        link_or_mate, transport = ev._cable
+        if ev._bus is not None:
+            with ev._flash.lock:
+                ev._bus.close()  # the link released on the bus before the contact breaks
+            transport.close()
+            self.world.pull_cable(ev.module, ev.connector, link_or_mate)
+        else:
+            transport.close()
+            self.world.unplug_cable(ev.module, ev.connector, link_or_mate)
         self.world.note(f"{ev.text}: {'every module committed' if ev.result.succeeded else 'not committed'}")
 
     def close(self) -> None:

@@ -57,7 +57,7 @@ from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash
 from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.supervisor import reap_exited_children
 from hil.visuals import RunVisuals
-from hil.world import World
+from hil.world import NEGOTIATED, World
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Set in the environment of a launcher re-executed inside its private network namespace.
@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         "link layer (SocketCAN, python-can udp_multicast in a private network namespace, emulated "
         "serial infrared links) or as threads over an in-process bus.",
         epilog="Without SocketCAN, try: dh2rt --transport serial --module-count 8 --cycles 300. "
-        "With --transport serial, --event CYCLE:flash:M:IMAGE plugs a programming cable into module M's "
+        "--event CYCLE:flash:M:IMAGE plugs a programming cable into module M's "
         "first free connector at CYCLE and flashes the signed IMAGE into the running robot "
         "(docs/flashing.md); the run fails unless every module commits it.",
     )
@@ -624,8 +624,11 @@ def _or_dash(value: object) -> str:
 def check_flash_events(events: list[FlashEvent], transport: str, cycles: int | None) -> None:
     """Flash events need cables (the serial link emulator) and a cycle the run reaches."""
     for ev in events:
-        if parse_transport_spec(transport)[0] != "serial":
-            raise OptionError(f"--event {ev.text}: a programming cable needs --transport serial")
+        if parse_transport_spec(transport)[0] not in ("serial", *NEGOTIATED):
+            raise OptionError(
+                f"--event {ev.text}: a programming cable needs links it can join: --transport serial, or a bus "
+                "(can, udp, virtual)"
+            )
         if cycles is not None and ev.cycle >= cycles:
             raise OptionError(f"--event {ev.text}: cycle {ev.cycle} never happens: the run's last is {cycles - 1}")
 

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from types import FrameType
 from typing import Protocol
@@ -29,7 +30,7 @@ from typing import Protocol
 from dh2rt.errors import ControlProtocolError
 from hil.config import ModuleConfig
 from hil.control import Command, Exited, Log, Report, command_to_json, report_from_json
-from hil.module_toml import dump_toml
+from hil.module_toml import IMAGE_NAME, dump_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -221,5 +222,10 @@ def start_module(
     flash (holding ``flash_image``, a signed image, or else the config's image) are written
     under ``workdir``."""
     if thread:
-        return ThreadModule(config, reports)
+        # a thread boots from a flash of its own too (kept across its lives), so that it
+        # takes part in rollouts as a process does
+        flash = workdir / config.label / "flash"
+        flash.mkdir(parents=True, exist_ok=True)
+        (flash / IMAGE_NAME).write_bytes(config.image if flash_image is None else flash_image)
+        return ThreadModule(replace(config, flash=str(flash)), reports)
     return ProcessModule(config, reports, workdir, flash_image)

@@ -84,6 +84,8 @@ THREAD_TRANSPORTS = ("inproc", "virtual")
 NEGOTIATED = ("virtual", "udp", "socketcan", "can")
 #: Emulator link ids of programming cables start here (the link map numbers docks from 0).
 CABLE_LINK_IDS = 10_000
+#: A bus cable's end in the contact emulator is (CABLE_MODULE - module, its connector).
+CABLE_MODULE = -1
 #: The bus transports' channels when the spec names none.
 _DEFAULT_CHANNELS = {
     cls.name: cls.default_channel for cls in (VirtualCanTransport, UdpCanTransport, SocketCanTransport)
@@ -146,6 +148,8 @@ class World:
         #: programming cables plugged in so far: frames to and from a cable are the flasher's,
         #: and those in flight when it is pulled out are lost, so such a run's links changed
         self.cables_plugged = 0
+        #: the contact emulator's connectors of bus cables, and their paths
+        self._cable_ends: dict[tuple[int, int], str] = {}
         # python-can's virtual bus reaches only its own process: its modules are threads
         in_process = self.kind == "can" and (bus_options or {}).get("interface") == "virtual"
         self.threads = self.kind in THREAD_TRANSPORTS or in_process
@@ -197,18 +201,14 @@ class World:
         self.reports: Reports = queue.Queue()
         #: each module process's module.toml and flash (removed by stop())
         self.workdir = Path(tempfile.mkdtemp(prefix="dh2rt-hil-"))
-        #: module processes boot from a flash as a robot's modules do: the program signed with
-        #: a key of this run's, which their trust stores hold (threads run the image as it is)
-        self.signed_image: bytes | None = None
-        self.trust: tuple[bytes, ...] = ()
-        #: the run's signing key (a rollout's new images are signed with it: tests, --event flash)
-        self.signer: bytes | None = None
-        if not self.threads:
-            from dh2rt.signed_image import new_private_key, pack, public_key
+        #: modules (processes and threads) boot from a flash as a robot's modules do: the
+        #: program signed with a key of this run's, which their trust stores hold
+        from dh2rt.signed_image import new_private_key, pack, public_key
 
-            signer = self.signer = signer if signer is not None else new_private_key()
-            self.signed_image = pack(program.image, 1, signer)
-            self.trust = (public_key(signer),)
+        #: the run's signing key (a rollout's new images are signed with it: tests, --event flash)
+        self.signer: bytes | None = signer if signer is not None else new_private_key()
+        self.signed_image: bytes | None = pack(program.image, 1, self.signer)
+        self.trust: tuple[bytes, ...] = (public_key(self.signer),)
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
@@ -500,6 +500,28 @@ class World:
         self._send(module, Detach(connector))
         if self.emulator is not None:
             self.emulator.undock(link_id)
+
+    def touch_cable(self, module: int, connector: int) -> tuple[int, str]:
+        """A programming cable against ``module``'s free ``connector`` on a bus: the contact
+        emulator gets a connector for the cable (one that may dock to the module's) and makes
+        the contact; the module senses it and negotiates a link with whoever is there.
+        Returns (the cable's connector, the path of its connector-local channel)."""
+        if self.contacts is None:
+            raise HilWorldError("a programming cable on a bus needs the contact emulator (--transport can)")
+        if self.link_map.peer_of((module, connector)) is not None:
+            raise HilWorldError(f"{self.where(module, connector)} is docked: a cable needs a free connector")
+        mate = next(c for c in range(1, self.profile.connector_count + 1) if self.profile.can_link(c, connector))
+        end = (CABLE_MODULE - module, mate)  # the cable is no module: an id no module has
+        if end not in self._cable_ends:
+            self._cable_ends[end] = self.contacts.add_connector(*end)
+        self.cables_plugged += 1
+        self.contacts.make_contact((module, connector), end)
+        return mate, self._cable_ends[end]
+
+    def pull_cable(self, module: int, connector: int, mate: int) -> None:
+        """The bus cable is taken away: the contact breaks, and the module releases its link."""
+        if self.contacts is not None:
+            self.contacts.break_contact((module, connector), (CABLE_MODULE - module, mate))
 
     def kill(self, module: int) -> None:
         h = self.handles[module]

@@ -1,0 +1,109 @@
+"""Flashing a running robot on a shared bus, in the loop: 8 modules on python-can's ``virtual``
+bus (threads of the launcher's process) and on ``udp_multicast`` (processes, inside a private
+network namespace the launcher makes) run the caterpillar; at cycle 60 a programming cable
+touches the head's free front connector, negotiates a link with it over the connector-local
+channel as a module would, and flashes a signed image with another ClockCycle over the bus.
+
+What must hold on any machine: every module commits and runs version 2 (the summary's
+version and SHA-256 columns), each named by its path from the cable, and the head's wave goes
+on at the new period. Where the machine keeps real time (``realtime``): the switch is agreed
+within one period.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import re
+import shutil
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dh2rt.signed_image import pack, read_private_key, write_key_pair
+from hil.launcher import NETNS_SETUP
+from hil.pace import PACE
+from tests.hil.flashing import PERIOD, caterpillar
+
+ROOT = Path(__file__).resolve().parents[2]
+N = 8
+CYCLES = 700
+LATE = 0.25  # periods a cycle may start late on a machine that keeps time
+
+
+def _namespace_problem() -> str | None:
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return "unshare or ip (util-linux, iproute2) is not installed"
+    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, text=True, timeout=20)
+    if probe.returncode != 0:
+        return f"cannot create a private network namespace: {probe.stderr.strip()}"
+    return None
+
+
+@pytest.fixture(scope="module", params=["virtual", "udp"])
+def bus_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    transport = str(request.param)
+    if transport == "udp" and (problem := _namespace_problem()) is not None:
+        pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
+    tmp = tmp_path_factory.mktemp(f"flash-{transport}")
+    key_file = tmp / "robot.key"
+    write_key_pair(key_file)
+    image = tmp / "v2.img"
+    image.write_bytes(pack(caterpillar(20).image, 2, read_private_key(key_file)))
+    trace = tmp / "trace.jsonl"
+    cmd = [
+        sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", str(N),
+        "--cycles", str(CYCLES), "--cycle-ms", str(round(PERIOD * 1000)), "--stand-in", "recording",
+        "--key", str(key_file), "--event", f"60:flash:m0:{image}", "--trace", str(trace), "--json",
+    ]  # fmt: skip
+    proc = PACE.run(cmd, text=True, timeout=300, cwd=ROOT)
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    return {"code": proc.returncode, "stderr": proc.stderr, "summary": summary, "records": records}
+
+
+def switches(log: list[str]) -> dict[int, int]:
+    out: dict[int, int] = {}
+    for line in log:
+        m = re.search(r"\bm(\d+): cycle (\d+): switched to program", line)
+        if m:
+            out[int(m.group(1))] = int(m.group(2))
+    return out
+
+
+def test_every_module_on_the_bus_commits_and_is_named_by_its_path(bus_run: dict[str, Any]) -> None:
+    summary = bus_run["summary"]
+    assert bus_run["code"] == 0, (summary["problems"], bus_run["stderr"][-2000:])
+    (rollout,) = summary["rollouts"]
+    assert rollout["succeeded"], rollout
+    paths = [m["path"] for m in rollout["modules"]]
+    assert sorted(len(p.split()) for p in paths) == list(range(1, N + 1)), paths
+    assert paths[0].startswith("back>front")  # the cable is a back against the head's free front
+    assert sorted(m["module"] for m in rollout["modules"]) == sorted(f"m{i}" for i in range(N))
+    sha = hashlib.sha256(caterpillar(20).image).hexdigest()
+    assert all(row["version"] == 2 and row["sha256"] == sha for row in summary["modules"]), summary["modules"]
+    assert sorted(switches(summary["log"])) == list(range(N)), summary["log"][-30:]
+
+
+def test_the_wave_goes_on_at_the_new_period_on_the_bus(bus_run: dict[str, Any]) -> None:
+    switched = switches(bus_run["summary"]["log"])
+    head = sorted(r["cycle"] for r in bus_run["records"] if r["module"] == 0 and r["sent"])
+    after = [b - a for a, b in itertools.pairwise(head) if a >= switched[0]]
+    assert len(after) > 20 and all(g % 5 == 0 for g in after), after
+    assert Counter(after).most_common(1)[0][0] == 5, after
+
+
+@pytest.mark.realtime
+def test_the_switch_is_agreed_within_a_period_on_the_bus(bus_run: dict[str, Any]) -> None:
+    switched = switches(bus_run["summary"]["log"])
+    period = PACE.ms(round(PERIOD * 1000)) / 1000  # the period the run that counts kept
+    at = {}
+    for m, cycle in switched.items():
+        (rec,) = [r for r in bus_run["records"] if r["module"] == m and r["cycle"] == cycle]
+        at[m] = rec["t"] / period
+    assert max(at.values()) - min(at.values()) <= 1.0 + LATE, {m: round(t - min(at.values()), 2) for m, t in at.items()}
