@@ -1,9 +1,18 @@
-"""``dh2rt flash IMAGE --port DEV``: deliver a signed image to a robot through a programming
-cable; every module switches to it at one agreed cycle.
+"""``dh2rt flash IMAGE --port DEV`` (or ``--interface I --channel C --contact DEV``): deliver a
+signed image to a robot through a programming cable; every module switches to it at one
+agreed cycle.
 
-The programming cable is a serial port (``--port``: a USB-serial adapter, a pty, any
-pyserial URL) wired to one module's free connector; to the flasher it is connector 1 of a
-serial transport of its own. The flasher (:class:`drivers.flash_cable.FlashCable`, the
+On a robot whose connectors are serial links, the programming cable is a serial port
+(``--port``: a USB-serial adapter, a pty, any pyserial URL) wired to one module's free
+connector; to the flasher it is connector 1 of a serial transport of its own. On a robot
+whose modules share a CAN bus, the flasher is a node on that bus (``--interface`` and
+``--channel``, as python-can names them, ``--bitrate``) and the cable is a connector-local
+channel (``--contact``: the UART of a connector like the modules' own, or the HIL world's
+emulation of one; ``--contact-pin``: its GPIO contact pin) held against one module's free
+connector: the two negotiate a link id over it as two docking modules would (docs/link-layer.md),
+and the image crosses the bus on that link, paced as a module's share of the bus. The cable
+is a connector of the profile (``--cable-connector``, default ``back``: CONRO's male
+connectors dock to a free front). The flasher (:class:`drivers.flash_cable.FlashCable`, the
 rollout's :class:`dh2rt.rollout.Flasher`) is ticked at the robot's cycle period
 (``--cycle-ms``): it offers the image through the cable, the modules pass it on over their
 own links, stage it, report back along their paths, and switch at the instant the flasher's
@@ -36,6 +45,7 @@ import math
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -48,10 +58,12 @@ from dh2rt.profile import CONRO
 from dh2rt.rollout import COMMITTED, ModuleReport, Pacing, Progress, describe_path, link_pacing
 from dh2rt.signed_image import SignedImage, describe_key_id
 from dh2rt.signed_image import parse as parse_image
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import PortEnd, Transport
+from dh2rt.transport.registry import open_transport
 from dh2rt.transport.serial_link import SerialTransport
 from dh2rt.wire.transfer import Outcome
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+from drivers.connector_channel import ConnectorChannels, ContactPin, UartGpioConnectorChannel
+from drivers.flash_cable import BusCable, FlashCable, FlashResult, hello_codec
 
 #: The cable is connector 1 of the flasher's own transport.
 CABLE = 1
@@ -66,7 +78,7 @@ exit codes:
   0    every module committed the image (confirmed it, with --confirm)
   1    the rollout ran but a module did not commit, it timed out, or no module answered
   2    bad input: an image that cannot be read or is no signed image, a bad option,
-       a port that cannot be opened
+       a port, bus or contact channel that cannot be opened
   130  interrupted (Ctrl-C): the report so far is printed
 """
 
@@ -80,8 +92,20 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("image", type=Path, help="a signed image (dh2rt image PROGRAM --sign KEY --version N -o IMAGE)")
-    p.add_argument("--port", required=True, help="the cable's serial port: a device path or a pyserial URL")
+    p.add_argument("--port", help="the cable's serial port: a device path or a pyserial URL (serial links)")
     p.add_argument("--baudrate", type=int, default=115200, help="the cable's line speed (default: 115200)")
+    bus = p.add_argument_group("on a robot whose modules share a CAN bus (instead of --port)")
+    bus.add_argument("-i", "--interface", help="python-can interface: socketcan, slcan, pcan, virtual, ...")
+    bus.add_argument("-c", "--channel", help="its channel: can0, /dev/ttyACM0, PCAN_USBBUS1, ...")
+    bus.add_argument("-b", "--bitrate", type=int, default=1_000_000, help="the bus's bit rate (default: 1000000)")
+    bus.add_argument("--contact", help="the cable's connector-local channel: a UART device (or a pty)")
+    bus.add_argument("--contact-pin", help="the contact switch's GPIO value file (active low, as on the modules)")
+    bus.add_argument(
+        "--cable-connector",
+        default="back",
+        choices=CONRO.connectors,
+        help="which connector of the profile the cable is (default: back, which docks to a free front)",
+    )
     p.add_argument("--cycle-ms", type=float, default=20.0, help="the robot's cycle period (default: 20)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds before the flasher gives up (default: 120)")
     p.add_argument("--confirm", action="store_true", help="wait until every module confirmed the image (trial over)")
@@ -112,17 +136,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # SignedImageError is one
         err(str(exc))
         return EXIT_USAGE
+    bus: BusCable | None = None
     try:
-        transport = open_cable(ns.port, ns.baudrate)
-    except TransportError as exc:
+        if ns.port is not None:
+            transport: Transport = open_cable(ns.port, ns.baudrate)
+        else:
+            transport, bus = open_bus_cable(ns)
+    except (TransportError, OSError) as exc:
         err(str(exc))
         return EXIT_USAGE
     try:
-        result, interrupted = _flash(ns, image, transport, pacing, segment)
+        result, interrupted = _flash(ns, image, transport, pacing, segment, bus)
     except KeyboardInterrupt:  # a second Ctrl-C: no report
         err("interrupted")
         return EXIT_INTERRUPTED
     finally:
+        if bus is not None:
+            bus.close()  # the link released on the bus
         transport.close()
     try:
         if ns.json:
@@ -145,6 +175,18 @@ def _check_options(ns: argparse.Namespace) -> None:
         raise ValueError(f"--timeout {ns.timeout:g}: must be a positive number of seconds")
     if ns.baudrate <= 0:
         raise ValueError(f"--baudrate {ns.baudrate}: must be a positive number of bits per second")
+    if (ns.port is None) == (ns.interface is None):
+        raise ValueError("give the cable: --port DEV (serial links) or --interface I --channel C --contact DEV (a bus)")
+    if ns.interface is not None:
+        if not ns.channel:
+            raise ValueError(f"--interface {ns.interface}: --channel is missing (python-can's channel of the bus)")
+        if not ns.contact:
+            raise ValueError(
+                f"--interface {ns.interface}: --contact is missing (the cable's connector-local channel, over which "
+                "it negotiates its link with the module it touches)"
+            )
+        if ns.bitrate <= 0:
+            raise ValueError(f"--bitrate {ns.bitrate}: must be a positive number of bits per second")
 
 
 def read_image(path: Path) -> Image:
@@ -174,6 +216,37 @@ def open_cable(port: str, baudrate: int) -> SerialTransport:
     return transport
 
 
+def open_bus_cable(ns: argparse.Namespace) -> tuple[Transport, BusCable]:
+    """The flasher's node on the bus and its cable's connector-local channel; TransportError
+    naming the option when either cannot be opened."""
+    options = {"interface": ns.interface, "channel": ns.channel, "bitrate": ns.bitrate}
+    try:
+        transport = open_transport("can", hello_codec(), **options)
+    except TransportError as exc:
+        what = f"--interface {ns.interface} --channel {ns.channel}"
+        raise TransportError(f"{what}: cannot open the bus ({exc})") from None
+    mate = CONRO.connectors.index(ns.cable_connector) + 1
+    try:
+        channels = open_contact(mate, ns.contact, ns.contact_pin)
+    except (TransportError, OSError) as exc:
+        transport.close()
+        why = f"cannot open the cable's connector-local channel ({exc})"
+        raise TransportError(f"--contact {ns.contact}: {why}") from None
+    return transport, BusCable(channels, transport, mate, now=time.monotonic(), log=_note)
+
+
+def open_contact(connector: int, device: str, pin: str | None) -> ConnectorChannels:
+    """The cable's connector-local channel: a UART and its GPIO contact pin, or (no pin) a
+    channel whose contact is signalled in band, as the HIL world's emulation does."""
+    if pin is None:
+        return ConnectorChannels.open_emulated({connector: device})
+    return ConnectorChannels({connector: UartGpioConnectorChannel(device, ContactPin(pin))})
+
+
+def _note(line: str) -> None:
+    print(f"flash: {line}", file=sys.stderr, flush=True)
+
+
 @contextmanager
 def _ctrl_c_sets(stop: threading.Event) -> Iterator[None]:
     """Ctrl-C sets ``stop`` (the flasher ends at its next tick); a second one interrupts at
@@ -199,25 +272,30 @@ def cable_pacing(ns: argparse.Namespace, image: Image) -> tuple[Pacing, int]:
     cycle, as on the modules' links); ValueError naming the options when the largest transfer
     frame does not fit a cycle's share."""
     try:
-        pacing, segment, _ = link_pacing("serial", ns.cycle_ms / 1000, ns.baudrate, 0)
+        if ns.interface is not None:
+            pacing, segment, _ = link_pacing("can", ns.cycle_ms / 1000, 0, ns.bitrate)
+        else:
+            pacing, segment, _ = link_pacing("serial", ns.cycle_ms / 1000, ns.baudrate, 0)
     except ValueError as exc:
-        raise ValueError(f"--baudrate {ns.baudrate} --cycle-ms {ns.cycle_ms:g}: {exc}") from None
+        line = f"--bitrate {ns.bitrate}" if ns.interface is not None else f"--baudrate {ns.baudrate}"
+        raise ValueError(f"{line} --cycle-ms {ns.cycle_ms:g}: {exc}") from None
     return pacing, segment
 
 
 def _flash(
-    ns: argparse.Namespace, image: Image, transport: SerialTransport, pacing: Pacing, segment: int
+    ns: argparse.Namespace, image: Image, transport: Transport, pacing: Pacing, segment: int, bus: BusCable | None
 ) -> tuple[FlashResult, bool]:
     """Run the flasher until it is done, times out or Ctrl-C; (its result, interrupted)."""
+    connector = CABLE if bus is None else CONRO.connectors.index(ns.cable_connector) + 1
     cable = FlashCable(
-        image.data, transport, period=ns.cycle_ms / 1000, pacing=pacing, segment_size=segment, connector=CABLE,
-        confirm=ns.confirm,
+        image.data, transport, period=ns.cycle_ms / 1000, pacing=pacing, segment_size=segment, connector=connector,
+        confirm=ns.confirm, on_step=None if bus is None else bus.step,
     )  # fmt: skip
     show = None if ns.quiet else ProgressLines()
     if show is not None:
         print(
             f"flash: {image.path}: version {image.signed.version}, {len(image.data)} bytes, key id "
-            f"{describe_key_id(image.signed.key_id)}; cable {ns.port} at {ns.baudrate} baud, "
+            f"{describe_key_id(image.signed.key_id)}; {_cable_text(ns)}, "
             f"cycle {ns.cycle_ms:g} ms, timeout {ns.timeout:g} s",
             file=sys.stderr,
             flush=True,
@@ -325,3 +403,10 @@ def to_json(image: Image, result: FlashResult, *, interrupted: bool = False, con
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _cable_text(ns: argparse.Namespace) -> str:
+    if ns.interface is not None:
+        return (f"cable: {ns.cable_connector} against a free connector (contact {ns.contact}), "
+                f"bus {ns.interface} {ns.channel} at {ns.bitrate} bit/s")  # fmt: skip
+    return f"cable {ns.port} at {ns.baudrate} baud"

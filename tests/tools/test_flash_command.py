@@ -113,6 +113,52 @@ def test_every_module_commits_the_new_version(tmp_path: Path, capsys: pytest.Cap
     assert "flash: sending:" in err and "Traceback" not in err
 
 
+@contextmanager
+def bus_robot() -> Iterator[World]:
+    """A snake of N modules on python-can's virtual bus (threads of this process, which the
+    command, in a thread too, joins as a node), started and running; always stopped."""
+    world = World(compile_file(str(PROGRAM)), parse_spec(f"snake:{N}"), "virtual", seed=0, cycle_period=PERIOD,
+                  cycles=100_000, stand_in="recording")  # fmt: skip
+    try:
+        world.start(ready_timeout=WAIT)
+        tick_until(world, lambda: world.cycle >= 30, 30.0)
+        yield world
+    finally:
+        world.stop()
+
+
+def test_on_a_bus_the_cable_negotiates_its_link_and_every_module_commits(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``dh2rt flash IMAGE --interface virtual --channel C --contact DEV``: the cable's
+    connector-local channel touches the head's free front, the two negotiate a link as
+    docking modules do, and the image crosses the bus."""
+    with bus_robot() as world:
+        assert world.signer is not None and versions(world) == [1] * N
+        image = tmp_path / "cat2.simg"
+        image.write_bytes(pack(caterpillar(20).image, 2, world.signer))
+        mate, contact = world.touch_cable(HEAD, FRONT)
+        channel = world.transport_spec.partition(":")[2]
+        argv = [str(image), "--interface", "virtual", "--channel", channel, "--contact", contact,
+                "--timeout", str(WAIT), "--json", "--confirm"]  # fmt: skip
+        codes: list[int] = []
+        thread = threading.Thread(target=lambda: codes.append(main(argv)), daemon=True)
+        try:
+            thread.start()
+            tick_until(world, lambda: not thread.is_alive(), WAIT + 10)
+        finally:
+            thread.join(10)
+            world.pull_cable(HEAD, FRONT, mate)
+        out, err = capsys.readouterr()
+        assert codes == [0], (out, err, world.log[-20:])
+        tick_until(world, lambda: versions(world) == [2] * N, WAIT)
+        assert versions(world) == [2] * N
+    report = json.loads(out)
+    assert [m["outcome"] for m in report["modules"]] == ["confirmed"] * N, report
+    assert report["modules"][0]["path"] == "back>front"  # the cable is a back against the head's front
+    assert "link negotiated" in err and "bus virtual" in err
+
+
 def test_an_image_signed_by_another_key_is_refused_by_the_head(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -208,7 +254,17 @@ def test_ctrl_c_stops_the_flasher_and_exits_130(tmp_path: Path) -> None:
         ("no such port", ["{image}", "--port", "{nowhere}"], "--port {nowhere}: cannot open the serial port"),
         ("not a port", ["{image}", "--port", "{tmp}"], "--port {tmp}: cannot open the serial port"),
         ("--cycle-ms abc", ["{image}", "--port", "{port}", "--cycle-ms", "abc"], "invalid float value: 'abc'"),
-        ("no --port", ["{image}"], "the following arguments are required: --port"),
+        ("no cable", ["{image}"], "give the cable: --port DEV (serial links) or --interface I"),
+        ("two cables", ["{image}", "--port", "{port}", "-i", "virtual"], "give the cable: --port DEV"),
+        ("no --channel", ["{image}", "-i", "virtual", "--contact", "{port}"], "--channel is missing"),
+        ("no --contact", ["{image}", "-i", "virtual", "-c", "x"], "--contact is missing"),
+        ("--bitrate 0", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "0"], "--bitrate 0: must"),
+        ("a slow bus", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "125000"],
+         "a 125000 bit/s CAN bus gives a rollout"),
+        ("no such interface", ["{image}", "-i", "nosuchbus", "-c", "x", "--contact", "{port}"],
+         "--interface nosuchbus --channel x: cannot open the bus"),
+        ("no such contact", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{nowhere}"],
+         "--contact {nowhere}: cannot open the cable's connector-local channel"),
     ],
 )
 def test_bad_input_exits_2_naming_what_is_wrong(
