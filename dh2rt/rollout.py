@@ -1763,7 +1763,9 @@ class Flasher(_Node):
         sender = self._ports[self.connector].sender
         acked = 0 if sender is None else self.info.span(sender.base - 1)[1] if sender.base else 0
         elapsed = 0.0 if self._started is None else self._now - self._started
-        rate = staged * self.info.length / elapsed if elapsed > 0 else 0.0
+        # image bytes delivered per second: the staged modules' images, or, before the first
+        # module staged, what the module at the cable acknowledged
+        rate = max(staged * self.info.length, acked) / elapsed if elapsed > 0 else 0.0
         return Progress(self.phase, len(self._modules), staged, committed, failed, acked, elapsed, rate)
 
     # -- inputs --------------------------------------------------------------------------------

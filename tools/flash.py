@@ -322,18 +322,10 @@ class ProgressLines:
         self._last = key
         print(
             f"flash: {p.phase.value}: {p.modules} module(s) heard of, {p.staged} staged, {p.committed} committed, "
-            f"{p.failed} failed, {p.bytes_acked} bytes acknowledged, {rate(p):.0f} bytes/s, {p.elapsed:.1f} s",
+            f"{p.failed} failed, {p.bytes_acked} bytes acknowledged, {p.rate:.0f} bytes/s, {p.elapsed:.1f} s",
             file=sys.stderr,
             flush=True,
         )
-
-
-def rate(p: Progress) -> float:
-    """Image bytes delivered per second: the Flasher's (staged modules' images), or, before
-    any module staged, the bytes the module at the cable acknowledged."""
-    if p.rate == 0 and p.bytes_acked > 0 and p.elapsed > 0:
-        return p.bytes_acked / p.elapsed
-    return p.rate
 
 
 # ----------------------------------------------------------------------------- the report

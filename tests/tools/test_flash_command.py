@@ -26,11 +26,10 @@ import pytest
 
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.program import CompiledProgram
-from dh2rt.rollout import FlasherPhase, Progress
 from dh2rt.signed_image import new_private_key, pack
 from dh2rt.topology import parse_spec
 from hil.world import World
-from tools.flash import main, rate
+from tools.flash import main
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -219,7 +218,7 @@ def test_ctrl_c_stops_the_flasher_and_exits_130(tmp_path: Path) -> None:
     image.write_bytes(pack(caterpillar(20).image, 2, new_private_key()))
     master, slave = os.openpty()
     argv = [str(image), "--port", os.ttyname(slave), "--cycle-ms", "1000", "--timeout", "60"]
-    code = "import sys; from tools.flash import main, rate; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from tools.flash import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", code, *argv], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
@@ -303,9 +302,3 @@ def test_help_names_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
     assert "usage: dh2rt flash" in out and "exit codes:" in out and "130  interrupted" in out
 
 
-def test_the_rate_is_the_acknowledged_bytes_until_a_module_staged() -> None:
-    sending = Progress(FlasherPhase.SENDING, 1, 0, 0, 0, 800, 2.0, 0.0)
-    assert rate(sending) == 400.0
-    staged = Progress(FlasherPhase.COMMITTING, 4, 4, 0, 0, 343, 1.0, 1372.0)
-    assert rate(staged) == 1372.0
-    assert rate(Progress(FlasherPhase.SENDING, 0, 0, 0, 0, 0, 0.0, 0.0)) == 0.0
