@@ -238,7 +238,18 @@ class Switch:
     program: Program
 
 
-Action = Send | Persist | DropPartial | Stage | Switch
+@dataclass(frozen=True, slots=True)
+class Declined:
+    """An offered image was refused before a byte of it crossed: its version is lower than
+    the one here (``rollback``), or another program runs on trial (``busy``). Told once per
+    image, for the host to count and log as its flash counts the images it refuses."""
+
+    version: int
+    verdict: str
+    reason: str
+
+
+Action = Send | Persist | DropPartial | Stage | Switch | Declined
 
 
 # ---------------------------------------------------------------------------------------------
@@ -649,6 +660,8 @@ class _Node(ABC):
         self.segment_size = segment_size
         self.cut_through = cut_through
         self.counters = RolloutCounters()
+        #: images declined before a byte crossed (each told once as a Declined action)
+        self._declined: set[bytes] = set()
         self._ports = {c: _Port(c) for c in connectors}
         if not self._ports or any(not 1 <= c <= 15 for c in self._ports):
             raise ValueError(f"connectors must be 1..15, got {sorted(self._ports)}")
@@ -1294,6 +1307,9 @@ class Rollout(_Node):
             self._join_current(port, info, name)
             return
         verdict, why = self._refusal(info, reason)
+        if reason in (DeclineReason.NEWER, DeclineReason.BUSY) and info.image not in self._declined:
+            self._declined.add(info.image)
+            self._actions.append(Declined(info.version, verdict, why))
         outcome = Outcome.REVERTED if reason is DeclineReason.REVERTED else Outcome.REFUSED
         self._report(outcome, name, len(name), info.tag, verdict, why)
         if reason is DeclineReason.NEWER and info.image not in self._refused and not self._holds_newer(info):

@@ -312,9 +312,19 @@ class ModuleHost:
             "digest": self.boot.digest.hex(),
             "trial": self.boot.trial,
             "sha256": self.program.hash,
-            "refused": {str(k): v for k, v in self.flash.refused.items()},
+            "refused": self._refused(),
             "reverts": self.flash.reverts,
         }
+
+    def _refused(self) -> dict[str, int]:
+        """Images refused, by verdict: by the flash (checked), and by the rollout at their
+        offer (a rollback, before a byte crossed)."""
+        assert self.flash is not None
+        out = {str(k): v for k, v in self.flash.refused.items()}
+        if self.rollout is not None:
+            for verdict, n in self.rollout.declined.items():
+                out[verdict] = out.get(verdict, 0) + n
+        return out
 
     def _status(self, rt: ModuleRuntime) -> dict[str, Any]:
         status = rt.status()

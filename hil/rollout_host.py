@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+from collections import Counter
 from collections.abc import Callable, Iterable
 
 from dh2rt.compiler import load_image
@@ -33,6 +34,7 @@ from dh2rt.errors import DH2Error, FlashError, SignedImageError
 from dh2rt.program import CompiledProgram
 from dh2rt.rollout import (
     Action,
+    Declined,
     DropPartial,
     ImageInfo,
     Pacing,
@@ -98,6 +100,9 @@ class RolloutHost:
         )
         self.log: list[str] = []
         self.stages = 0
+        #: images refused at their offer, before a byte crossed (a rollback, a busy trial), by
+        #: verdict: with the flash's refusals, the module's count of refused images
+        self.declined: Counter[str] = Counter()
         #: the running program came from a switch of this process (its trial is the rollout's)
         self.switched = False
         rt.liveness.version = boot.version
@@ -163,6 +168,9 @@ class RolloutHost:
                     self._stage(data)
                 case Switch(program):
                     self._switch(program)
+                case Declined(version, verdict, reason):
+                    self.declined[verdict] += 1
+                    self._note(f"offer of version {version} refused ({verdict}): {reason}")
 
     def _stage(self, data: bytes) -> None:
         self.stages += 1
