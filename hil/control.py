@@ -171,7 +171,11 @@ class Failure:
 
 @dataclass(frozen=True)
 class Exited:
-    """The module's process or thread ended (made by the supervisor, not sent by a module)."""
+    """The module's process or thread ended (made by the supervisor, not sent by a module).
+    ``life``: which of the module's lives it was (a killed life's end may be read after the
+    next life started: the world must not take it for the new one's)."""
+
+    life: int = 0
 
 
 Report = Ready | Status | TraceRecord | Effect | Log | Failure | Exited

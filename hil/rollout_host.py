@@ -48,6 +48,7 @@ from dh2rt.rollout import (
     link_pacing,
 )
 from dh2rt.runtime import ModuleRuntime
+from dh2rt.signed_image import parse as parse_image
 from dh2rt.transport.base import PortEnd
 from dh2rt.wire.frame import Hello
 from dh2rt.wire.transfer import image_id
@@ -100,6 +101,8 @@ class RolloutHost:
         )
         self.log: list[str] = []
         self.stages = 0
+        #: the staged image's program, loaded when it was staged: (its digest, the program)
+        self._prepared: tuple[bytes, CompiledProgram] | None = None
         #: images refused at their offer, before a byte crossed (a rollback, a busy trial), by
         #: verdict: with the flash's refusals, the module's count of refused images
         self.declined: Counter[str] = Counter()
@@ -183,6 +186,11 @@ class RolloutHost:
         verdict = str(staged.verdict)
         if staged.accepted:
             self._note(f"image staged in slot {staged.slot}: waits for the switch")
+            # loaded now, not at the switch: every module switches in one cycle, and on a
+            # small processor shared by many (the loop) their loads at once hold cycles up
+            image = parse_image(data)
+            with contextlib.suppress(DH2Error):  # a program that does not load fails its trial at the switch
+                self._prepared = (image.digest, load_image(image.program()))
         else:
             self._note(f"image refused ({verdict}): {staged.reason}")
         self._do(self.rollout.staged(staged.accepted, verdict, staged.reason, self.rt.clock()))
@@ -191,7 +199,8 @@ class RolloutHost:
         boot = self.flash.start_trial()
         if boot.digest != program.digest:
             raise FlashError(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")
-        compiled = load_image(boot.program)
+        prepared, self._prepared = self._prepared, None
+        compiled = prepared[1] if prepared is not None and prepared[0] == boot.digest else load_image(boot.program)
         self.rt.switch_program(
             compiled, boot.version, f"switched to program {compiled.name} version {boot.version} (slot {boot.slot})"
         )

@@ -58,6 +58,7 @@ class ProcessModule:
 
     def __init__(self, config: ModuleConfig, reports: Reports, workdir: Path, flash_image: bytes | None = None) -> None:
         self.module = config.module
+        self.life = config.life
         env = dict(os.environ)
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         # the module boots as a robot's module does: `dh2rt module --config module.toml`, its
@@ -96,7 +97,7 @@ class ProcessModule:
                 reports.put((self.module, report_from_json(json.loads(line))))
             except (json.JSONDecodeError, ControlProtocolError) as exc:
                 reports.put((self.module, Log(f"malformed report from the module process ({exc}): {line[:200]!r}")))
-        reports.put((self.module, Exited()))
+        reports.put((self.module, Exited(self.life)))
 
     def send(self, cmd: Command) -> None:
         stdin = self.proc.stdin
@@ -141,6 +142,7 @@ class ThreadModule:
         from hil.module_process import ModuleHost
 
         module = self.module = config.module
+        life = self.life = config.life
         self.pid = os.getpid()
         self.commands: queue.Queue[Command] = queue.Queue()
         self._code: int | None = None
@@ -148,7 +150,7 @@ class ThreadModule:
 
         def body() -> None:
             self._code = self.host.serve()
-            reports.put((module, Exited()))
+            reports.put((module, Exited(life)))
 
         self.thread = threading.Thread(target=body, name=f"dh2rt-module-{module}", daemon=True)
         self.thread.start()

@@ -376,6 +376,8 @@ class World:
             v.errors.append(rep.message)
             v.failed = True
         elif isinstance(rep, Exited):
+            if rep.life != self.lives[module] - 1:
+                return  # a previous life's end, read after this life started
             h = self.handles[module]
             code = h.exit_code() if h is not None else None
             if h is not None and not v.killed and code not in (0, None):
@@ -531,6 +533,7 @@ class World:
         h.end(grace=0.0 if not self.threads else 1.0)
         if isinstance(h, ProcessModule):
             h.proc.wait(5)
+        self.poll()  # what it said last (its final status, its end) is read before any next life
         self.views[module].alive = False
 
     def restart(self, module: int) -> None:

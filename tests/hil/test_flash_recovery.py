@@ -111,7 +111,9 @@ def test_killed_during_its_trial_reverts(seed: int) -> None:
             program = world.views[VICTIM].status.get("program", {})
             return bool(program.get("reverts", 0) >= 1 and program.get("version") == 1 and not program.get("trial"))
 
-        assert watch(world, reverted, 60.0), (world.views[VICTIM].status.get("program"), world.log[-30:])
+        v = world.views[VICTIM]
+        mine = [line for line in world.log if line.startswith(f"m{VICTIM}")]
+        assert watch(world, reverted, 60.0), (v.state, v.errors, v.status.get("program"), mine[-30:])
         assert world.views[VICTIM].alive
     finally:
         world.stop()
