@@ -1,18 +1,24 @@
 """What the flashing tests in the loop share: the caterpillar with another ClockCycle, a
-programming cable on a module's front connector with the flasher on it, the world run to a
-cycle, and the switches the modules logged."""
+running snake, a programming cable on a module's front connector with the flasher on it, the
+world run to a cycle or a condition, the switches and versions the modules report, and the
+private network namespace udp_multicast needs."""
 
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, TypeVar
 
-from dh2rt.compiler import compile_source
+from dh2rt.compiler import compile_file, compile_source
 from dh2rt.program import CompiledProgram
 from dh2rt.rollout import link_pacing
+from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
 from drivers.flash_cable import FlashCable, FlashResult, hello_codec
@@ -21,6 +27,7 @@ from hil.world import World
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
 PERIOD = 0.02
+T = TypeVar("T")
 FRONT = 1  # CONRO's front connector: the head's is free
 
 
@@ -70,3 +77,61 @@ def switches(log: list[str]) -> dict[int, int]:
         if m:
             out[int(m.group(1))] = int(m.group(2))
     return out
+
+
+def tick_until(world: World, done: Callable[[], object], seconds: float) -> bool:
+    """Tick the world until ``done()`` is true (True) or ``seconds`` passed (False)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if done():
+            return True
+        world.tick()
+        time.sleep(0.01)
+    return False
+
+
+def versions(world: World) -> list[Any]:
+    """The program version each module's last status names."""
+    return [v.status.get("program", {}).get("version") for v in world.views]
+
+
+@contextmanager
+def running_snake(transport: str, n: int, *, seed: int = 0, wait: float = 60.0, **options: Any) -> Iterator[World]:
+    """A snake of ``n`` modules running the caterpillar (signed as version 1 with the world's
+    key) over ``transport``, started and past its 30th cycle; always stopped."""
+    world = World(compile_file(str(PROGRAM)), parse_spec(f"snake:{n}"), transport, seed=seed, cycle_period=PERIOD,
+                  cycles=1_000_000, stand_in="recording", **options)  # fmt: skip
+    try:
+        world.start(ready_timeout=wait)
+        tick_until(world, lambda: world.cycle >= 30, 30.0)
+        yield world
+    finally:
+        world.stop()
+
+
+#: A private network namespace with only loopback up and a multicast route on it.
+NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
+
+
+def namespace_problem() -> str | None:
+    """Why python-can's udp_multicast cannot run in a private network namespace here, or None."""
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return "unshare or ip (util-linux, iproute2) is not installed"
+    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS], capture_output=True, text=True, timeout=20)
+    if probe.returncode != 0:
+        return f"cannot create a private network namespace: {probe.stderr.strip()}"
+    return None
+
+
+def beside(world: World, work: Callable[[], T], seconds: float) -> T:
+    """``work()`` in a thread (a command, as it would run in a shell) while this thread ticks
+    the world; its result. Fails when it has not returned within ``seconds``."""
+    out: list[T] = []
+    thread = threading.Thread(target=lambda: out.append(work()), name="dh2rt-beside-the-world", daemon=True)
+    thread.start()
+    try:
+        tick_until(world, lambda: not thread.is_alive(), seconds)
+    finally:
+        thread.join(10)
+    assert out, f"{work} did not return within {seconds:g} s"
+    return out[0]

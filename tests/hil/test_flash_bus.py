@@ -16,8 +16,6 @@ import hashlib
 import itertools
 import json
 import re
-import shutil
-import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
@@ -26,9 +24,8 @@ from typing import Any
 import pytest
 
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
-from hil.launcher import NETNS_SETUP
 from hil.pace import PACE
-from tests.hil.flashing import PERIOD, caterpillar
+from tests.hil.flashing import PERIOD, caterpillar, namespace_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 8
@@ -36,19 +33,10 @@ CYCLES = 700
 LATE = 0.25  # periods a cycle may start late on a machine that keeps time
 
 
-def _namespace_problem() -> str | None:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip (util-linux, iproute2) is not installed"
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, text=True, timeout=20)
-    if probe.returncode != 0:
-        return f"cannot create a private network namespace: {probe.stderr.strip()}"
-    return None
-
-
 @pytest.fixture(scope="module", params=["virtual", "udp"])
 def bus_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     transport = str(request.param)
-    if transport == "udp" and (problem := _namespace_problem()) is not None:
+    if transport == "udp" and (problem := namespace_problem()) is not None:
         pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
     tmp = tmp_path_factory.mktemp(f"flash-{transport}")
     key_file = tmp / "robot.key"

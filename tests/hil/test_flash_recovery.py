@@ -11,7 +11,7 @@ is not the entry point, so what it gets it gets from its neighbours.
 
 from __future__ import annotations
 
-import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -21,26 +21,24 @@ from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
 from hil.rollout_host import PARTIAL_IMAGE
 from hil.world import World
-from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
+from tests.hil.flashing import (
+    PERIOD,
+    PROGRAM,
+    caterpillar,
+    flash_through_cable,
+    run_world,
+    switches,
+    tick_until,
+    versions,
+)
 
 N = 4
 VICTIM = 2
 WAIT = 120.0
 
 
-def watch(world: World, until: object, seconds: float = WAIT) -> bool:
-    """Tick the world until ``until()`` is true or ``seconds`` passed."""
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if until():  # type: ignore[operator]
-            return True
-        world.tick()
-        time.sleep(0.01)
-    return False
-
-
-def versions(world: World) -> list[object]:
-    return [v.status.get("program", {}).get("version") for v in world.views]
+def watch(world: World, until: Callable[[], object], seconds: float = WAIT) -> bool:
+    return tick_until(world, until, seconds)
 
 
 def new_world(seed: int, trial_cycles: int = 100) -> World:

@@ -12,21 +12,19 @@ and passed on to nobody; no module switches, and the wave goes on.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import json
-import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from dh2rt.compiler import compile_file
 from dh2rt.signed_image import new_private_key, pack
-from dh2rt.topology import parse_spec
 from hil.world import World
-from tests.hil.flashing import PERIOD, PROGRAM, caterpillar
+from tests.hil.flashing import beside, caterpillar, running_snake, tick_until
 from tools.flash import main
 
 N = 4
@@ -34,26 +32,10 @@ WAIT = 40.0
 LEFT = 3
 
 
-def tick_until(world: World, done: Callable[[], object], seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if done():
-            return True
-        world.tick()
-        time.sleep(0.01)
-    return False
-
-
 @pytest.fixture(scope="module")
 def robot() -> Iterator[World]:
-    world = World(compile_file(str(PROGRAM)), parse_spec(f"snake:{N}"), "virtual", seed=1, cycle_period=PERIOD,
-                  cycles=1_000_000, stand_in="recording")  # fmt: skip
-    try:
-        world.start(ready_timeout=WAIT)
-        tick_until(world, lambda: world.cycle >= 30, 30.0)
+    with running_snake("virtual", N, seed=1, wait=WAIT) as world:
         yield world
-    finally:
-        world.stop()
 
 
 def bad_images(world: World) -> dict[str, bytes]:
@@ -78,26 +60,17 @@ def flash_at(world: World, module: int, image: Path) -> tuple[int, dict[str, Any
     channel = world.transport_spec.partition(":")[2]
     argv = [str(image), "-i", "virtual", "-c", channel, "--contact", contact, "--cable-connector",
             world.profile.connector_name(mate), "--timeout", str(WAIT), "--json", "--quiet"]  # fmt: skip
-    out: list[tuple[int, str]] = []
 
-    def run() -> None:
-        import contextlib
-        import io
-
+    def run() -> tuple[int, str]:
         buf, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
             code = main(argv)
-        out.append((code, buf.getvalue() or err.getvalue()))
+        return code, buf.getvalue() or err.getvalue()
 
-    thread = threading.Thread(target=run, daemon=True)
     try:
-        thread.start()
-        tick_until(world, lambda: not thread.is_alive(), WAIT + 10)
+        code, text = beside(world, run, WAIT + 10)
     finally:
-        thread.join(10)
         world.pull_cable(module, connector, mate)
-    assert out, "dh2rt flash did not return"
-    code, text = out[0]
     assert text.startswith("{"), (code, text)
     return code, json.loads(text)
 

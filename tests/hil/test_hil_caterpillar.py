@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,6 +25,7 @@ from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import parse_spec
 from hil.pace import PACE
 from hil.world import World, module_pids
+from tests.hil.flashing import namespace_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -34,16 +33,6 @@ TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
 NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
 N = 8
 PERIOD_MS = 20
-NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
-
-
-def _namespace_problem() -> str | None:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip (util-linux, iproute2) is not installed"
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS], capture_output=True, text=True, timeout=20)
-    if probe.returncode != 0:
-        return f"cannot create a private network namespace: {probe.stderr.strip()}"
-    return None
 
 
 def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
@@ -142,7 +131,7 @@ def test_serial_processes_reproduce_the_robot_wave(tmp_path: Path) -> None:
 
 
 def test_udp_processes_reproduce_the_robot_wave(tmp_path: Path) -> None:
-    problem = _namespace_problem()
+    problem = namespace_problem()
     if problem is not None:
         pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
     # the launcher re-executes itself (and so every module process) under unshare -rn

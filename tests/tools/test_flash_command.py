@@ -15,77 +15,42 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from dh2rt.compiler import compile_file, compile_source
-from dh2rt.program import CompiledProgram
 from dh2rt.signed_image import new_private_key, pack
-from dh2rt.topology import parse_spec
 from hil.world import World
+from tests.hil.flashing import beside, caterpillar, running_snake, tick_until, versions
 from tools.flash import main
 
 ROOT = Path(__file__).resolve().parents[2]
-PROGRAM = ROOT / "examples" / "caterpillar.dh2"
 N = 4
-PERIOD = 0.02
 HEAD, FRONT = 0, 1  # the head's front connector is free: the cable goes there
 WAIT = 60.0  # seconds a rollout, or a status report, may take on a loaded machine
 
 
-def caterpillar(clock_cycle: int) -> CompiledProgram:
-    text = PROGRAM.read_text(encoding="utf-8")
-    return compile_source(text.replace("const ClockCycle = 40", f"const ClockCycle = {clock_cycle}"))
-
-
-@contextmanager
-def bench_robot() -> Iterator[World]:
+def bench_robot() -> AbstractContextManager[World]:
     """A snake of N module processes on serial links, started and running; always stopped."""
-    world = World(compile_file(str(PROGRAM)), parse_spec(f"snake:{N}"), "serial", seed=0, cycle_period=PERIOD,
-                  cycles=100_000, stand_in="recording")  # fmt: skip
-    try:
-        world.start(ready_timeout=WAIT)
-        tick_until(world, lambda: world.cycle >= 30, 30.0)
-        yield world
-    finally:
-        world.stop()
+    return running_snake("serial", N, wait=WAIT)
 
 
-def tick_until(world: World, done: Callable[[], object], seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if done():
-            return True
-        world.tick()
-        time.sleep(0.01)
-    return False
-
-
-def versions(world: World) -> list[Any]:
-    return [v.status.get("program", {}).get("version") for v in world.views]
+def bus_robot() -> AbstractContextManager[World]:
+    """A snake of N modules on python-can's virtual bus (threads of this process, which the
+    command, in a thread too, joins as a node), started and running; always stopped."""
+    return running_snake("virtual", N, wait=WAIT)
 
 
 def flash(world: World, image: Path, *options: str) -> int:
     """``dh2rt flash IMAGE --port <a cable into the head's front> OPTIONS``, the world
     ticking meanwhile; the cable is pulled out afterwards. The exit code."""
     link_id, port = world.plug_cable(HEAD, FRONT)
-    codes: list[int] = []
     argv = [str(image), "--port", port, "--timeout", str(WAIT), *options]
-    thread = threading.Thread(target=lambda: codes.append(main(argv)), name="dh2rt-flash-command", daemon=True)
     try:
-        thread.start()
-        tick_until(world, lambda: not thread.is_alive(), WAIT + 10)
+        return beside(world, lambda: main(argv), WAIT + 10)
     finally:
-        thread.join(10)
         world.unplug_cable(HEAD, FRONT, link_id)
-    assert codes, "the command did not return"
-    return codes[0]
 
 
 def test_every_module_commits_the_new_version(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -112,20 +77,6 @@ def test_every_module_commits_the_new_version(tmp_path: Path, capsys: pytest.Cap
     assert "flash: sending:" in err and "Traceback" not in err
 
 
-@contextmanager
-def bus_robot() -> Iterator[World]:
-    """A snake of N modules on python-can's virtual bus (threads of this process, which the
-    command, in a thread too, joins as a node), started and running; always stopped."""
-    world = World(compile_file(str(PROGRAM)), parse_spec(f"snake:{N}"), "virtual", seed=0, cycle_period=PERIOD,
-                  cycles=100_000, stand_in="recording")  # fmt: skip
-    try:
-        world.start(ready_timeout=WAIT)
-        tick_until(world, lambda: world.cycle >= 30, 30.0)
-        yield world
-    finally:
-        world.stop()
-
-
 def test_on_a_bus_the_cable_negotiates_its_link_and_every_module_commits(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -140,16 +91,12 @@ def test_on_a_bus_the_cable_negotiates_its_link_and_every_module_commits(
         channel = world.transport_spec.partition(":")[2]
         argv = [str(image), "--interface", "virtual", "--channel", channel, "--contact", contact,
                 "--timeout", str(WAIT), "--json", "--confirm"]  # fmt: skip
-        codes: list[int] = []
-        thread = threading.Thread(target=lambda: codes.append(main(argv)), daemon=True)
         try:
-            thread.start()
-            tick_until(world, lambda: not thread.is_alive(), WAIT + 10)
+            code = beside(world, lambda: main(argv), WAIT + 10)
         finally:
-            thread.join(10)
             world.pull_cable(HEAD, FRONT, mate)
         out, err = capsys.readouterr()
-        assert codes == [0], (out, err, world.log[-20:])
+        assert code == 0, (out, err, world.log[-20:])
         tick_until(world, lambda: versions(world) == [2] * N, WAIT)
         assert versions(world) == [2] * N
     report = json.loads(out)
