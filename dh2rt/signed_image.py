@@ -22,9 +22,12 @@ and never changes; another dictionary needs another format version.
 An image of today's unsigned format (``DH2IMG1``) reads as an *unsigned* image of version 0;
 a module accepts one only when its configuration allows unsigned programs.
 
-``cryptography`` is imported inside the functions that sign and verify, so importing this
-module costs nothing. Keys travel as raw bytes (32-byte private seed, 32-byte public key);
-key files hold PEM (PKCS#8 private, SubjectPublicKeyInfo public) or the raw 32 bytes.
+Signatures are checked by :mod:`dh2rt.ed25519` (pure Python, the same verdict as
+``cryptography`` on every input), so a module that verifies images never imports
+``cryptography`` (7 MB of resident memory). Signing, key generation and PEM key files need
+it; it is imported inside the functions that do those, so importing this module costs
+nothing. Keys travel as raw bytes (32-byte private seed, 32-byte public key); key files hold
+PEM (PKCS#8 private, SubjectPublicKeyInfo public) or the raw 32 bytes.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
+from dh2rt import ed25519
 from dh2rt.errors import ImageError, KeyFileError, SignedImageError
 from dh2rt.lang.image import MAGIC as PROGRAM_MAGIC
 from dh2rt.lang.image import from_image
@@ -327,14 +331,7 @@ def describe_key_id(kid: bytes | None) -> str:
 
 
 def _signature_holds(public: bytes, signature: bytes, data: bytes) -> bool:
-    from cryptography.exceptions import InvalidSignature
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
-
-    try:
-        Ed25519PublicKey.from_public_bytes(public).verify(signature, data)
-    except InvalidSignature:
-        return False
-    return True
+    return ed25519.verify(public, signature, data)
 
 
 def _sign(private: bytes, data: bytes) -> bytes:
