@@ -12,6 +12,7 @@ reports the errors.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -45,7 +46,26 @@ def _interrupted_while_starting(_signum: int, _frame: FrameType | None) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     if argv is None:  # run as the command: no traceback for a Ctrl-C during start-up
         signal.signal(signal.SIGINT, _interrupted_while_starting)
-    args = list(sys.argv[1:] if argv is None else argv)
+        return _piped(lambda: _main(sys.argv[1:]))
+    return _main(argv)
+
+
+def _piped(run: Callable[[], int]) -> int:
+    """Run the command; when its reader went away (``dh2rt image --inspect X | head``), end
+    quietly with its exit code (0 if it was cut off mid-output) instead of a traceback, now
+    or when the interpreter flushes standard output at exit."""
+    code = 0
+    try:
+        code = run()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # nothing left to flush at exit
+    return code
+
+
+def _main(argv: Sequence[str]) -> int:
+    args = list(argv)
     first = args[0] if args else None
     if first is not None and not first.startswith("-") and first not in CORE_COMMANDS:
         command = registered_command(first)

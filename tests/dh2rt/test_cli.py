@@ -120,6 +120,26 @@ def test_console_script_help(args: list[str]) -> None:
     assert "usage: dh2rt" in proc.stdout
 
 
+@pytest.mark.parametrize("args", [["types"], ["image", "--inspect", "IMAGE"], ["check", "PROGRAM"]])
+def test_a_reader_that_went_away_is_no_traceback(args: list[str], tmp_path: Path) -> None:
+    """``dh2rt ... | head``: the reader closed the pipe before the command wrote; it ends
+    quietly with its exit code, as a Unix filter does."""
+    program = ROOT / "examples" / "caterpillar.dh2"
+    image = tmp_path / "cat.img"
+    assert main(["image", str(program), "-o", str(image)]) == 0
+    argv = [str(image) if a == "IMAGE" else str(program) if a == "PROGRAM" else a for a in args]
+    exe = Path(sys.executable).with_name("dh2rt")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "dh2rt"]
+    read, write = os.pipe()
+    os.close(read)  # nobody will read: every write fails with EPIPE
+    try:
+        proc = subprocess.run([*cmd, *argv], stdout=write, stderr=subprocess.PIPE, text=True, timeout=60, cwd=ROOT)
+    finally:
+        os.close(write)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+
+
 class _Tty(io.StringIO):
     def isatty(self) -> bool:
         return True
