@@ -222,12 +222,15 @@ def start_module(
 ) -> ModuleHandle:
     """Start one module as a thread (in-process buses) or as a process whose config and
     flash (holding ``flash_image``, a signed image, or else the config's image) are written
-    under ``workdir``."""
+    under ``workdir``. A thread boots from a flash holding ``flash_image`` too, or, with no
+    signed image, runs the config's image as it is."""
     if thread:
+        if flash_image is None:  # nothing signed (no cryptography): the image as it is
+            return ThreadModule(config, reports)
         # a thread boots from a flash of its own too (kept across its lives), so that it
         # takes part in rollouts as a process does
         flash = workdir / config.label / "flash"
         flash.mkdir(parents=True, exist_ok=True)
-        (flash / IMAGE_NAME).write_bytes(config.image if flash_image is None else flash_image)
+        (flash / IMAGE_NAME).write_bytes(flash_image)
         return ThreadModule(replace(config, flash=str(flash)), reports)
     return ProcessModule(config, reports, workdir, flash_image)

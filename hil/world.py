@@ -202,13 +202,23 @@ class World:
         #: each module process's module.toml and flash (removed by stop())
         self.workdir = Path(tempfile.mkdtemp(prefix="dh2rt-hil-"))
         #: modules (processes and threads) boot from a flash as a robot's modules do: the
-        #: program signed with a key of this run's, which their trust stores hold
-        from dh2rt.signed_image import new_private_key, pack, public_key
+        #: program signed with a key of this run's, which their trust stores hold; the run's
+        #: signing key signs a rollout's new images too (tests, --event flash)
+        self.signer: bytes | None = None
+        self.signed_image: bytes | None = None
+        self.trust: tuple[bytes, ...] = ()
+        try:
+            from dh2rt.signed_image import new_private_key, pack, public_key
 
-        #: the run's signing key (a rollout's new images are signed with it: tests, --event flash)
-        self.signer: bytes | None = signer if signer is not None else new_private_key()
-        self.signed_image: bytes | None = pack(program.image, 1, self.signer)
-        self.trust: tuple[bytes, ...] = (public_key(self.signer),)
+            self.signer = signer if signer is not None else new_private_key()
+            self.signed_image = pack(program.image, 1, self.signer)
+            self.trust = (public_key(self.signer),)
+        except ModuleNotFoundError as exc:
+            # dh2rt installed without its dependencies: threads run the image as it is (no
+            # flash, no rollouts); a module process boots only from a flash
+            if exc.name != "cryptography" or not self.threads:
+                raise
+            self.signer = None
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
