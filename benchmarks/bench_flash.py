@@ -65,6 +65,7 @@ from collections import defaultdict
 from collections.abc import Callable
 from typing import Any
 
+from benchmarks import strict_json
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error
 from dh2rt.rollout import Progress, link_pacing
@@ -552,17 +553,6 @@ def table(
         "docs/flashing.md)"
     )
     return lines
-
-
-def strict_json(value: Any) -> Any:
-    """``value`` with NaN and infinities as null, so that the last line is strict JSON."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [strict_json(v) for v in value]
-    return value
 
 
 def fmt_lags(h: dict[str, Any]) -> str:

@@ -62,6 +62,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
+from benchmarks import strict_json
 from dh2rt.runtime import LATENESS_EDGES_MS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -409,18 +410,6 @@ def measure(children: list[Child], window: float, status_every: int, period: flo
         assert restart_st is not None
         first_restart = float(restart_st["first_cycle_at"]) - again.spawned
     return summarise(children, first_all, first_restart, period)
-
-
-def strict_json(value: Any) -> Any:
-    """``value`` with every infinite or NaN float as null (a p99 beyond the last bucket, a
-    ratio of two of them), so that the last line is JSON that any reader takes."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [strict_json(v) for v in value]
-    return value
 
 
 def histogram_p99(before: dict[str, Any], after: dict[str, Any]) -> float:

@@ -196,9 +196,9 @@ def _key_tables(public_key: bytes) -> tuple[list[Cached], list[Cached]] | None:
 
 def _double_scalar_mult(s: int, k: int, q_table: list[Cached], q_negated: list[Cached]) -> tuple[int, int, int]:
     """[s]B + [k]Q as (X:Y:Z), Q the point whose odd multiples ``q_table`` holds (and
-    ``q_negated`` their negatives). The doubling and the addition of RFC 8032 5.1.4 are
-    written out in the loop (this is where the time goes); a doubling skips T when no
-    addition follows, so T is not returned."""
+    ``q_negated`` their negatives). The doubling of RFC 8032 5.1.4 is written out in the
+    loop, so that it skips T when no addition follows (T is not returned); the additions
+    are :func:`_add`."""
     s_digits, k_digits = _naf(s), _naf(k)
     n = max(len(s_digits), len(k_digits))
     s_digits += [0] * (n - len(s_digits))
@@ -223,21 +223,9 @@ def _double_scalar_mult(s: int, k: int, q_table: list[Cached], q_negated: list[C
             if ds or dk:
                 t1 = e * h % P
         if ds:
-            ymx, ypx, t2d, z2 = b_table[ds >> 1] if ds > 0 else b_negated[-ds >> 1]
-            a = (y1 - x1) * ymx % P
-            b = (y1 + x1) * ypx % P
-            c = t1 * t2d % P
-            d = z1 * z2 % P
-            e, f, g, h = b - a, d - c, d + c, b + a
-            x1, y1, z1, t1 = e * f % P, g * h % P, f * g % P, e * h % P
+            x1, y1, z1, t1 = _add((x1, y1, z1, t1), b_table[ds >> 1] if ds > 0 else b_negated[-ds >> 1])
             started = True
         if dk:
-            ymx, ypx, t2d, z2 = q_table[dk >> 1] if dk > 0 else q_negated[-dk >> 1]
-            a = (y1 - x1) * ymx % P
-            b = (y1 + x1) * ypx % P
-            c = t1 * t2d % P
-            d = z1 * z2 % P
-            e, f, g, h = b - a, d - c, d + c, b + a
-            x1, y1, z1, t1 = e * f % P, g * h % P, f * g % P, e * h % P
+            x1, y1, z1, t1 = _add((x1, y1, z1, t1), q_table[dk >> 1] if dk > 0 else q_negated[-dk >> 1])
             started = True
     return x1, y1, z1

@@ -70,10 +70,11 @@ def run_world(world: World, until_cycle: int) -> None:
 
 
 def switches(log: list[str]) -> dict[int, int]:
-    """Module -> the cycle (its own count) at which it switched, from its log."""
+    """Module -> the cycle (its own count) at which it switched, from its log lines (the
+    world's, or the launcher summary's)."""
     out: dict[int, int] = {}
     for line in log:
-        m = re.match(r"m(\d+): cycle (\d+): switched to program", line)
+        m = re.search(r"\bm(\d+): cycle (\d+): switched to program", line)
         if m:
             out[int(m.group(1))] = int(m.group(2))
     return out

@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import re
 import sys
 from collections import Counter
 from pathlib import Path
@@ -25,7 +24,7 @@ import pytest
 
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
 from hil.pace import PACE
-from tests.hil.flashing import PERIOD, caterpillar, namespace_problem
+from tests.hil.flashing import PERIOD, caterpillar, namespace_problem, switches
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 8
@@ -53,15 +52,6 @@ def bus_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     records = [json.loads(line) for line in trace.read_text().splitlines()]
     return {"code": proc.returncode, "stderr": proc.stderr, "summary": summary, "records": records}
-
-
-def switches(log: list[str]) -> dict[int, int]:
-    out: dict[int, int] = {}
-    for line in log:
-        m = re.search(r"\bm(\d+): cycle (\d+): switched to program", line)
-        if m:
-            out[int(m.group(1))] = int(m.group(2))
-    return out
 
 
 def test_every_module_on_the_bus_commits_and_is_named_by_its_path(bus_run: dict[str, Any]) -> None:
