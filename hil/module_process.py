@@ -33,7 +33,6 @@ there (a program image, a bus, a port).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import gc
 import json
@@ -46,13 +45,13 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
-from dh2rt.events import parse_hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.transport.registry import open_transport
@@ -62,9 +61,11 @@ from drivers.recording import RecordingDriver
 from hil.config import ModuleConfig
 
 if TYPE_CHECKING:
+    import argparse
+
     from drivers.flash_slots import Boot, Flash
     from drivers.negotiated_links import NegotiatedLinks
-    from hil.rollout_host import RolloutHost
+    from hil.rollout_door import RolloutDoor
 from hil.control import (
     Attach,
     Command,
@@ -160,7 +161,7 @@ class ModuleHost:
                 rt.close()
                 raise
         #: the rollout of new programs over the links (a module booted from its flash)
-        self.rollout: RolloutHost | None = self._start_rollout()
+        self.rollout: RolloutDoor | None = self._start_rollout()
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -254,17 +255,16 @@ class ModuleHost:
             self.boot = self.flash.reject(f"the program does not load: {exc}")
             return load_image(self.boot.program)
 
-    def _start_rollout(self) -> RolloutHost | None:
-        """Take part in rollouts (docs/flashing.md) when booted from a flash."""
+    def _start_rollout(self) -> RolloutDoor | None:
+        """Take part in rollouts (docs/flashing.md) when booted from a flash; the rollout's
+        machinery loads when one concerns this module (:mod:`hil.rollout_door`)."""
         if self.flash is None or self.boot is None:
             return None
-        from hil.rollout_host import RolloutHost
+        from hil.rollout_door import RolloutDoor
 
         bitrate = int(self.config.bus_options.get("bitrate", 1_000_000))
         try:
-            return RolloutHost.for_module(
-                self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate
-            )
+            return RolloutDoor(self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate)
         except ValueError as exc:  # a line too slow for the cycle: the program runs, no rollouts
             self.runtime.log.append(f"rollouts off: {exc}")
             return None
@@ -385,6 +385,8 @@ class ModuleHost:
             elif isinstance(cmd, Detach):
                 rt.detach(cmd.connector)
             elif isinstance(cmd, Inject):
+                from dh2rt.events import parse_hormone  # the HIL world's commands only
+
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, StatusRequest):
                 self.report(Status(self._status(rt)))
@@ -515,6 +517,8 @@ def _read_commands(stream: IO[str], commands: queue.Queue[Command], report: Repo
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import argparse
+
     p = argparse.ArgumentParser(
         prog="dh2rt module",
         description="Run one dh2rt module: its program over its links, driving its servos, until stopped.",
@@ -523,6 +527,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="module.toml (or, from the HIL world, a JSON object or @FILE.json)")
     p.add_argument("--check-config", action="store_true", help="check the config, print what it sets up, and exit")
     return p
+
+
+@dataclass(frozen=True)
+class Arguments:
+    """``dh2rt module``'s options (what :func:`build_parser` parses)."""
+
+    config: str
+    check_config: bool = False
+
+
+def plain_arguments(argv: Sequence[str]) -> Arguments | None:
+    """The arguments a module processor starts with, read without argparse: ``--config
+    PATH`` or ``--config=PATH``, and ``--check-config``, each once. Anything else (``--help``,
+    a mistake) goes to :func:`build_parser`, so its help and errors are argparse's; argparse
+    and gettext cost a module 0.4 MB resident that it would carry while cycling."""
+    config: str | None = None
+    check = False
+    rest = list(argv)
+    while rest:
+        arg = rest.pop(0)
+        if arg == "--check-config" and not check:
+            check = True
+        elif arg == "--config" and config is None and rest and not rest[0].startswith("-"):
+            config = rest.pop(0)
+        elif arg.startswith("--config=") and config is None and len(arg) > len("--config="):
+            config = arg[len("--config=") :]
+        else:
+            return None
+    return None if config is None else Arguments(config, check)
 
 
 def load_config(text: str) -> ModuleConfig:
@@ -588,7 +621,8 @@ def settle_heap() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     lean_process()
-    ns = build_parser().parse_args(argv)
+    args = list(sys.argv[1:] if argv is None else argv)
+    ns = plain_arguments(args) or build_parser().parse_args(args)
     try:
         config = load_config(ns.config)
         if ns.check_config:
