@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from dh2rt.wire.transfer import MAX_PATH, MAX_REASON, MAX_VERDICT, can_cost, serial_cost
+from dh2rt.wire.sizes import MAX_PATH, MAX_REASON, MAX_VERDICT, can_cost, serial_cost
 
 #: Share of a serial line's bytes per cycle the rollout may take (hormones keep the rest).
 SERIAL_SHARE = 0.8

@@ -223,7 +223,8 @@ def test_a_module_loads_neither_the_rollout_nor_argparse_until_it_needs_them(tmp
     carries no rollout machinery, no argparse and no event parser (docs/firmware.md,
     "Footprint"); tests/hil/test_rollout_host.py opens the rollout when an image comes."""
     bus = '[transport]\nkind = "virtual"\nchannel = "door"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
-    heavy = ("argparse", "gettext", "dh2rt.rollout", "hil.rollout_host", "dh2rt.events", "hil.rollout_door")
+    heavy = ("argparse", "gettext", "dh2rt.rollout", "hil.rollout_host", "dh2rt.wire.transfer", "dh2rt.events",
+             "hil.rollout_door")
     loaded, final = run_probed(module_dir(tmp_path, "m", bus), heavy)
     assert loaded == ["hil.rollout_door"]
     assert final["program"]["version"] == 1  # booted from the flash, so it takes part in rollouts
