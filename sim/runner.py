@@ -206,7 +206,7 @@ class PhysicsRun:
             a, ac = reach.chain.asking
             b, bc = reach.chain.target
             alive = self.running(a) and self.running(b)
-            targets = reach.step(self.robot.cycle) if alive else {}
+            targets = reach.step(self.robot.cycle - 1) if alive else {}  # the cycle just run
             if not alive:
                 self.note(f"reach_dock {self.where(a, ac)}: a module of the chain stopped; motion abandoned")
                 self.reaches.remove(reach)
