@@ -26,6 +26,10 @@ pitch joints held near 0 (the robot lies on the floor; yaws do the bending when 
     is corrected by the error the infrared reading shows (distance beyond contact, faces off
     square), a small search over the chain's joints that lowers the reading.
 
+A chain that closes a loop on its own robot runs a pitch wave in every phase
+(:data:`WIGGLE_DEG`): its modules are pressed and unloaded in turn, so that its yaws are not
+stalled by the floor's friction on the modules they drag.
+
 The latch closes only when the world says the faces are aligned within the runner's
 tolerance (:meth:`sim.world.World.aligned`) *and* the asking connector's infrared pair sees a
 face within that distance and angle; nothing is ever teleported. A reach that does not latch
@@ -67,6 +71,13 @@ APPROACH_M_PER_CYCLE = 0.0015
 #: Cycles the close phase may take before the approach starts anyway (two yaws cannot always
 #: square the faces and place them at once: the approach then closes what is left).
 CLOSE_CYCLES = 40
+#: The pitch wave the chain runs while it moves (degrees, amplitude): a yaw that has to drag
+#: three or four modules over the floor (friction 0.9, about 0.5 N m) stalls the 0.3 N m
+#: servos; with the chain's pitch joints swinging, adjacent modules in antiphase, each
+#: module is pressed and unloaded in turn and the yaws advance while the friction drops.
+WIGGLE_DEG = 20.0
+#: ... and its period (control cycles).
+WIGGLE_PERIOD = 6
 #: Fraction of the least-squares correction applied each cycle.
 GAIN = 0.3
 #: Cycles a reach may take before it gives up.
@@ -390,6 +401,7 @@ class Reach:
         *,
         timeout: int = DEFAULT_TIMEOUT,
         start_cycle: int = 0,
+        wiggle_deg: float | None = None,
     ) -> None:
         from sim.sensors import PhysicsSensors
         from sim.world import World
@@ -403,6 +415,10 @@ class Reach:
         self.tolerance_deg = tolerance_deg
         self.timeout = timeout
         self.start_cycle = start_cycle
+        #: The pitch wave's amplitude: :data:`WIGGLE_DEG` for a loop that closes on the robot
+        #: itself, none towards a body lying apart (a pitch wave makes the chain crawl, the
+        #: caterpillar's gait, and that would carry the asking face away from it).
+        self.wiggle_deg = wiggle_deg if wiggle_deg is not None else (0.0 if chain.anchor is not None else WIGGLE_DEG)
         model = world.model
         lims = []
         for _m, dof in chain.joints:
@@ -480,6 +496,12 @@ class Reach:
         out: dict[int, dict[int, float]] = {}
         for (m, dof), v in zip(self.chain.joints, self.command, strict=True):
             out.setdefault(m, {})[dof] = math.degrees(float(v))
+        if self.wiggle_deg and not self.done:
+            # the pitch wave: adjacent modules in antiphase, so each is unloaded in turn
+            swing = self.wiggle_deg * math.sin(2 * math.pi * self.cycles / WIGGLE_PERIOD)
+            pitches = [m for m, dof in self.chain.joints if dof == 0]
+            for k, m in enumerate(pitches):
+                out[m][0] += swing if k % 2 == 0 else -swing
         return out
 
     def ir_sees(self) -> bool:
