@@ -112,6 +112,8 @@ class Robot:
         self.pending: list[tuple[int, Callable[[], None]]] = []
         self.effect_handlers: dict[str, EffectHandler] = {
             "reach_and_dock": _reach_and_dock,
+            "reach_dock": lambda r, m, a: docking.reach_and_dock_to(r, m, a[0], a[1], a[2]),
+            "release": lambda r, m, a: docking.release(r, m, a[0]),
             "assist": lambda _r, _m, _a: None,
         }
         #: Receptor faults in the order they happened (the last MAX_FAULT_RECORDS).

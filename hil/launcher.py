@@ -527,7 +527,7 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
     """What went wrong in a finished run, one line per module and kind (empty: nothing)."""
     changes_links = (
         any(ev.kind in ("cut", "dock", "kill", "restart") for ev in events)
-        or any(effect.kind == "reach_and_dock" for _m, effect in world.effects)
+        or any(effect.kind in ("reach_and_dock", "reach_dock", "release") for _m, effect in world.effects)
         or world.cables_plugged > 0
     )
     out: list[str] = []

@@ -19,10 +19,11 @@ them in the typed control protocol of :mod:`hil.control`, keeps what they report
 * ``restart``: the module starts again with a fresh state on the same links.
 * ``inject``: the hormone is sent to the module over its control channel.
 
-Effects that natives ask of the physical world arrive as reports; ``reach_and_dock`` is
-carried out by the rules of :mod:`dh2rt.docking`, with this world as the docking world
-(DOCK_DELAY world cycles later: the foot's link is cut and the asking connector docked to
-it), so ``legs_to_snake`` reconfigures in the loop.
+Effects that natives ask of the physical world arrive as reports; ``reach_and_dock``,
+``reach_dock`` and ``release`` are carried out by the rules of :mod:`dh2rt.docking`, with
+this world as the docking world (DOCK_DELAY world cycles later for the first two: for
+``reach_and_dock`` the foot's link is cut and the asking connector docked to it), so
+``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -397,14 +398,19 @@ class World:
 
     def _effect(self, module: int, kind: str, args: list[Any]) -> None:
         """Carry out what a native asked of the physical world (as the Robot does)."""
-        if kind != "reach_and_dock":
+        if kind not in ("reach_and_dock", "reach_dock", "release"):
             return  # "assist" and the like only move joints, which the module did itself
         try:
-            connector, route = int(args[0]), [int(c) for c in args[1]]
+            if kind == "release":
+                docking.release(self, module, int(args[0]))
+            elif kind == "reach_dock":
+                connector, route, target = int(args[0]), [int(c) for c in args[1]], int(args[2])
+                docking.reach_and_dock_to(self, module, connector, route, target)
+            else:
+                connector, route = int(args[0]), [int(c) for c in args[1]]
+                docking.reach_and_dock(self, module, connector, route)
         except (IndexError, TypeError, ValueError):
-            self.log.append(f"{self.topology.names[module]}: malformed reach_and_dock {args!r}")
-            return
-        docking.reach_and_dock(self, module, connector, route)
+            self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
 
     # ------------------------------------------------------------ the docking world
 
