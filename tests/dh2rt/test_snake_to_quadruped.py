@@ -65,7 +65,7 @@ def test_snake_becomes_quadruped_and_snake(seed: int, at: str, cycle: int) -> No
 
     # afterwards both robots move by their own gaits: the snake's head (m4) and body wave
     # their pitch, the quadruped's feet lift and swing
-    seen: list[list[tuple[int, int]]] = [[] for _ in range(9)]
+    seen: list[list[tuple[float, float]]] = [[] for _ in range(9)]
     for _ in robot.iter_cycles(80):
         for m, e in enumerate(robot.engines):
             assert e is not None
