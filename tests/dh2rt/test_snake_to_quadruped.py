@@ -1,6 +1,6 @@
 """examples/snake_to_quadruped.dh2 on the in-process robot: a 9-module snake peels its four
-front modules off into legs on its two rear modules (m0 on m7's left, m1 on m7's right, m2 on
-m8's left, m3 on m8's right), then m6 lets go of m7: a quadruped (spine m7, m8) and a
+front modules off into legs on its two rear modules (m0 on m7's left, m1 on m8's left, m2 on
+m7's right, m3 on m8's right), then m6 lets go of m7: a quadruped (spine m7, m8) and a
 3-module snake (m4, m5, m6), each then moving by its own gait. QSS enters at the head, the
 tail or a body module."""
 
@@ -17,8 +17,8 @@ from tests.conftest import EXAMPLES
 #: The two robots' links: the quadruped (m7 its front spine module) and the snake m4-m5-m6.
 QUAD_LINKS = {
     ("m0", "front", "m7", "left"),
-    ("m1", "front", "m7", "right"),
-    ("m2", "front", "m8", "left"),
+    ("m1", "front", "m8", "left"),
+    ("m2", "front", "m7", "right"),
     ("m3", "front", "m8", "right"),
     ("m7", "back", "m8", "front"),
     ("m4", "back", "m5", "front"),
@@ -27,8 +27,8 @@ QUAD_LINKS = {
 #: Each module's type once split.
 QUAD_TYPES = [
     "left_foot",
-    "right_foot",
     "left_foot",
+    "right_foot",
     "right_foot",
     "head",
     "body",
@@ -56,8 +56,8 @@ def test_snake_becomes_quadruped_and_snake(seed: int, at: str, cycle: int) -> No
     docks = [line for line in robot.log if "docked to" in line]
     assert [d.split(": ", 1)[1] for d in docks] == [
         "m0.front docked to m7.left",
-        "m1.front docked to m7.right",
-        "m2.front docked to m8.left",
+        "m1.front docked to m8.left",
+        "m2.front docked to m7.right",
         "m3.front docked to m8.right",
     ]
     assert sum("released" in line for line in robot.log) == 5
