@@ -1,8 +1,8 @@
 """examples/snake_to_quadruped.dh2 on the in-process robot: a 9-module snake peels its four
 front modules off into legs on its two rear modules (m0 on m7's left, m1 on m8's left, m2 on
-m7's right, m3 on m8's right), then m6 lets go of m7: a quadruped (spine m7, m8) and a
-3-module snake (m4, m5, m6), each then moving by its own gait. QSS enters at the head, the
-tail or a body module."""
+m7's right, m3 on m8's right; between the sides the body crawls for 800 cycles), then m6 lets
+go of m7: a quadruped (spine m7, m8) and a 3-module snake (m4, m5, m6), each then moving by
+its own gait. QSS enters at the head, the tail or a body module."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def test_snake_becomes_quadruped_and_snake(seed: int, at: str, cycle: int) -> No
     prog = compile_file(str(EXAMPLES / "snake_to_quadruped.dh2"))
     topo = parse_spec("snake:9")
     robot = Robot(prog, topo, seed=seed)
-    robot.run(cycle + 300, [parse_event(f"{cycle}:inject:{at}:QSS", topo, prog.vocabulary)])
+    robot.run(cycle + 1100, [parse_event(f"{cycle}:inject:{at}:QSS", topo, prog.vocabulary)])
     assert link_set(robot) == QUAD_LINKS, robot.log
     docks = [line for line in robot.log if "docked to" in line]
     assert [d.split(": ", 1)[1] for d in docks] == [
@@ -61,6 +61,9 @@ def test_snake_becomes_quadruped_and_snake(seed: int, at: str, cycle: int) -> No
         "m3.front docked to m8.right",
     ]
     assert sum("released" in line for line in robot.log) == 5
+    # between the sides, the body crawls straight, then curled, then lies still (Crawl cycles)
+    second, third = (int(d.split(":")[0].split()[1]) for d in docks[1:3])
+    assert third - second >= 800
     assert [e.topo_type.name for e in robot.engines if e is not None] == QUAD_TYPES
 
     # afterwards both robots move by their own gaits: the snake's head (m4) and body wave
