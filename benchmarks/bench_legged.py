@@ -75,7 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         rows.append(row)
         print(line, flush=True)
-    print(json.dumps(strict_json({"benchmark": "legged", "quick": args.quick, "gait_cycles": gait_cycles, "rows": rows})))
+    result = {"benchmark": "legged", "quick": args.quick, "gait_cycles": gait_cycles, "rows": rows}
+    print(json.dumps(strict_json(result)))
     return 0
 
 
