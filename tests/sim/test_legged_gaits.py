@@ -20,6 +20,7 @@ import pytest
 from dh2rt.cli import main
 from dh2rt.errors import GaitError
 from dh2rt.program import CompiledProgram
+from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from sim.gaits import Walk, measure_walk
 
@@ -39,12 +40,10 @@ def legs(topology: str) -> list[int]:
 
 GAIT_CYCLES = 20
 #: (topology, seed) whose heading leaves the 15-degree band within 20 gait cycles, as measured
-#: by ``python -m benchmarks.bench_legged --no-before`` (docs/physics.md, Legged walking): the
-#: target is not met there yet.
-HEADING_NOT_MET: frozenset[tuple[str, int]] = frozenset(
-    {("tripod", 0), ("tripod", 1), ("quadruped", 1), ("hexapod", 0), ("hexapod", 2)}
-    | {("octopod", s) for s in (0, 1, 2)}
-)
+#: by ``python -m benchmarks.bench_legged`` (docs/physics.md, Legged walking): seed 1 starts
+#: the robot 132 degrees from the world's x axis, 42 from the nearest axis, where Bullet's
+#: friction turns it towards an axis. The target is not met there.
+HEADING_NOT_MET: frozenset[tuple[str, int]] = frozenset({("tripod", 1), ("octopod", 1)})
 _WALKS: dict[tuple[str, int], Walk] = {}
 
 
@@ -123,6 +122,42 @@ def test_trace_shows_every_leg_commanded_and_moving(examples: Path, tmp_path: Pa
         # and moving in the world: its centre body travels at least 5 mm along some axis
         spans = [max(r["pos"][k] for r in mine) - min(r["pos"][k] for r in mine) for k in range(3)]
         assert max(spans) >= 0.005, (names[m], spans)
+
+
+@pytest.mark.parametrize("n", [1, 5, 8])
+def test_snakes_crawl_exactly_as_the_caterpillar(
+    locomotion: CompiledProgram, caterpillar: CompiledProgram, n: int
+) -> None:
+    """The legged receptors never act on a snake: every module's servo targets, cycle by
+    cycle, are the caterpillar program's."""
+    robots = [Robot(program, parse_spec(f"snake:{n}"), seed=3) for program in (locomotion, caterpillar)]
+    seen: set[float] = set()
+    for _ in range(3 * locomotion.clock_cycle):
+        for robot in robots:
+            robot.run(1)
+        dofs = [[tuple(robot.engine(m).dof) for m in range(n)] for robot in robots]
+        assert dofs[0] == dofs[1]
+        seen.update(d[0] for d in dofs[0])
+    assert len(seen) >= 2  # the snake does move
+
+
+@pytest.mark.parametrize("topology", LEGGED)
+def test_pairs_move_as_mirror_images_in_every_cycle(locomotion: CompiledProgram, topology: str) -> None:
+    """A spine module's left and right legs: same pitch, opposite yaw, every cycle (lockstep)."""
+    topo = parse_spec(topology)
+    robot = Robot(locomotion, topo, seed=1)
+    pairs = [
+        (topo.module_index(f"left_leg{i}"), topo.module_index(f"right_leg{i}"))
+        for i in range(sum(1 for name in topo.names if name.startswith("spine")))
+    ]
+    poses = set()
+    for _ in range(3 * locomotion.clock_cycle):
+        robot.run(1)
+        for a, b in pairs:
+            da, db = robot.engine(a).dof, robot.engine(b).dof
+            assert da[0] == db[0] and da[1] == -db[1], (topo.names[a], da, db)
+            poses.add(tuple(da))
+    assert len(poses) >= 4  # lift, swing, plant and stroke steps
 
 
 def test_measure_walk_rejects_bad_parameters(locomotion: CompiledProgram) -> None:
