@@ -26,7 +26,10 @@ One cycle (:meth:`ModuleRuntime.step`)::
               or a processor do not all read their servos in the same cycle) the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
-              while it lasts, recover() (if the driver has one) is tried on each check.
+              while it lasts, recover() (if the driver has one) is tried on each check,
+              and only then: a servo that is gone costs a reply timeout per try (34 ms
+              with an FTDI adapter's 16 ms latency timer, 102 ms on the HIL world's
+              emulated servos), which once a cycle would stretch every cycle by it.
               A DriverError never stops the module: the engine keeps running.
 
 Liveness bound: a neighbour that stops sending is noticed in the SILENCE_CYCLES-th
@@ -346,6 +349,7 @@ class ModuleRuntime:
                 engine.link_up(c, remote)
         engine.dof[0], engine.dof[1] = old.dof[0], old.dof[1]
         self.program, self.engine = program, engine
+        self.sensing.rebind(engine)
         self.transport.codec = FrameCodec(program.vocabulary, program.profile.connector_count)
         self.digest = program_digest(program.image)
         self.liveness.announce(self.digest, version)
@@ -361,7 +365,7 @@ class ModuleRuntime:
     def add_sensor_source(self, source: Source, *, every: int = 1, label: str = "") -> bool:
         """Fill sensors from ``source`` (a ``drivers.base.SensorSource`` or a callable) every
         ``every`` cycles, before the engine runs; False when it reads nothing the program
-        declares (it is then never read)."""
+        declares (it is not read while the running program declares none of its sensors)."""
         return self.sensing.add_source(source, every=every, label=label)
 
     def sense(self, name: str, value: int) -> None:
@@ -392,7 +396,7 @@ class ModuleRuntime:
         if driver is None:
             return
         try:
-            if self.actuator_fault is not None or self.cycle % HEALTH_EVERY == self.health_offset:
+            if self.cycle % HEALTH_EVERY == self.health_offset:
                 self._check_health(driver)
             if (dof1, dof2) != self._commanded and self.actuator_fault is None:
                 driver.set_targets(dof1, dof2)
@@ -401,12 +405,16 @@ class ModuleRuntime:
             self._actuator_fault(str(exc))
 
     def _check_health(self, driver: Driver) -> None:
+        """Read the driver's health; while a fault lasts, try recover() straight away (it
+        checks the servos itself and stops at the first that does not answer: one reply
+        timeout, where health() first would wait one per servo)."""
         health = getattr(driver, "health", None)
         if health is None:
             return
-        faults = tuple(health().faults)
-        if faults and self.actuator_fault is not None and callable(getattr(driver, "recover", None)):
+        if self.actuator_fault is not None and callable(getattr(driver, "recover", None)):
             faults = tuple(cast(_Recoverable, driver).recover().faults)
+        else:
+            faults = tuple(health().faults)
         if faults:
             self._actuator_fault("; ".join(faults))
         elif self.actuator_fault is not None:

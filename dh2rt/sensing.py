@@ -10,11 +10,18 @@ declares into the engine:
   servos' present position and load, an IMU on I2C), or a plain callable returning such a
   mapping. Only sources that read a sensor the program declares are read at all, each every
   ``every`` cycles (at the module's own offset, so that modules sharing a bus do not all
-  read in one cycle);
+  read in one cycle). A source whose read fails is read again after 1, 2, 4, ... up to
+  ``MAX_BACKOFF`` of its turns, and at every turn again once a read succeeds: a device that
+  is gone (a servo that does not answer waits out its reply timeout, 34 ms or more) costs
+  the cycle loop that wait now and then, not every cycle;
 * pushed readings (:meth:`SensorFeed.push`) are values someone else measured for this
   module (the HIL world's PyBullet stand-in): they are written in the next cycle;
 * forced values (:meth:`SensorFeed.force`, the ``sense`` event) hold from then on: no source
   and no push overwrites them.
+
+A program switch (a rollout) gives the feed the new engine (:meth:`SensorFeed.rebind`): the
+sensors both programs declare keep their values and what ``sense`` forced, sources are read
+for what the new program declares.
 
 Every value goes through the profile's :class:`~dh2rt.profile.SensorSpec`: rounded to an
 integer and clamped to the sensor's range. A value that is not a finite number, a name the
@@ -35,7 +42,10 @@ from dh2rt.errors import TopologyError
 from dh2rt.events import undeclared_sensor
 from dh2rt.profile import SensorSpec
 
-__all__ = ["SensorFeed", "SensorReader"]
+__all__ = ["MAX_BACKOFF", "SensorFeed", "SensorReader"]
+
+#: The most turns a failing source is skipped before it is read again.
+MAX_BACKOFF = 32
 
 
 @runtime_checkable
@@ -57,6 +67,13 @@ class _Source:
     read: Callable[[], Mapping[str, float]]
     every: int
     offset: int
+    #: the sensors it reads (None: a plain callable, read whatever the program declares)
+    names: tuple[str, ...] | None
+    #: whether it reads anything the running program declares
+    active: bool = True
+    #: turns to skip after the last failed read (0: none failed), and the cycle it is next read at
+    backoff: int = 0
+    next_read: int = 0
 
 
 class SensorFeed:
@@ -65,11 +82,8 @@ class SensorFeed:
     def __init__(self, engine: Engine, *, offset: int = 0, log: Callable[[str], None] | None = None) -> None:
         self.engine = engine
         self.profile = engine.profile
-        declared = engine.program.sensor_names
         #: the engine's slot and the profile's spec of every declared sensor the profile lists
-        self._slots: dict[str, tuple[int, SensorSpec]] = {
-            name: (i, self.profile.sensor(name)) for i, name in enumerate(declared) if name in self.profile.sensor_names
-        }
+        self._slots = self._slots_of(engine)
         self.offset = offset
         self._log = log or (lambda _m: None)
         self._sources: list[_Source] = []
@@ -85,7 +99,36 @@ class SensorFeed:
         self.last_fault: str | None = None
         self._last_message: str | None = None
 
+    @property
+    def reading(self) -> tuple[str, ...]:
+        """The labels of the sources read for the running program (those that read a sensor
+        it declares)."""
+        return tuple(s.label for s in self._sources if s.active) if self._slots else ()
+
+    def _slots_of(self, engine: Engine) -> dict[str, tuple[int, SensorSpec]]:
+        declared = engine.program.sensor_names
+        profile = engine.profile
+        return {name: (i, profile.sensor(name)) for i, name in enumerate(declared) if name in profile.sensor_names}
+
     # ------------------------------------------------------------ configuring
+
+    def rebind(self, engine: Engine) -> None:
+        """From now on fill ``engine`` (a program switch): the sensors it declares that the
+        old one did keep their values, and their forced values hold; a forced sensor the new
+        program does not declare is no longer forced."""
+        old_sensors, old_slots = self.engine.sensors, self._slots
+        self.engine, self.profile = engine, engine.profile
+        self._slots = self._slots_of(engine)
+        for name, (slot, _spec) in self._slots.items():
+            if name in old_slots:
+                engine.sensors[slot] = old_sensors[old_slots[name][0]]
+        dropped = sorted(set(self.forced) - set(self._slots))
+        for name in dropped:
+            del self.forced[name]
+        if dropped:
+            self._log(f"sensors: the new program does not read {', '.join(dropped)}: no longer forced")
+        for source in self._sources:
+            source.active = source.names is None or any(n in self._slots for n in source.names)
 
     @property
     def declared(self) -> tuple[str, ...]:
@@ -93,24 +136,25 @@ class SensorFeed:
         return tuple(self._slots)
 
     def add_source(self, source: Source, *, every: int = 1, label: str = "") -> bool:
-        """Read ``source`` every ``every`` cycles from now on; False (and it is not read) when
-        it reads no sensor the program declares. A source naming a sensor the profile does
-        not list is refused (TopologyError naming it)."""
+        """Read ``source`` every ``every`` cycles from now on; False when it reads no sensor the
+        program declares (it is not read while that holds: a program switch may change it). A
+        source naming a sensor the profile does not list is refused (TopologyError naming it)."""
         if every < 1:
             raise ValueError(f"sensor source read every {every} cycles: must be 1 or more")
+        names: tuple[str, ...] | None = None
         if isinstance(source, SensorReader):
             names = tuple(source.names)
             for name in names:
                 self.profile.sensor(name)  # TopologyError naming the profile's sensors
-            if not any(n in self._slots for n in names):
-                return False
             read = source.read
             label = label or type(source).__name__
         else:
             read = source
             label = label or getattr(source, "__name__", "sensor source")
-        self._sources.append(_Source(label, read, every, self.offset % every))
-        return True
+        entry = _Source(label, read, every, self.offset % every, names)
+        entry.active = names is None or any(n in self._slots for n in names)
+        self._sources.append(entry)
+        return entry.active
 
     def force(self, name: str, value: int) -> None:
         """Sensor ``name`` reads ``value`` from now on (a ``sense`` event): TopologyError if the
@@ -139,13 +183,16 @@ class SensorFeed:
             pushed, self._pushed = self._pushed, {}
             self._write(pushed, "pushed readings", cycle)
         for source in self._sources:
-            if cycle % source.every != source.offset:
+            if not source.active or cycle % source.every != source.offset or cycle < source.next_read:
                 continue
             try:
                 values = source.read()
             except Exception as exc:  # any failing device: a counted, logged fault, never a crash
                 self._fault(cycle, f"{source.label}: {type(exc).__name__}: {exc}")
+                source.backoff = min(MAX_BACKOFF, 2 * source.backoff or 1)
+                source.next_read = cycle + (source.backoff + 1) * source.every
                 continue
+            source.backoff = 0
             self._write(values, source.label, cycle)
 
     def _write(self, values: Mapping[str, float], label: str, cycle: int) -> None:

@@ -4,6 +4,7 @@ pushed readings, and ``sense`` overrides that nothing overwrites."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator, Mapping
 
@@ -77,23 +78,57 @@ def test_a_source_fills_s_before_the_engine_runs_rounded_and_clamped(runtime: Mo
 
 def test_a_failing_read_is_a_counted_logged_fault_and_the_last_value_holds(runtime: ModuleRuntime) -> None:
     imu = Imu()
-    runtime.add_sensor_source(imu, label="imu")
+    assert runtime.add_sensor_source(imu, label="imu")
+    assert runtime.sensing.reading == ("imu",)
     imu.roll = 70.0
     runtime.step()
     imu.fail = "I2C bus: no ACK"
-    for _ in range(5):
+    read_at: list[int] = []
+    for _ in range(70):
+        reads = imu.reads
         runtime.step()
-    assert runtime.cycle == 6  # never stopped
+        if imu.reads > reads:
+            read_at.append(runtime.cycle - 1)
+    assert runtime.cycle == 71  # never stopped
     assert runtime.engine.sensors[0] == 70 and runtime.engine.dof[1] == 30
-    assert runtime.counters["sensor_faults"] == 5
+    # read again after 1, 2, 4, 8, 16, then every 32 turns skipped: a device that is gone
+    # (each read waiting out a timeout) costs the loop now and then, not every cycle
+    assert read_at == [1, 3, 6, 11, 20, 37, 70]
+    assert runtime.counters["sensor_faults"] == len(read_at)
     assert [line for line in runtime.log if "sensor fault" in line] == [
         "cycle 1: sensor fault: imu: DriverError: I2C bus: no ACK"
     ]  # logged once while the message stays the same
-    assert runtime.status()["last_sensor_fault"] == "cycle 5: imu: DriverError: I2C bus: no ACK"
+    assert runtime.status()["last_sensor_fault"] == "cycle 70: imu: DriverError: I2C bus: no ACK"
     imu.fail = None
     imu.roll = 0.0
-    runtime.step()
-    assert runtime.engine.sensors[0] == 0 and runtime.counters["sensor_faults"] == 5
+    for _ in range(33):  # the next turn comes at cycle 103: read, and every cycle again after it
+        runtime.step()
+    assert runtime.engine.sensors[0] == 0 and runtime.counters["sensor_faults"] == len(read_at)
+    reads = imu.reads
+    for _ in range(5):
+        runtime.step()
+    assert imu.reads == reads + 5
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_a_failing_source_backs_off_in_its_own_turns(tilt: CompiledProgram, every: int) -> None:
+    codec = FrameCodec(tilt.vocabulary, tilt.profile.connector_count)
+    rt = ModuleRuntime(tilt, InprocTransport(codec, bus=InprocBus()), timer_phase=1, clock=FakeClock(0.001))
+    try:
+        read_at: list[int] = []
+
+        def broken() -> Mapping[str, float]:
+            read_at.append(rt.cycle)
+            raise OSError("no device")
+
+        rt.add_sensor_source(broken, every=every)
+        for _ in range(40 * every):
+            rt.step()
+        turns = [c // every for c in read_at]
+        assert all(c % every == 1 % every for c in read_at)
+        assert [b - a for a, b in itertools.pairwise(turns)][:5] == [2, 3, 5, 9, 17]
+    finally:
+        rt.close()
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, "12", None])
@@ -198,3 +233,48 @@ def test_servo_sensors_from_a_driver_reach_s(runtime: ModuleRuntime) -> None:
     driver.set_targets(-37.4, 12.0)
     runtime.step()
     assert runtime.engine.sensors[2] == -37
+
+
+LEVEL = """
+program level
+const ClockCycle = 4
+sensor pitch, roll
+receptor steep when S.pitch > 20 { DOF1(10); keep_alive() }
+"""
+
+BLIND = """
+program blind
+const ClockCycle = 4
+receptor idle { keep_alive() }
+"""
+
+
+def test_a_program_switch_keeps_what_both_programs_read_and_reads_what_the_new_one_declares(
+    runtime: ModuleRuntime,
+) -> None:
+    """A rollout switches the program at a cycle start: the new engine gets the sensors both
+    declare (values and what ``sense`` forced), sources are read for the new declarations,
+    and a program that reads no sensor has nothing read for it."""
+    imu = Imu()
+    runtime.add_sensor_source(imu, label="imu")
+    imu.roll = 12.0
+    runtime.step()
+    runtime.sense("contact", 1)
+    runtime.step()
+    level = compile_source(LEVEL, "level.dh2")
+    runtime.switch_program(level, 2, "switched to level")
+    assert runtime.engine.sensors == [0, 12]  # pitch not read yet; roll carried over
+    assert runtime.sensing.forced == {} and any("no longer forced" in line for line in runtime.log)
+    imu.roll = 50.0
+    runtime.step()
+    assert runtime.engine.sensors == [3, 50]  # the IMU's pitch is read now
+    assert runtime.records[-1]["sensors"] == {"pitch": 3, "roll": 50}
+    runtime.sense("roll", -5)
+    runtime.switch_program(compile_source(BLIND, "blind.dh2"), 3, "switched to blind")
+    reads = imu.reads
+    assert runtime.sensing.reading == ()
+    runtime.step()
+    assert imu.reads == reads and runtime.engine.sensors == []
+    runtime.switch_program(level, 4, "back to level")
+    runtime.step()
+    assert imu.reads == reads + 1 and runtime.engine.sensors == [3, 50]

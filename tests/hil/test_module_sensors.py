@@ -280,7 +280,7 @@ def test_nothing_is_read_from_the_servos_when_the_program_reads_none_of_them() -
             lambda _r: None,
         )
         try:
-            assert host.runtime.sensing._sources == []
+            assert host.runtime.sensing.reading == ()
         finally:
             host.runtime.close()
             if host.driver is not None:
