@@ -6,8 +6,11 @@ physics, so that only the path of the command is timed) runs a program that read
 turn, and the modules' trace records show the first cycle whose S has the value. For each
 event: the wall time from the world's write of the command returning to the start of that
 cycle, and how many cycles of that module started in between without it (0: the next cycle
-had it). On a busy machine a process can stand still for a while; such stalls show in the
-wall times (p90, max), not in the cycle counts.
+had it). The baseline, from the same records: the wall time from the write returning to the
+start of that module's next cycle, whatever its S (no command can count sooner); the ratio of
+the two medians is 1 when every value lands in the very next cycle. On a busy machine a
+process can stand still for a while; such stalls show in the wall times (p90, max), not in
+the cycle counts.
 
 Run: ``python -m benchmarks.bench_sense_latency [--events N] [--quick]``. The last line is one
 JSON object.
@@ -19,6 +22,7 @@ import argparse
 import json
 import time
 
+from benchmarks import strict_json
 from dh2rt.compiler import compile_source
 from dh2rt.events import parse_event
 from dh2rt.topology import parse_spec
@@ -55,6 +59,7 @@ def measure(events: int, seed: int) -> dict[str, object]:
         world.stop()
     records = world.sorted_records()
     walls: list[float] = []
+    nexts: list[float] = []
     missed: list[int] = []
     lost = 0
     for module, _name, value, _before, after in world.sense_times:
@@ -64,17 +69,21 @@ def measure(events: int, seed: int) -> dict[str, object]:
             lost += 1
             continue
         walls.append(mine[first]["t"] - after)
+        nexts.append(next(r["t"] for r in mine if r["t"] >= after) - after)
         missed.append(sum(1 for r in mine[:first] if r["t"] >= after and r["sensors"]["roll"] != value))
     walls.sort()
+    nexts.sort()
     n = len(walls)
 
-    def q(p: float) -> float:
-        return round(walls[min(n - 1, int(p * n))] * 1000, 1) if n else float("nan")
+    def q(p: float, values: list[float] = walls) -> float:
+        return round(values[min(n - 1, int(p * n))] * 1000, 1) if n else float("nan")
 
     return {
         "events": len(world.sense_times),
         "not_seen": lost,
         "wall_ms": {"p50": q(0.5), "p90": q(0.9), "max": q(1.0)},
+        "next_cycle_ms": {"p50": q(0.5, nexts), "p90": q(0.9, nexts), "max": q(1.0, nexts)},
+        "wall_over_next_cycle_p50": round(q(0.5) / q(0.5, nexts), 3) if n and q(0.5, nexts) > 0 else float("nan"),
         "cycles_missed": {str(k): missed.count(k) for k in sorted(set(missed))},
         "period_ms": PERIOD * 1000,
     }
@@ -94,7 +103,13 @@ def main() -> None:
         f"{wall['p50']} ms (p50), {wall['p90']} ms (p90), {wall['max']} ms (max) after the world sent it; "
         f"cycles that started in between without it: {result['cycles_missed']}; not seen: {result['not_seen']}"
     )
-    print(json.dumps({"bench": "sense_latency", **result}))
+    nxt = result["next_cycle_ms"]
+    assert isinstance(nxt, dict)
+    print(
+        f"baseline (same records): the module's next cycle started {nxt['p50']} ms (p50), {nxt['p90']} ms (p90), "
+        f"{nxt['max']} ms (max) after the send: ratio of the medians {result['wall_over_next_cycle_p50']}"
+    )
+    print(json.dumps(strict_json({"bench": "sense_latency", **result})))
 
 
 if __name__ == "__main__":
