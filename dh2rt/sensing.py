@@ -39,8 +39,7 @@ from typing import Protocol, runtime_checkable
 
 from dh2rt.engine import Engine
 from dh2rt.errors import TopologyError
-from dh2rt.events import undeclared_sensor
-from dh2rt.profile import SensorSpec
+from dh2rt.profile import SensorSpec, undeclared_sensor
 
 __all__ = ["MAX_BACKOFF", "SensorFeed", "SensorReader"]
 
