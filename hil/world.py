@@ -449,7 +449,9 @@ class World:
         alive = [m for m in (range(self.topology.size) if modules is None else modules) if self.views[m].alive]
         specs = {n: self.profile.sensor(n) for n in self.measured}
         for m, values in self.physics.readings(alive).items():
-            self._send(m, Readings({n: specs[n].reading(v) for n, v in values.items()}))
+            # physics measures in pairs (roll with pitch, a distance with its alignment):
+            # only what the program declares is sent
+            self._send(m, Readings({n: specs[n].reading(v) for n, v in values.items() if n in specs}))
         self.push_times.append(time.perf_counter() - started)
 
     # ------------------------------------------------------------ the docking world

@@ -256,6 +256,38 @@ def test_a_module_rolled_over_reads_its_roll_in_its_process(watch: CompiledProgr
     assert world.push_times and sorted(world.push_times)[len(world.push_times) // 2] < 0.005
 
 
+#: one of each pair physics measures together (roll with pitch, a distance with its alignment)
+HALVES = """
+program halves
+const ClockCycle = 4
+sensor roll, ir_front_align
+receptor hold { DOF1(25); keep_alive() }
+"""
+
+
+def test_a_program_that_reads_one_of_a_pair_gets_only_that_one(tmp_path: Path) -> None:
+    """Physics measures roll with pitch and a distance with its alignment; a module is sent
+    only what its program declares (the launcher crashed on the undeclared half before)."""
+    program = tmp_path / "halves.dh2"
+    program.write_text(HALVES)
+    trace = tmp_path / "t.jsonl"
+    proc = _launch(
+        "--program", str(program), "--module-count", "2", "--cycles", "60", "--stand-in", "pybullet",
+        "--trace", str(trace), "--json",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["sensor_push"]["sensors"] == ["roll", "ir_front_align"], summary["sensor_push"]
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    assert {r["module"] for r in records} == {0, 1}
+    for r in records:
+        assert set(r["sensors"]) == {"roll", "ir_front_align"}
+        assert abs(r["sensors"]["roll"]) <= 2  # a snake lying flat
+    # m0's front faces nothing (180: nothing in view); m1's front is docked to m0's back
+    assert all(r["sensors"]["ir_front_align"] == 180 for r in records if r["module"] == 0)
+    assert all(r["sensors"]["ir_front_align"] <= 5 for r in records if r["module"] == 1 and r["cycle"] >= 1)
+
+
 @pytest.mark.parametrize(("gap_mm", "seed"), [(30.0, 0), (70.0, 3)])
 def test_facing_connectors_read_their_distance_in_their_processes(gap_mm: float, seed: int) -> None:
     still = compile_source(STILL, "still.dh2")
