@@ -56,8 +56,8 @@ def attach_sensors(rt: ModuleRuntime, config: ModuleConfig, driver_of: Callable[
     if config.servo_port or config.driver == "recording":
 
         def healthy_driver() -> ModuleDriver | None:
-            # servos the runtime holds faulty are not read as sensors too: it checks their
-            # health every cycle meanwhile, and a read of a missing servo waits its timeout
+            # servos the runtime holds faulty are not read as sensors too: it tries recover()
+            # at its health checks meanwhile, and a read of a missing servo waits its timeout
             return None if rt.actuator_fault is not None else driver_of()
 
         rt.add_sensor_source(CurrentServoSensors(healthy_driver), every=config.servo_sensor_every, label="servos")
