@@ -21,7 +21,8 @@ declares into the engine:
 
 A program switch (a rollout) gives the feed the new engine (:meth:`SensorFeed.rebind`): the
 sensors both programs declare keep their values and what ``sense`` forced, sources are read
-for what the new program declares.
+for what the new program declares, and a sensor it declares anew that has a fixed stand-in
+reading (:meth:`SensorFeed.stand_in`) gets it.
 
 Every value goes through the profile's :class:`~dh2rt.profile.SensorSpec`: rounded to an
 integer and clamped to the sensor's range. A value that is not a finite number, a name the
@@ -87,6 +88,7 @@ class SensorFeed:
         self._log = log or (lambda _m: None)
         self._sources: list[_Source] = []
         self._pushed: dict[str, float] = {}
+        self._stand_in: dict[str, float] = {}
         #: values ``sense`` events forced, by name: they hold until the next ``sense``
         self.forced: dict[str, int] = {}
         #: sensor faults so far (a failing read, a value that is not a number, a name not in the profile)
@@ -118,9 +120,11 @@ class SensorFeed:
         old_sensors, old_slots = self.engine.sensors, self._slots
         self.engine, self.profile = engine, engine.profile
         self._slots = self._slots_of(engine)
-        for name, (slot, _spec) in self._slots.items():
+        for name, (slot, spec) in self._slots.items():
             if name in old_slots:
                 engine.sensors[slot] = old_sensors[old_slots[name][0]]
+            elif name in self._stand_in:
+                engine.sensors[slot] = spec.reading(self._stand_in[name])
         dropped = sorted(set(self.forced) - set(self._slots))
         for name in dropped:
             del self.forced[name]
@@ -170,6 +174,12 @@ class SensorFeed:
         """Readings measured elsewhere for this module; written at the next :meth:`fill`."""
         self._pushed.update(values)
         self.pushes += 1
+
+    def stand_in(self, values: Mapping[str, float]) -> None:
+        """Fixed readings of sensors with no device (``[sensors] stand_in``): written at the
+        next :meth:`fill`, and again for a sensor a switched-to program declares anew."""
+        self._stand_in.update(values)
+        self.push(values)
 
     # ------------------------------------------------------------ each cycle
 

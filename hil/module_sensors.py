@@ -52,7 +52,7 @@ def attach_sensors(rt: ModuleRuntime, config: ModuleConfig, driver_of: Callable[
         except TopologyError as exc:
             raise ModuleConfigError(f"config sensor_values {name}: {exc}") from None
     if config.sensor_values:
-        rt.push_readings(config.sensor_values)
+        rt.sensing.stand_in(config.sensor_values)
     if config.servo_port or config.driver == "recording":
 
         def healthy_driver() -> ModuleDriver | None:

@@ -278,3 +278,15 @@ def test_a_program_switch_keeps_what_both_programs_read_and_reads_what_the_new_o
     runtime.switch_program(level, 4, "back to level")
     runtime.step()
     assert imu.reads == reads + 1 and runtime.engine.sensors == [3, 50]
+
+
+def test_a_stand_in_reading_reaches_a_sensor_a_switched_to_program_declares_anew(runtime: ModuleRuntime) -> None:
+    runtime.sensing.stand_in({"pitch": 7, "roll": 4})
+    runtime.step()
+    assert runtime.engine.sensors[0] == 4  # tilt reads roll (and not pitch)
+    runtime.push_readings({"roll": 30})
+    runtime.step()
+    runtime.switch_program(compile_source(LEVEL, "level.dh2"), 2, "switched to level")
+    assert runtime.engine.sensors == [7, 30]  # pitch: the stand-in; roll: carried over
+    runtime.step()
+    assert runtime.records[-1]["sensors"] == {"pitch": 7, "roll": 30}
