@@ -91,9 +91,7 @@ def check_dock(
     if a == b:
         raise TopologyError(f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: a module cannot dock to itself")
     if not profile.can_link(a_conn, b_conn):
-        raise TopologyError(
-            f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: both are {profile.gender(a_conn)}"
-        )
+        raise TopologyError(f"cannot dock {where(a, a_conn)} to {where(b, b_conn)}: both are {profile.gender(a_conn)}")
     for m, c in ((a, a_conn), (b, b_conn)):
         if docked((m, c)):
             raise TopologyError(f"cannot dock {where(m, c)}: it is already docked")
@@ -157,3 +155,43 @@ def reach_and_dock(world: DockingWorld, module: int, connector: int, route: Sequ
         world.note(f"{world.where(module, connector)} docked to {world.where(here, at)}")
 
     world.schedule(DOCK_DELAY, carry_out)
+
+
+def reach_and_dock_to(world: DockingWorld, module: int, connector: int, route: Sequence[int], target_conn: int) -> None:
+    """Carry out ``reach_dock(path, mine, theirs)`` in a world that does not model the motion:
+    :data:`DOCK_DELAY` cycles later ``module``'s ``connector`` docks to connector
+    ``target_conn`` of the module at the end of ``route`` (nothing is released), if the rules
+    allow it then and the world says the two are aligned (logged otherwise). The physics
+    runner carries the same request out by motion (``sim.reach``)."""
+    route = tuple(route)
+
+    def carry_out() -> None:
+        target = reach_target(world, module, connector, route)
+        if target is None:
+            return
+        here = target[0]
+        where = f"{world.where(module, connector)} -> {world.where(here, target_conn)}"
+        if world.peer_of((here, target_conn)) is not None:
+            world.note(f"reach_dock {where}: the target connector is not free")
+            return
+        if not world.aligned(module, connector, here, target_conn):
+            world.note(f"reach_dock {where}: not aligned in the world")
+            return
+        try:
+            world.dock(module, connector, here, target_conn)
+        except TopologyError as exc:
+            world.note(f"reach_dock {where}: {exc}")
+            return
+        world.note(f"{world.where(module, connector)} docked to {world.where(here, target_conn)}")
+
+    world.schedule(DOCK_DELAY, carry_out)
+
+
+def release(world: DockingWorld, module: int, connector: int) -> None:
+    """Carry out ``release(c)``: the module lets go of its link at connector ``c`` (logged,
+    nothing else, if there is none)."""
+    if world.peer_of((module, connector)) is None:
+        world.note(f"release {world.where(module, connector)}: nothing docked there")
+        return
+    world.cut(module, connector)
+    world.note(f"{world.where(module, connector)} released")

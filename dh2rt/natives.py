@@ -35,7 +35,24 @@ def dock_tail_to_foot(engine: Engine, path: Path) -> None:
     engine.effect("reach_and_dock", back, route)
 
 
+def reach_dock(engine: Engine, path: Path, mine: int, theirs: int) -> None:
+    """Bend this module's connector ``mine`` (profile index) to connector ``theirs`` of the
+    module at the end of ``path``-1 and dock there; nothing is released. The chain of
+    modules along the route does the bending (in physics: ``sim.reach``). Requested as the
+    effect ``("reach_dock", (mine, route, theirs))``."""
+    route = tuple(received_at for _sent, received_at in path)
+    engine.effect("reach_dock", int(mine), route, int(theirs))
+
+
+def release(engine: Engine, connector: int) -> None:
+    """Let go of the link at connector ``connector`` (profile index): a cut by the module
+    itself. Requested as the effect ``("release", (connector,))``."""
+    engine.effect("release", int(connector))
+
+
 STANDARD_NATIVES: Mapping[str, Native] = {
     "assist_leg_assimilation": assist_leg_assimilation,
     "dock_tail_to_foot": dock_tail_to_foot,
+    "reach_dock": reach_dock,
+    "release": release,
 }

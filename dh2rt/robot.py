@@ -22,9 +22,10 @@ from dh2rt import docking
 from dh2rt.docking import End
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import EventError, TopologyError
-from dh2rt.events import Event, undeclared_sensor
+from dh2rt.events import Event
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.profile import undeclared_sensor
 from dh2rt.program import CompiledProgram
 from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
 from dh2rt.topology import Link, Topology
@@ -112,6 +113,8 @@ class Robot:
         self.pending: list[tuple[int, Callable[[], None]]] = []
         self.effect_handlers: dict[str, EffectHandler] = {
             "reach_and_dock": _reach_and_dock,
+            "reach_dock": lambda r, m, a: docking.reach_and_dock_to(r, m, a[0], a[1], a[2]),
+            "release": lambda r, m, a: docking.release(r, m, a[0]),
             "assist": lambda _r, _m, _a: None,
         }
         #: Receptor faults in the order they happened (the last MAX_FAULT_RECORDS).

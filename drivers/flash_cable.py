@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 from dh2rt.closing import Closing
 from dh2rt.hormone import Vocabulary
-from dh2rt.rollout import Action, Flasher, ModuleReport, Pacing, Progress, Send
+from dh2rt.pacing import Pacing
+from dh2rt.rollout import Action, Flasher, ModuleReport, Progress, Send
 from dh2rt.transport.base import Transport
 from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR

@@ -20,9 +20,14 @@ Actuators: with ``servo_port`` the module drives its DOF1/DOF2 Dynamixel servos 
 opened (missing, wrong model, a bad bus) are reported as an actuator fault, and the module
 runs its program without actuators rather than not at all.
 
+Sensors (``S.name``; :mod:`hil.module_sensors`): the servos' present position and load when
+the program reads them, fixed stand-in readings for sensors with no device (``[sensors]``),
+readings the world pushes, and values ``sense`` commands force.
+
 Control channel: the typed commands of :mod:`hil.control` arrive as JSON lines on stdin
 (``go``: start cycling, at a CLOCK_MONOTONIC instant after exchanging Hellos until then, for
-a number of cycles; ``attach``, ``detach``, ``inject``, ``status``, ``stop``); reports go out
+a number of cycles; ``attach``, ``detach``, ``inject``, ``sense`` (a sensor forced from then on),
+``readings`` (what the world's physics measured for the module), ``status``, ``stop``); reports go out
 as JSON lines on stdout (``ready``, ``status`` every ``status_every`` cycles, ``trace``,
 ``effect``, ``log``, ``error``, and ``final`` at exit). A malformed command is refused with
 a log report naming the field. SIGTERM and SIGINT end the loop cleanly with a final report.
@@ -33,7 +38,6 @@ there (a program image, a bus, a port).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import gc
 import json
@@ -46,13 +50,13 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import IO, TYPE_CHECKING, Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
-from dh2rt.events import parse_hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.transport.registry import open_transport
@@ -60,11 +64,14 @@ from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from hil.config import ModuleConfig
+from hil.module_sensors import attach_sensors
 
 if TYPE_CHECKING:
+    import argparse
+
     from drivers.flash_slots import Boot, Flash
     from drivers.negotiated_links import NegotiatedLinks
-    from hil.rollout_host import RolloutHost
+    from hil.rollout_door import RolloutDoor
 from hil.control import (
     Attach,
     Command,
@@ -74,8 +81,10 @@ from hil.control import (
     Go,
     Inject,
     Log,
+    Readings,
     Ready,
     Report,
+    Sense,
     Status,
     StatusRequest,
     Stop,
@@ -106,7 +115,7 @@ def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
     try:
         driver = DynamixelDriver(
             config.servo_port, dof1_id=dof1, dof2_id=dof2, baudrate=config.servo_baud,
-            expected_model=config.servo_model,
+            expected_model=config.servo_model, latency_timer_ms=config.servo_latency_ms,
         )  # fmt: skip
         return driver, None
     except DH2Error as exc:
@@ -159,8 +168,13 @@ class ModuleHost:
             except BaseException:
                 rt.close()
                 raise
+        try:
+            attach_sensors(self.runtime, config, lambda: self.driver)
+        except BaseException:
+            self.runtime.close()
+            raise
         #: the rollout of new programs over the links (a module booted from its flash)
-        self.rollout: RolloutHost | None = self._start_rollout()
+        self.rollout: RolloutDoor | None = self._start_rollout()
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -196,11 +210,11 @@ class ModuleHost:
                     # started at an agreed instant: stop at one too, so that no module runs on
                     # after its neighbours stopped and takes their silence for a lost link
                     until = start_at + self.cycles * self.config.cycle_period
-                    rt.run(None, self.stop_event, self._on_cycle, until=until)
+                    rt.run(None, self.stop_event, self._on_cycle, until=until, before_cycle=self._take_commands)
                     # what the neighbours sent in their last cycles is counted, not lost
                     rt.drain(DRAIN_PERIODS * self.config.cycle_period)
                 else:
-                    rt.run(self.cycles, self.stop_event, self._on_cycle)
+                    rt.run(self.cycles, self.stop_event, self._on_cycle, before_cycle=self._take_commands)
         except Exception as exc:  # report it to the world rather than die silently
             self.failed = True
             self.report(Failure(f"{type(exc).__name__}: {exc} ({_where(exc)})"))
@@ -254,17 +268,16 @@ class ModuleHost:
             self.boot = self.flash.reject(f"the program does not load: {exc}")
             return load_image(self.boot.program)
 
-    def _start_rollout(self) -> RolloutHost | None:
-        """Take part in rollouts (docs/flashing.md) when booted from a flash."""
+    def _start_rollout(self) -> RolloutDoor | None:
+        """Take part in rollouts (docs/flashing.md) when booted from a flash; the rollout's
+        machinery loads when one concerns this module (:mod:`hil.rollout_door`)."""
         if self.flash is None or self.boot is None:
             return None
-        from hil.rollout_host import RolloutHost
+        from hil.rollout_door import RolloutDoor
 
         bitrate = int(self.config.bus_options.get("bitrate", 1_000_000))
         try:
-            return RolloutHost.for_module(
-                self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate
-            )
+            return RolloutDoor(self.runtime, self.flash, self.boot, self._switched, self.config.transport, bitrate)
         except ValueError as exc:  # a line too slow for the cycle: the program runs, no rollouts
             self.runtime.log.append(f"rollouts off: {exc}")
             return None
@@ -333,16 +346,20 @@ class ModuleHost:
             status["program"] = program
         return status
 
-    def _on_cycle(self, rt: ModuleRuntime) -> None:
-        if self.links is not None:
-            self.links.step(rt.clock())
-        self._check_trial(rt)
+    def _take_commands(self, rt: ModuleRuntime) -> None:
+        """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
+        or pushed readings count in this very cycle)."""
         while True:
             try:
                 cmd = self.commands.get_nowait()
             except queue.Empty:
                 break
             self._command(cmd)
+
+    def _on_cycle(self, rt: ModuleRuntime) -> None:
+        if self.links is not None:
+            self.links.step(rt.clock())
+        self._check_trial(rt)
         if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
@@ -385,7 +402,14 @@ class ModuleHost:
             elif isinstance(cmd, Detach):
                 rt.detach(cmd.connector)
             elif isinstance(cmd, Inject):
+                from dh2rt.events import parse_hormone  # the HIL world's commands only
+
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
+            elif isinstance(cmd, Readings):
+                rt.push_readings(cmd.values)
+            elif isinstance(cmd, Sense):
+                rt.sense(cmd.sensor, cmd.value)
+                rt.log.append(f"cycle {rt.cycle}: sense: S.{cmd.sensor} = {cmd.value} from now on")
             elif isinstance(cmd, StatusRequest):
                 self.report(Status(self._status(rt)))
         except DH2Error as exc:
@@ -515,6 +539,8 @@ def _read_commands(stream: IO[str], commands: queue.Queue[Command], report: Repo
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import argparse
+
     p = argparse.ArgumentParser(
         prog="dh2rt module",
         description="Run one dh2rt module: its program over its links, driving its servos, until stopped.",
@@ -523,6 +549,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="module.toml (or, from the HIL world, a JSON object or @FILE.json)")
     p.add_argument("--check-config", action="store_true", help="check the config, print what it sets up, and exit")
     return p
+
+
+@dataclass(frozen=True)
+class Arguments:
+    """``dh2rt module``'s options (what :func:`build_parser` parses)."""
+
+    config: str
+    check_config: bool = False
+
+
+def plain_arguments(argv: Sequence[str]) -> Arguments | None:
+    """The arguments a module processor starts with, read without argparse: ``--config
+    PATH`` or ``--config=PATH``, and ``--check-config``, each once. Anything else (``--help``,
+    a mistake) goes to :func:`build_parser`, so its help and errors are argparse's; argparse
+    and gettext cost a module 0.4 MB resident that it would carry while cycling."""
+    config: str | None = None
+    check = False
+    rest = list(argv)
+    while rest:
+        arg = rest.pop(0)
+        if arg == "--check-config" and not check:
+            check = True
+        elif arg == "--config" and config is None and rest and not rest[0].startswith("-"):
+            config = rest.pop(0)
+        elif arg.startswith("--config=") and config is None and len(arg) > len("--config="):
+            config = arg[len("--config=") :]
+        else:
+            return None
+    return None if config is None else Arguments(config, check)
 
 
 def load_config(text: str) -> ModuleConfig:
@@ -588,7 +643,8 @@ def settle_heap() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     lean_process()
-    ns = build_parser().parse_args(argv)
+    args = list(sys.argv[1:] if argv is None else argv)
+    ns = plain_arguments(args) or build_parser().parse_args(args)
     try:
         config = load_config(ns.config)
         if ns.check_config:

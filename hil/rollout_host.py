@@ -1,7 +1,8 @@
 """A module's rollout in its running loop: the I/O around :class:`dh2rt.rollout.Rollout`.
 
 :class:`RolloutHost` is what ``docs/flashing.md`` ("Driving the state machines") asks of a
-host, for :class:`hil.module_process.ModuleHost`:
+host, for :class:`hil.module_process.ModuleHost`, which opens it through
+:class:`hil.rollout_door.RolloutDoor` once a rollout concerns the module:
 
 * transfer frames reach it as the transport polls them (``Transport.on_transfer``: a
   *prompt* host, between cycles as they arrive), Hellos, silent links, attaches and detaches
@@ -27,17 +28,17 @@ import contextlib
 import json
 import os
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import DH2Error, FlashError, SignedImageError
+from dh2rt.pacing import Pacing
 from dh2rt.program import CompiledProgram
 from dh2rt.rollout import (
     Action,
     Declined,
     DropPartial,
     ImageInfo,
-    Pacing,
     Partial,
     Persist,
     Program,
@@ -45,20 +46,13 @@ from dh2rt.rollout import (
     Send,
     Stage,
     Switch,
-    link_pacing,
 )
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import parse as parse_image
-from dh2rt.transport.base import PortEnd
 from dh2rt.wire.frame import Hello
 from dh2rt.wire.transfer import image_id
 from drivers.flash_slots import Boot, Flash, replace_file
-
-#: Files beside the slots: the image being received, and what it is.
-PARTIAL_IMAGE = "partial.img"
-PARTIAL_INFO = "partial.json"
-#: What the module host does at the switch: run this program (booted from the flash).
-OnSwitch = Callable[[CompiledProgram, Boot], None]
+from hil.rollout_door import PARTIAL_IMAGE, PARTIAL_INFO, OnSwitch
 
 
 class RolloutHost:
@@ -110,21 +104,9 @@ class RolloutHost:
         self.switched = False
         rt.liveness.version = boot.version
         rt.observer = self
-        rt.transport.on_transfer = self._on_transfer
+        rt.transport.on_transfer = self.on_transfer
         for c in rt.transport.links:
             self.attached(c)
-
-    @classmethod
-    def for_module(
-        cls, rt: ModuleRuntime, flash: Flash, boot: Boot, on_switch: OnSwitch, transport: str, bitrate: int
-    ) -> RolloutHost:
-        """A host paced for the module's medium (serial ports at their baud rate, or a bus)."""
-        kind = transport.partition(":")[0]
-        bauds = [e.baudrate for e in rt.transport.links.values() if isinstance(e, PortEnd)]
-        pacing, segment, latency = link_pacing(kind, rt.cycle_period, min(bauds, default=115200), bitrate)
-        connectors = range(1, rt.program.profile.connector_count + 1)
-        return cls(rt, flash, boot, on_switch, connectors=connectors, pacing=pacing, segment_size=segment,
-                   latency=latency)  # fmt: skip
 
     # -- inputs from the runtime (LinkObserver) ---------------------------------------------
 
@@ -144,7 +126,7 @@ class RolloutHost:
     def detached(self, connector: int) -> None:
         self._do(self.rollout.detach(connector, self.rt.clock()))
 
-    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
+    def on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
         # when it arrived, not when it was read: a COMMIT's remaining time counts from then
         self._do(self.rollout.receive(connector, payload, arrived))
 

@@ -18,6 +18,16 @@ from sim.record import Recorder, plot_run, sample_world
 from sim.runner import STEPS_PER_CYCLE, PhysicsRun
 
 
+def traced(run: PhysicsRun, module: int, pos: list[float]) -> dict[str, object]:
+    """A module's extra trace fields: its position and, in the cycle a docking motion of its
+    latched, ``dock``: where both faces were at that moment (:meth:`sim.reach.Contact.as_dict`)."""
+    out: dict[str, object] = {"pos": pos}
+    for contact in run.contacts:
+        if contact.asking[0] == module and contact.cycle == run.robot.cycle - 1:
+            out["dock"] = contact.as_dict()
+    return out
+
+
 def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> int:
     """``dh2rt run ... --sim pybullet``: run, record, plot, trace, summarise."""
     steps = STEPS_PER_CYCLE
@@ -25,7 +35,7 @@ def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> in
     trace = None
     if ns.trace:
         world = run.world
-        trace = TraceWriter.open(ns.trace, robot, extra=lambda m: {"pos": list(world.module_position(m))})
+        trace = TraceWriter.open(ns.trace, robot, extra=lambda m: traced(run, m, list(world.module_position(m))))
     recorder = Recorder(run.world, Path(ns.record), camera=ns.camera, speed=ns.record_speed) if ns.record else None
     samples = run.samples = []  # filled here: sample_world adds the head and its heading
 

@@ -14,8 +14,14 @@ can take their place (the Dynamixel driver talking to a servo emulator whose joi
 same PyBullet joints runs the full firmware path).
 
 Docking follows the world: a ``cut`` undocks both the logical link and the physical latch;
-a ``dock`` (an event or a native action's ``reach_and_dock``) stays logical only if the two
-connectors are physically aligned within tolerance, and is undone otherwise.
+a ``dock`` event stays logical only if the two connectors are physically aligned within
+tolerance, and is undone otherwise. A native action's ``reach_dock`` (dock my connector to a
+connector of the module a route leads to) is carried out by the modules' own motion
+(:class:`sim.reach.Reach`): the chain of modules along the route bends, aligns and approaches,
+its joints owned by the motion until the latch closes (faces within the tolerance below, and
+the asking connector's infrared pair seeing the target) or the motion gives up. Every link
+formed so is recorded in :attr:`PhysicsRun.contacts` with both faces' world poses and errors
+at that moment. ``release`` cuts a module's link at one of its connectors.
 
 ``dh2rt run PROGRAM --sim pybullet`` runs it through :mod:`sim.command`.
 """
@@ -29,6 +35,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
+from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
 from sim.world import World
@@ -72,11 +79,22 @@ class PhysicsRun:
         self.start = self.world.centroid()
         self.samples: list[Sample] = []
         self.log = robot.log
-        # reach_and_dock follows dh2rt.docking with this run as the world: the link changes
-        # only if the two connectors are physically aligned by then. The bending and aligning
-        # motions of the paper's [17] are not modelled, so far-apart connectors are refused
-        # (logged) and nothing is released.
+        # reach_and_dock (legs to snake: release the foot, then dock to it) follows
+        # dh2rt.docking with this run as the world: the link changes only if the two
+        # connectors are physically aligned by then (see docs/physics.md, Docking by motion,
+        # for why the tail cannot bend to a foot with this profile's genders).
         robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: docking.reach_and_dock(self, m, *args)
+        robot.effect_handlers["reach_dock"] = lambda _r, m, args: self.start_reach(m, *args)
+        robot.effect_handlers["release"] = lambda _r, m, args: self.release(m, *args)
+        #: The infrared pairs the docking motions read (every connector's).
+        self._ir = PhysicsSensors(
+            self.world, [f"ir_{c.name}{s}" for c in self.world.model.connectors for s in ("", "_align")]
+        )
+        #: Docking motions under way.
+        self.reaches: list[Reach] = []
+        #: Every link formed by a docking motion, and every motion that gave up.
+        self.contacts: list[Contact] = []
+        self.failed: list[Contact] = []
 
     # ------------------------------------------------------------ the docking world
 
@@ -109,6 +127,113 @@ class PhysicsRun:
         if not self.world.dock(a, a_conn, b, b_conn, tolerance_m=DOCK_TOLERANCE_M, tolerance_deg=DOCK_TOLERANCE_DEG):
             self.robot.cut(a, a_conn)
             self.note("dock refused by physics: connectors not aligned")
+
+    # ------------------------------------------------------------ docking by motion
+
+    def start_reach(self, module: int, connector: int, route: tuple[int, ...], target_conn: int) -> None:
+        """Begin bending ``module``'s ``connector`` to ``target_conn`` of the module at the
+        end of ``route`` (refused, logged, if the rules say no or a motion already owns one
+        of the chain's joints)."""
+        target = docking.reach_target(self, module, connector, route)
+        if target is None:
+            return
+        here = target[0]
+        where = f"{self.where(module, connector)} -> {self.where(here, target_conn)}"
+        if self.peer_of((here, target_conn)) is not None:
+            self.note(f"reach_dock {where}: the target connector is not free")
+            return
+        if not self.robot.profile.can_link(connector, target_conn):
+            self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
+            return
+        chain = Chain.along(self.world.model, (module, connector), route, self.peer_of, target_conn)
+        busy = {m for r in self.reaches for m, _ in r.chain.joints}
+        if busy & {m for m, _ in chain.joints}:
+            self.note(f"reach_dock {where}: another docking motion owns part of the chain")
+            return
+        self.reaches.append(
+            Reach(
+                self.world,
+                self._ir,
+                chain,
+                lambda: self.aligned(module, connector, here, target_conn),
+                DOCK_TOLERANCE_M,
+                DOCK_TOLERANCE_DEG,
+                start_cycle=self.robot.cycle,
+            )
+        )
+        self.note(f"reach_dock {where}: bending")
+
+    def reach_other(self, module: int, connector: int, route: tuple[int, ...], target: End, timeout: int = 400) -> bool:
+        """Begin bending ``module``'s ``connector`` to ``target`` (module, connector), a face on
+        a body that no route reaches (a module lying apart); the joints that move are those
+        along ``route`` from ``module`` up its own robot. False (logged) if the rules say no."""
+        b, bc = target
+        where = f"{self.where(module, connector)} -> {self.where(b, bc)}"
+        if self.peer_of((module, connector)) is not None or self.peer_of((b, bc)) is not None:
+            self.note(f"reach_dock {where}: a connector is not free")
+            return False
+        if not self.robot.profile.can_link(connector, bc):
+            self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
+            return False
+        chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target)
+        self.reaches.append(
+            Reach(
+                self.world,
+                self._ir,
+                chain,
+                lambda: self.aligned(module, connector, b, bc),
+                DOCK_TOLERANCE_M,
+                DOCK_TOLERANCE_DEG,
+                timeout=timeout,
+                start_cycle=self.robot.cycle,
+            )
+        )
+        self.note(f"reach_dock {where}: bending")
+        return True
+
+    def release(self, module: int, connector: int) -> None:
+        """A module lets go of its link at ``connector`` (nothing if there is none)."""
+        if self.peer_of((module, connector)) is None:
+            self.note(f"release {self.where(module, connector)}: nothing docked there")
+            return
+        self.cut(module, connector)
+        self.note(f"{self.where(module, connector)} released")
+
+    def _step_reaches(self) -> dict[int, dict[int, float]]:
+        """Advance every docking motion; the joint targets they hold, per module."""
+        held: dict[int, dict[int, float]] = {}
+        for reach in list(self.reaches):
+            a, ac = reach.chain.asking
+            b, bc = reach.chain.target
+            alive = self.running(a) and self.running(b)
+            targets = reach.step(self.robot.cycle - 1) if alive else {}  # the cycle just run
+            if not alive:
+                self.note(f"reach_dock {self.where(a, ac)}: a module of the chain stopped; motion abandoned")
+                self.reaches.remove(reach)
+                continue
+            if reach.done:
+                self.reaches.remove(reach)
+                contact = reach.contact
+                assert contact is not None
+                free = self.peer_of((a, ac)) is None and self.peer_of((b, bc)) is None
+                if reach.latched and free:
+                    self.dock(a, ac, b, bc)
+                    if self.peer_of((a, ac)) == (b, bc):
+                        self.contacts.append(contact)
+                        self.note(
+                            f"{self.where(a, ac)} docked to {self.where(b, bc)} by motion after {reach.cycles} cycles "
+                            f"({contact.distance_m * 1000:.1f} mm, {contact.attitude_deg:.1f} deg)"
+                        )
+                        continue
+                self.failed.append(contact)
+                self.note(
+                    f"reach_dock {self.where(a, ac)} -> {self.where(b, bc)} gave up after {reach.cycles} cycles "
+                    f"({contact.distance_m * 1000:.1f} mm, {contact.attitude_deg:.1f} deg)"
+                )
+                continue
+            for m, dofs in targets.items():
+                held.setdefault(m, {}).update(dofs)
+        return held
 
     # ------------------------------------------------------------ events
 
@@ -145,10 +270,14 @@ class PhysicsRun:
         """One control cycle: sensors, engines, then joints, then physics."""
         self.fill_sensors()
         self.robot.step()
+        held = self._step_reaches() if self.reaches else {}
         for m, e in enumerate(self.robot.engines):
             if e is None:
                 continue
             target = (e.dof[0], e.dof[1])
+            if m in held:
+                dofs = held[m]
+                target = (dofs.get(0, target[0]), dofs.get(1, target[1]))
             if target != self._sent[m]:
                 self.drivers[m].set_targets(*target)
                 self._sent[m] = target

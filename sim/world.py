@@ -20,6 +20,7 @@ import math
 import random
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import pybullet as p
 
@@ -32,7 +33,6 @@ from sim.conro import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConroModel, ModuleBody
 Quat = tuple[float, float, float, float]
 _IDENTITY: Quat = (0.0, 0.0, 0.0, 1.0)
 _GROUND_HALF = 50.0  # metres: the floor is a 100 m square
-
 
 
 @dataclass(frozen=True, slots=True)
@@ -277,9 +277,10 @@ class World(Closing):
         pb, _ = self.connector_pose(b, b_conn)
         if math.dist(pa, pb) > tolerance_m:
             return False
-        return self._attitude_error_deg(a, a_conn, b, b_conn) <= tolerance_deg
+        return self.attitude_error_deg(a, a_conn, b, b_conn) <= tolerance_deg
 
-    def _attitude_error_deg(self, a: int, a_conn: int, b: int, b_conn: int) -> float:
+    def attitude_error_deg(self, a: int, a_conn: int, b: int, b_conn: int) -> float:
+        """How far (degrees) the two connectors' parts are from the mated attitude."""
         ca, cb = self.model.connector(a_conn), self.model.connector(b_conn)
         _, qa = self._body_pose(a, ca.link)
         _, qb = self._body_pose(b, cb.link)
@@ -390,6 +391,16 @@ class World(Closing):
             (float(pos[0]), float(pos[1]), float(pos[2])),
             (float(orn[0]), float(orn[1]), float(orn[2]), float(orn[3])),
         )
+
+    def part_transform(self, module: int, link: int) -> Any:
+        """A body part's pose (its centre-of-mass frame) as a 4x4 numpy transform."""
+        import numpy as np
+
+        pos, orn = self._body_pose(module, link)
+        t = np.eye(4)
+        t[:3, :3] = np.array(p.getMatrixFromQuaternion(orn, physicsClientId=self.client)).reshape(3, 3)
+        t[:3, 3] = pos
+        return t
 
     def connector_pose(self, module: int, connector: int | str) -> tuple[Vec3, Vec3]:
         """(position, outward unit normal) of a connector face, in world coordinates."""

@@ -54,8 +54,9 @@ from typing import Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import SignedImageError, TransportError
+from dh2rt.pacing import Pacing, link_pacing
 from dh2rt.profile import CONRO
-from dh2rt.rollout import COMMITTED, ModuleReport, Pacing, Progress, describe_path, link_pacing
+from dh2rt.rollout import COMMITTED, ModuleReport, Progress, describe_path
 from dh2rt.signed_image import SignedImage, describe_key_id
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.transport.base import PortEnd, Transport

@@ -53,8 +53,7 @@ from typing import ClassVar, NamedTuple
 
 from dh2rt.closing import Closing
 from dh2rt.errors import CodecError, TransportError
-from dh2rt.wire.frame import Frame, FrameCodec
-from dh2rt.wire.transfer import TRANSFER_FAMILY
+from dh2rt.wire.frame import TRANSFER_FAMILY, Frame, FrameCodec
 
 
 @dataclass(frozen=True, slots=True)

@@ -39,6 +39,8 @@ from dh2rt.hormone import MAX_HOPS_LIMIT, Hormone, Vocabulary
 
 #: The wire format version carried in every frame's first byte.
 WIRE_VERSION = 1
+#: The same two bits of a transfer frame (:mod:`dh2rt.wire.transfer`): a second frame family.
+TRANSFER_FAMILY = 2
 #: Bytes of program digest a hello carries.
 HELLO_DIGEST_BYTES = 6
 #: The digest of a peer that runs no program: a programming cable's Hello (dh2rt flash). A
@@ -149,8 +151,6 @@ class FrameCodec:
             if len(frame.digest) != HELLO_DIGEST_BYTES:
                 raise FrameEncodeError(f"hello digest is {len(frame.digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
             if frame.version is not None:
-                from dh2rt.wire.transfer import encode_hello
-
                 return encode_hello(sender, frame.digest, frame.version)
             return bytes((_header(FrameKind.HELLO, sender),)) + bytes(frame.digest)
         raise FrameEncodeError(f"not a frame: {frame!r}")
@@ -190,8 +190,6 @@ class FrameCodec:
                 return Decoded(sender, Hello(data[1:]))
             if not 1 + HELLO_DIGEST_BYTES < len(data) <= 1 + HELLO_DIGEST_BYTES + 5:
                 raise DecodeError(f"hello frame: {len(data)} bytes, expected 7 (or 8..12 with a version)")
-            from dh2rt.wire.transfer import decode_hello
-
             hello = decode_hello(data)
             return Decoded(sender, Hello(hello.digest, hello.version))
         if len(data) < 2:
@@ -244,3 +242,73 @@ def _pack(values: Sequence[int], bits: int) -> bytes:
     nbytes = (len(values) * bits + 7) // 8
     acc <<= nbytes * 8 - len(values) * bits
     return acc.to_bytes(nbytes, "big")
+
+
+# ---------------------------------------------------------------- the Hello with a version
+
+#: Largest program version a Hello states.
+_U32 = 0xFFFFFFFF
+
+
+class VersionedHello(NamedTuple):
+    """A decoded Hello: sender connector, program digest, program version (None: a 7-byte
+    Hello, which states none)."""
+
+    sender: int
+    digest: bytes
+    version: int | None
+
+
+def encode_hello(sender: int, digest: bytes, version: int) -> bytes:
+    """A Hello (link frame kind 3) that also states the program version: the 7-byte hello
+    and the version as an unsigned LEB128 varint (8 bytes for versions below 128)."""
+    _check_range("sender connector", sender, 1, MAX_CONNECTORS)
+    _check_range("version", version, 0, _U32)
+    if len(digest) != HELLO_DIGEST_BYTES:
+        raise FrameEncodeError(f"hello digest is {len(digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
+    head = (WIRE_VERSION << 6) | (int(FrameKind.HELLO) << 4) | sender
+    return bytes((head,)) + bytes(digest) + _varint(version)
+
+
+def decode_hello(data: bytes) -> VersionedHello:
+    """Decode a Hello of 7 bytes (no version) or 8..12 (with one); DecodeError otherwise."""
+    data = bytes(data)
+    if len(data) < 1 + HELLO_DIGEST_BYTES:
+        raise DecodeError(f"hello frame: {len(data)} bytes, at least {1 + HELLO_DIGEST_BYTES} expected")
+    head = data[0]
+    if head >> 6 != WIRE_VERSION or (head >> 4) & 3 != FrameKind.HELLO or not head & 0x0F:
+        raise DecodeError(f"hello frame: header {head:#04x} is not a hello")
+    digest = data[1 : 1 + HELLO_DIGEST_BYTES]
+    if len(data) == 1 + HELLO_DIGEST_BYTES:
+        return VersionedHello(head & 0x0F, digest, None)
+    return VersionedHello(head & 0x0F, digest, _read_varint(data[1 + HELLO_DIGEST_BYTES :]))
+
+
+def _check_range(name: str, value: int, low: int, high: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise FrameEncodeError(f"{name} {value!r} is outside {low}..{high}")
+
+
+def _varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        low, value = value & 0x7F, value >> 7
+        out.append(low | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def _read_varint(data: bytes) -> int:
+    """A canonical unsigned LEB128 u32 filling ``data`` exactly."""
+    value = 0
+    for i, byte in enumerate(data):
+        value |= (byte & 0x7F) << (7 * i)
+        if not byte & 0x80:
+            if i != len(data) - 1:
+                raise DecodeError(f"hello frame: {len(data) - i - 1} trailing byte(s) after the version")
+            if byte == 0 and i > 0:
+                raise DecodeError("hello frame: the version is not in its shortest form")
+            if value > _U32:
+                raise DecodeError(f"hello frame: version {value} exceeds 32 bits")
+            return value
+    raise DecodeError("hello frame: the version is cut short")

@@ -39,10 +39,9 @@ A *hop* is one byte, ``sent_through << 4 | received_at`` (connectors 1..15), as 
 path records hops. ``docs/flashing.md`` ("Delivery over the links") has the tables, the
 sequence and the rules; :mod:`dh2rt.rollout` is the state machine that speaks this.
 
-The Hello gains the program version (:func:`encode_hello`): the 7-byte hello of
-:mod:`dh2rt.wire.frame` followed by the version as an unsigned LEB128 varint (1 byte for
-versions below 128, so a Hello stays one classic CAN frame). A decoder that reads only the
-7-byte hello rejects the longer one as DecodeError (never misreads it).
+The Hello that states the program version is a link frame (:func:`dh2rt.wire.frame.encode_hello`),
+and the wire limits and link costs every module needs are in :mod:`dh2rt.wire.sizes`; both
+are re-exported here, and neither loads this module's messages.
 
 Decoding raises only :class:`~dh2rt.errors.DecodeError`; encoding raises
 :class:`~dh2rt.errors.EncodeError` for a message that breaks a wire limit.
@@ -58,28 +57,32 @@ from enum import IntEnum
 from typing import NamedTuple
 
 from dh2rt.errors import DecodeError, EncodeError
-from dh2rt.wire.frame import HELLO_DIGEST_BYTES, WIRE_VERSION, FrameKind
+from dh2rt.wire.frame import TRANSFER_FAMILY as TRANSFER_FAMILY
+from dh2rt.wire.frame import FrameKind
+from dh2rt.wire.frame import VersionedHello as VersionedHello
+from dh2rt.wire.frame import decode_hello as decode_hello
+from dh2rt.wire.frame import encode_hello as encode_hello
+from dh2rt.wire.sizes import MAX_CONNECTOR as MAX_CONNECTOR
+from dh2rt.wire.sizes import MAX_PATH as MAX_PATH
+from dh2rt.wire.sizes import MAX_REASON as MAX_REASON
+from dh2rt.wire.sizes import MAX_VERDICT as MAX_VERDICT
+from dh2rt.wire.sizes import SERIAL_OVERHEAD as SERIAL_OVERHEAD
+from dh2rt.wire.sizes import can_cost as can_cost
+from dh2rt.wire.sizes import can_frame_bits as can_frame_bits
+from dh2rt.wire.sizes import serial_cost as serial_cost
 
-#: The top two bits of byte 0 of every transfer frame (link frames carry WIRE_VERSION there).
-TRANSFER_FAMILY = 2
 #: Class bits (the CAN priority) of COMMIT and COMMIT_ACK (that of routed hormones), of the
 #: other control messages (keep-alives') and of SEGMENT (hellos').
 URGENT_CLASS = int(FrameKind.ROUTED)
 CONTROL_CLASS = int(FrameKind.KEEPALIVE)
 BULK_CLASS = int(FrameKind.HELLO)
 IMAGE_ID_BYTES = 8
-#: Longest path an OFFER or a REPORT carries: rollouts reach modules up to this deep.
-MAX_PATH = 64
-#: Longest verdict (ASCII) and reason (UTF-8, cut at a character boundary) a frame carries.
-MAX_VERDICT = 16
-MAX_REASON = 48
 #: Largest segment: a SEGMENT frame (6 bytes of header) then fills a serial frame's 512-byte
 #: payload and the 64 classic CAN segments a payload may take.
 MAX_SEGMENT_SIZE = 506
 MAX_WINDOW = 64
 #: Segments the ACK's selective bitmap covers beyond ``next``.
 SACK_BITS = 16
-MAX_CONNECTOR = 15
 _U16 = 0xFFFF
 _U32 = 0xFFFFFFFF
 
@@ -553,89 +556,3 @@ _DECODERS: dict[MessageType, Callable[[_Reader], Message]] = {
     MessageType.REPORT: _decode_report,
     MessageType.REPORT_ACK: _decode_report_ack,
 }
-
-
-# ---------------------------------------------------------------- the Hello with a version
-
-
-class VersionedHello(NamedTuple):
-    """A decoded Hello: sender connector, program digest, program version (None: a 7-byte
-    Hello, which states none)."""
-
-    sender: int
-    digest: bytes
-    version: int | None
-
-
-def encode_hello(sender: int, digest: bytes, version: int) -> bytes:
-    """A Hello (link frame kind 3) that also states the program version: the 7-byte hello
-    and the version as an unsigned LEB128 varint (8 bytes for versions below 128)."""
-    _check_range("sender connector", sender, 1, MAX_CONNECTOR)
-    _check_range("version", version, 0, _U32)
-    if len(digest) != HELLO_DIGEST_BYTES:
-        raise EncodeError(f"hello digest is {len(digest)} bytes; it must be {HELLO_DIGEST_BYTES}")
-    head = (WIRE_VERSION << 6) | (int(FrameKind.HELLO) << 4) | sender
-    return bytes((head,)) + bytes(digest) + _varint(version)
-
-
-def decode_hello(data: bytes) -> VersionedHello:
-    """Decode a Hello of 7 bytes (no version) or 8..12 (with one); DecodeError otherwise."""
-    data = bytes(data)
-    if len(data) < 1 + HELLO_DIGEST_BYTES:
-        raise DecodeError(f"hello frame: {len(data)} bytes, at least {1 + HELLO_DIGEST_BYTES} expected")
-    head = data[0]
-    if head >> 6 != WIRE_VERSION or (head >> 4) & 3 != FrameKind.HELLO or not head & 0x0F:
-        raise DecodeError(f"hello frame: header {head:#04x} is not a hello")
-    digest = data[1 : 1 + HELLO_DIGEST_BYTES]
-    if len(data) == 1 + HELLO_DIGEST_BYTES:
-        return VersionedHello(head & 0x0F, digest, None)
-    return VersionedHello(head & 0x0F, digest, _read_varint(data[1 + HELLO_DIGEST_BYTES :]))
-
-
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        low, value = value & 0x7F, value >> 7
-        out.append(low | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
-
-
-def _read_varint(data: bytes) -> int:
-    """A canonical unsigned LEB128 u32 filling ``data`` exactly."""
-    value = 0
-    for i, byte in enumerate(data):
-        value |= (byte & 0x7F) << (7 * i)
-        if not byte & 0x80:
-            if i != len(data) - 1:
-                raise DecodeError(f"hello frame: {len(data) - i - 1} trailing byte(s) after the version")
-            if byte == 0 and i > 0:
-                raise DecodeError("hello frame: the version is not in its shortest form")
-            if value > _U32:
-                raise DecodeError(f"hello frame: version {value} exceeds 32 bits")
-            return value
-    raise DecodeError("hello frame: the version is cut short")
-
-
-# ---------------------------------------------------------------- what a frame costs a link
-
-
-#: Serial framing's overhead per frame: CRC-32 (4), COBS code byte (1), delimiter (1).
-SERIAL_OVERHEAD = 6
-
-
-def serial_cost(payload: int) -> int:
-    """Bytes a frame of ``payload`` bytes takes on a serial link (COBS + CRC-32 + delimiter)."""
-    return payload + SERIAL_OVERHEAD + (payload + 4) // 254
-
-
-def can_frame_bits(data: int) -> int:
-    """Worst-case bits of one extended-id CAN frame with ``data`` bytes, stuffing and the
-    interframe space included: 67 + 8n + floor((53 + 8n) / 4)."""
-    return 67 + 8 * data + (53 + 8 * data) // 4
-
-
-def can_cost(payload: int) -> int:
-    """Worst-case bus bits a frame of ``payload`` bytes takes as classic CAN segments."""
-    full, rest = divmod(payload, 8)
-    return full * can_frame_bits(8) + (can_frame_bits(rest) if rest else 0)

@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 
 from dh2rt import signed_image as si
 from dh2rt.compiler import compile_source
+from dh2rt.pacing import Pacing
 from dh2rt.rollout import (
     Action,
     DropPartial,
     Flasher,
     ImageInfo,
-    Pacing,
     Partial,
     Persist,
     Program,
@@ -688,8 +688,6 @@ class World:
 def snake_path(k: int) -> tuple[tuple[int, int], ...]:
     """The name of module k of a snake whose module 0 has the cable on its front."""
     return ((CABLE, 1),) + ((2, 1),) * k
-
-
 
 
 def flash_time(spec: str, medium: Medium, images: Images, seed: int, prompt: bool) -> tuple[float, float, int]:

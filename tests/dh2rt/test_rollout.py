@@ -38,14 +38,13 @@ from typing import Any
 import pytest
 
 from dh2rt import signed_image as si
+from dh2rt.pacing import LARGEST_CONTROL, Pacing, link_pacing
 from dh2rt.rollout import (
     COMMITTED,
-    LARGEST_CONTROL,
     Action,
     Flasher,
     FlasherPhase,
     ImageInfo,
-    Pacing,
     Partial,
     Persist,
     Program,
@@ -59,7 +58,6 @@ from dh2rt.rollout import (
     _Sender,
     _Store,
     describe_path,
-    link_pacing,
 )
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.transfer import Outcome

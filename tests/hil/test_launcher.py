@@ -197,6 +197,24 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
     assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
 
 
+def test_snake_to_t_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
+    """reach_dock and release from module processes: the world carries them out on serial
+    links, and the 8-module snake ends as the T (a head, the stem's tail and the bar's)."""
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology",
+         "snake:8", "--cycles", "300", "--cycle-ms", "40", "--silence-cycles", "6", "--event", "20:inject:m4:STT",
+         "--json",
+         "--stand-in", "recording"]  # the rules; the motion is physics' (tests/sim/test_snake_to_t_physics.py)
+    )  # fmt: skip
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    types = {m["name"]: m["type"] for m in summary["modules"]}
+    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", types
+    assert sum("m0.front docked to m5.left" in line for line in summary["log"]) == 1, summary["log"]
+    assert sum("m2.back released" in line for line in summary["log"]) == 1, summary["log"]
+
+
 def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     trace = tmp_path / "t.jsonl"
     code = PACE.call(

@@ -218,6 +218,72 @@ def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
     assert loaded == ["can"]
 
 
+def test_a_module_loads_neither_the_rollout_nor_argparse_until_it_needs_them(tmp_path: Path) -> None:
+    """Booted from its flash with nothing to roll out, a module started as systemd starts it
+    carries no rollout machinery, no argparse and no event parser (docs/firmware.md,
+    "Footprint"); tests/hil/test_rollout_host.py opens the rollout when an image comes."""
+    bus = '[transport]\nkind = "virtual"\nchannel = "door"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
+    heavy = ("argparse", "gettext", "dh2rt.rollout", "hil.rollout_host", "dh2rt.wire.transfer", "dh2rt.events",
+             "hil.rollout_door")
+    loaded, final = run_probed(module_dir(tmp_path, "m", bus), heavy)
+    assert loaded == ["hil.rollout_door"]
+    assert final["program"]["version"] == 1  # booted from the flash, so it takes part in rollouts
+
+
+VALID_ARGS = [
+    ["--config", "m.toml"],
+    ["--config=m.toml"],
+    ["--check-config", "--config", "m.toml"],
+    ["--config", "m.toml", "--check-config"],
+    ["--config=m.toml", "--check-config"],
+    ["--config", ""],
+    ["--config", "dir with spaces/m.toml"],
+    ["--config", '{"module": 1}'],
+    ["--config", "@m.json"],
+]
+OTHER_ARGS = [
+    [],
+    ["--check-config"],
+    ["--config"],
+    ["--config="],
+    ["--config", "-x"],
+    ["--conf", "m.toml"],
+    ["--config", "a", "--config", "b"],
+    ["--check-config", "--check-config", "--config", "m.toml"],
+    ["--config", "m.toml", "extra"],
+    ["-h"],
+    ["--help"],
+    ["--config", "m.toml", "--help"],
+]
+
+
+@pytest.mark.parametrize("argv", VALID_ARGS, ids=" ".join)
+def test_a_module_reads_its_usual_arguments_as_argparse_does(argv: list[str]) -> None:
+    from hil.module_process import build_parser, plain_arguments
+
+    plain = plain_arguments(argv)
+    assert plain is not None
+    ns = build_parser().parse_args(argv)
+    assert (plain.config, plain.check_config) == (ns.config, ns.check_config)
+
+
+@pytest.mark.parametrize("argv", OTHER_ARGS, ids=lambda a: " ".join(a) or "nothing")
+def test_anything_else_goes_to_argparse(argv: list[str]) -> None:
+    from hil.module_process import plain_arguments
+
+    assert plain_arguments(argv) is None
+
+
+def test_help_and_mistakes_are_argparses(tmp_path: Path) -> None:
+    shown = subprocess.run([sys.executable, "-m", "dh2rt", "module", "--help"], capture_output=True, text=True,
+                           timeout=60, cwd=ROOT)  # fmt: skip
+    assert shown.returncode == 0 and "usage: dh2rt module" in shown.stdout and "--check-config" in shown.stdout
+    wrong = subprocess.run([sys.executable, "-m", "dh2rt", "module", "--config"], capture_output=True, text=True,
+                           timeout=60, cwd=ROOT)  # fmt: skip
+    assert wrong.returncode == 2 and "--config: expected one argument" in wrong.stderr
+    assert "Traceback" not in wrong.stderr
+
+
 @pytest.mark.realtime
 @pytest.mark.parametrize("count", [2, 8])
 def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: int, tmp_path: Path) -> None:

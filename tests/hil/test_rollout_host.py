@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from dh2rt.compiler import compile_file, compile_source
-from dh2rt.rollout import Pacing
+from dh2rt.pacing import Pacing
 from dh2rt.signed_image import new_private_key, pack, public_key
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocTransport
@@ -25,6 +25,7 @@ from drivers.flash_cable import FlashCable, FlashResult, hello_codec
 from hil.config import ModuleConfig
 from hil.control import Command, Report, TraceRecord
 from hil.module_process import ModuleHost
+from hil.rollout_door import RolloutDoor
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -52,7 +53,10 @@ class Robot:
     """A snake of ``n`` module hosts on an in-process bus: link k joins m(k).back (side 0)
     to m(k+1).front (side 1)."""
 
-    def __init__(self, tmp: Path, n: int, seed: int, *, signer: bytes, image: bytes, trial_cycles: int = 30) -> None:
+    def __init__(
+        self, tmp: Path, n: int, seed: int, *, signer: bytes, image: bytes, trial_cycles: int = 30,
+        images: dict[int, bytes] | None = None,
+    ) -> None:  # fmt: skip
         self.tmp, self.n, self.signer = tmp, n, signer
         self.channel = f"rollout-host-{id(self):x}"
         self.clock = Clock()
@@ -65,7 +69,7 @@ class Robot:
         for m in range(n):
             flash = tmp / f"m{m}"
             flash.mkdir()
-            (flash / "program.img").write_bytes(image)
+            (flash / "program.img").write_bytes((images or {}).get(m, image))
             self.start(m)
 
     def start(self, m: int) -> None:
@@ -147,6 +151,12 @@ class Robot:
         return status
 
 
+def door(robot: Robot, m: int) -> RolloutDoor:
+    host = robot.hosts[m]
+    assert host is not None and host.rollout is not None
+    return host.rollout
+
+
 def switch_cycles(robot: Robot) -> dict[int, int]:
     """Module -> the robot cycle it switched at, from its log."""
     out: dict[int, int] = {}
@@ -197,3 +207,54 @@ def test_every_module_switches_at_one_cycle_and_the_wave_carries_on(
         # at most the one hormone in flight across the switch (sent by the old program in the
         # cycle before, read by the new one) is dropped as foreign
         assert host.runtime.stats.foreign_hormones <= 1
+
+
+# -- the rollout's machinery is loaded when an image concerns the module (hil/rollout_door.py)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_rollout_opens_at_the_first_transfer_frame_and_not_before(tmp_path: Path, signer: bytes, seed: int) -> None:
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 4, seed, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(120)  # Hellos, keep-alives and hormones only, every module on version 1
+    assert [door(robot, m).host for m in range(4)] == [None] * 4
+    result = robot.flash(pack(new.image, 2, signer))
+    robot.run(100)
+    assert result.succeeded, result.failure
+    for m in range(4):
+        assert door(robot, m).opened_by == f"a transfer frame through connector {FRONT}", m
+        assert door(robot, m).switched and robot.program_of(m)["version"] == 2
+
+
+@pytest.mark.parametrize("behind", [0, 2, 3])
+def test_a_neighbour_on_a_lower_version_opens_the_rollout_and_is_brought_up_to_date(
+    tmp_path: Path, signer: bytes, behind: int
+) -> None:
+    """Module ``behind`` boots version 1 among modules on version 2 (a module swapped in from
+    the shelf): its neighbours open their rollouts at its Hello and offer it their image."""
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    images = {behind: pack(old.image, 1, signer)}
+    robot = Robot(tmp_path, 4, 1, signer=signer, image=pack(new.image, 2, signer), images=images)
+    robot.run(400)
+    neighbours = {m for m in (behind - 1, behind + 1) if 0 <= m < 4}
+    for m in neighbours:
+        assert (door(robot, m).opened_by or "").startswith("a neighbour on version 1"), m
+    for m in set(range(4)) - neighbours - {behind}:
+        assert door(robot, m).host is None, m  # nothing concerned it
+    assert "transfer frame" in (door(robot, behind).opened_by or "")
+    assert robot.program_of(behind)["version"] == 2
+
+
+def test_an_image_received_in_part_before_a_restart_opens_the_rollout_at_boot(tmp_path: Path, signer: bytes) -> None:
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 4, 0, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(40)
+    cable = robot.cable(pack(new.image, 2, signer))
+    for _ in range(400):  # until module 2 holds part of the image, then it loses power
+        robot.step(cable)
+        host = door(robot, 2).host
+        if host is not None and 0 < host.rollout.received < cable.flasher.info.length:
+            break
+    robot.kill(2)
+    robot.start(2)
+    assert door(robot, 2).opened_by == "an image received in part before this start"

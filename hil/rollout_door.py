@@ -1,0 +1,135 @@
+"""A module's part in rollouts, loaded when a rollout concerns it: :class:`RolloutDoor`.
+
+Most of a module's life no image moves. The rollout's state machines and their I/O
+(:mod:`dh2rt.rollout`, :class:`hil.rollout_host.RolloutHost`) cost a module about 0.5 MB
+of resident memory, a sixth of what dh2rt adds to python-can on a bus module
+(``benchmarks/bench_footprint.py``), so a module booted from its flash starts with this
+door instead and opens the host at the first thing that needs it:
+
+* at boot, an image left in the flash by a previous life: one staged and waiting for the
+  switch (``Flash.held``), or one received in part (``partial.json``);
+* a transfer frame on any link (an OFFER, a probing REQUEST, ...);
+* a neighbour's Hello stating a lower version than the running program's (this module
+  offers it its image, as :meth:`dh2rt.rollout.Rollout.hello` does).
+
+Until then the door keeps what the host would have been told: the latest Hello on every
+linked connector. When it opens, the new host attaches the transport's links as it always
+does and is handed those Hellos, then the event that opened it, so it starts where an
+eagerly loaded host would be. After that the host is the runtime's observer and the
+transport's transfer handler, and the door only forwards the module host's calls.
+
+Before any of this the door checks that the module's lines can carry a rollout at all
+(:func:`dh2rt.pacing.link_pacing`) and raises its ValueError if not, so a module on too
+slow a line says so at boot, not at the first offer.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from dh2rt.pacing import link_pacing
+from dh2rt.program import CompiledProgram
+from dh2rt.runtime import ModuleRuntime
+from dh2rt.transport.base import PortEnd
+from dh2rt.wire.frame import Hello
+from drivers.flash_slots import Boot, Flash
+
+if TYPE_CHECKING:
+    from hil.rollout_host import RolloutHost
+
+#: Files beside the slots: the image being received, and what it is.
+PARTIAL_IMAGE = "partial.img"
+PARTIAL_INFO = "partial.json"
+#: What the module host does at the switch: run this program (booted from the flash).
+OnSwitch = Callable[[CompiledProgram, Boot], None]
+
+
+class RolloutDoor:
+    """The rollout of one running module, its host loaded on demand (see the module docs)."""
+
+    def __init__(
+        self, rt: ModuleRuntime, flash: Flash, boot: Boot, on_switch: OnSwitch, transport: str, bitrate: int
+    ) -> None:
+        kind = transport.partition(":")[0]
+        bauds = [e.baudrate for e in rt.transport.links.values() if isinstance(e, PortEnd)]
+        self.pacing = link_pacing(kind, rt.cycle_period, min(bauds, default=115200), bitrate)
+        self.rt, self.flash, self.boot, self.on_switch = rt, flash, boot, on_switch
+        #: the host, once opened (None: no rollout has concerned this module yet)
+        self.host: RolloutHost | None = None
+        #: why it was opened, for the log and the tests
+        self.opened_by: str | None = None
+        self._hellos: dict[int, tuple[int, Hello, float]] = {}
+        rt.liveness.version = boot.version  # the Hellos state it from the first one
+        rt.observer = self
+        rt.transport.on_transfer = self._on_transfer
+        if flash.held is not None:
+            self._open("an image staged before this start")
+        elif (flash.directory / PARTIAL_INFO).exists():
+            self._open("an image received in part before this start")
+
+    # -- what the module host reads and tells -------------------------------------------------
+
+    @property
+    def switched(self) -> bool:
+        """The running program came from a switch of this process (its trial is the rollout's)."""
+        return self.host is not None and self.host.switched
+
+    @property
+    def declined(self) -> Counter[str]:
+        """Images refused at their offer, by verdict."""
+        return Counter() if self.host is None else self.host.declined
+
+    def confirmed(self) -> None:
+        if self.host is not None:
+            self.host.confirmed()
+
+    def reverted(self, reason: str) -> None:
+        if self.host is not None:  # only a switch of this process is reverted here
+            self.host.reverted(reason)
+
+    # -- the runtime's LinkObserver, while closed --------------------------------------------
+
+    def cycle_start(self, rt: ModuleRuntime, now: float) -> None:
+        """Nothing to tolerate and nothing to send while no image moves."""
+
+    def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
+        self._hellos[connector] = (remote, hello, now)
+        if hello.version is not None and hello.version < self.boot.version:
+            host = self._open(f"a neighbour on version {hello.version} (through connector {connector})")
+            host.hello(connector, remote, hello, now)
+
+    def link_down(self, connector: int, now: float) -> None:
+        self._hellos.pop(connector, None)
+
+    def attached(self, connector: int) -> None:
+        """The host attaches the transport's links when it opens."""
+
+    def detached(self, connector: int) -> None:
+        self._hellos.pop(connector, None)
+
+    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
+        host = self._open(f"a transfer frame through connector {connector}")
+        host.on_transfer(connector, payload, arrived)
+
+    # -- opening ---------------------------------------------------------------------------
+
+    def _open(self, why: str) -> RolloutHost:
+        if self.host is not None:
+            return self.host
+        from hil.rollout_host import RolloutHost
+
+        pacing, segment, latency = self.pacing
+        connectors = range(1, self.rt.program.profile.connector_count + 1)
+        self.host = host = RolloutHost(
+            self.rt, self.flash, self.boot, self.on_switch,
+            connectors=connectors, pacing=pacing, segment_size=segment, latency=latency,
+        )  # fmt: skip
+        self.opened_by = why
+        self.rt.log.append(f"cycle {self.rt.cycle}: rollout: opened ({why})")
+        for connector, (remote, hello, now) in sorted(self._hellos.items()):
+            if connector in self.rt.transport.links:
+                host.hello(connector, remote, hello, now)
+        self._hellos.clear()
+        return host

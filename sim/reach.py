@@ -1,0 +1,548 @@
+"""Docking by the modules' own motion: a chain of modules bends one free connector onto another.
+
+A dock request names the asking connector (a free face of one module) and a target (a free
+face of a module the route leads to, through docked links). The modules between them form a
+kinematic chain: every pitch (DOF1) and yaw (DOF2) joint the route passes through. This module
+knows that chain only from the robot's own geometry (:mod:`sim.conro`: the three boxes, the
+hinges, the connector faces; a docked pair's faces coincide, normals opposite) and the chain's
+joint angles, which each module measures itself (``pos1``, ``pos2``): where the target face is
+relative to the asking face follows from proprioception alone, as the loop closes on the
+robot itself.
+
+:class:`Chain` is that forward kinematics in numpy (4x4 transforms), with a numerical
+Jacobian; :func:`solve` is damped least squares over the chain's joints within their limits,
+pitch joints held near 0 (the robot lies on the floor; yaws do the bending when they can).
+
+:class:`Reach` is the motion, one control cycle at a time, in three phases:
+
+``bend``
+    joint targets move, at most :data:`MAX_STEP_DEG` a cycle, towards the configuration that
+    puts the asking face :data:`STANDOFF_M` in front of the target, square to it;
+``approach``
+    the standoff shrinks to zero (and a little past it, :data:`PRESS_M`) while the chain
+    keeps the faces square;
+``align``
+    the asking connector's infrared pair guides the last millimetres: the kinematic solution
+    is corrected by the error the infrared reading shows (distance beyond contact, faces off
+    square), a small search over the chain's joints that lowers the reading.
+
+A chain that closes a loop on its own robot runs a pitch wave in every phase
+(:data:`WIGGLE_DEG`): its modules are pressed and unloaded in turn, so that its yaws are not
+stalled by the floor's friction on the modules they drag.
+
+The latch closes only when the world says the faces are aligned within the runner's
+tolerance (:meth:`sim.world.World.aligned`) *and* the asking connector's infrared pair sees a
+face within that distance and angle; nothing is ever teleported. A reach that does not latch
+within ``timeout`` cycles gives up.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dh2rt.docking import End
+from sim.conro import BACK, CENTRE, FRONT, ConroModel
+
+#: How far in front of the target face the asking face stops before the approach (metres).
+STANDOFF_M = 0.03
+#: How far past contact the approach aims (metres): the faces press lightly.
+PRESS_M = 0.004
+#: Largest joint target change per control cycle while closing in (degrees): 40 deg/s.
+MAX_STEP_DEG = 2.0
+#: Joint targets are kept this far inside the servo range (degrees).
+LIMIT_MARGIN_DEG = 5.0
+#: How many metres one radian of attitude error counts as in the least squares. At 0.05 a
+#: chain of two yaws (which cannot place and square a face at once) traded attitude for
+#: position and drifted onto another branch: 1 of 40 layouts stalled, none at 0.1
+#: (tests/sim/test_docking_sweep.py's layouts, seed 7).
+ROT_WEIGHT_M = 0.1
+#: Largest joint target change per cycle while bending to the planned configuration (degrees).
+BEND_STEP_DEG = 2.0
+#: The bend is done when every joint is within this of its target (degrees) ...
+SETTLED_DEG = 6.0
+#: ... or after this many cycles of waiting.
+SETTLE_CYCLES = 60
+#: How fast the standoff closes during the approach (metres per control cycle).
+APPROACH_M_PER_CYCLE = 0.0015
+#: Cycles the close phase may take before the approach starts anyway (two yaws cannot always
+#: square the faces and place them at once: the approach then closes what is left).
+CLOSE_CYCLES = 40
+#: The pitch wave the chain runs while it moves (degrees, amplitude): a yaw that has to drag
+#: three or four modules over the floor (friction 0.9, about 0.5 N m) stalls the 0.3 N m
+#: servos; with the chain's pitch joints swinging, adjacent modules in antiphase, each
+#: module is pressed and unloaded in turn and the yaws advance while the friction drops.
+WIGGLE_DEG = 20.0
+#: ... and its period (control cycles).
+WIGGLE_PERIOD = 6
+#: Fraction of the least-squares correction applied each cycle.
+GAIN = 0.3
+#: Cycles a reach may take before it gives up.
+DEFAULT_TIMEOUT = 400
+
+Joint = tuple[int, int]  # (module, dof index 0 = DOF1 pitch, 1 = DOF2 yaw)
+
+
+def _tx(x: float, y: float = 0.0, z: float = 0.0) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, 3] = (x, y, z)
+    return t
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    t = np.eye(4)
+    t[0, 0], t[0, 1], t[1, 0], t[1, 1] = c, -s, s, c
+    return t
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    t = np.eye(4)
+    t[0, 0], t[0, 2], t[2, 0], t[2, 2] = c, s, -s, c
+    return t
+
+
+def _log_rot(r: np.ndarray) -> np.ndarray:
+    """The rotation vector (axis times angle) of a 3x3 rotation matrix."""
+    cos = max(-1.0, min(1.0, (float(np.trace(r)) - 1.0) / 2.0))
+    angle = math.acos(cos)
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    if angle < 1e-9:
+        return 0.5 * v
+    s = math.sin(angle)
+    if s < 1e-6:  # near 180 degrees: the axis from the symmetric part
+        axis = np.sqrt(np.maximum((np.diag(r) + 1.0) / 2.0, 0.0))
+        return np.asarray(axis * angle)
+    return np.asarray(v * (angle / (2.0 * s)))
+
+
+def mated_turn(model: ConroModel, a_conn: int, b_conn: int) -> float:
+    """The yaw (radians) from a's part to b's part when a.a_conn and b.b_conn are mated."""
+    na, nb = model.connector(a_conn).normal, model.connector(b_conn).normal
+    return math.atan2(na[1], na[0]) + math.pi - math.atan2(nb[1], nb[0])
+
+
+# A step of the chain: a constant transform, or a joint (module, dof) with how it enters.
+@dataclass(frozen=True, slots=True)
+class _Step:
+    const: np.ndarray | None = None
+    joint: Joint | None = None
+    axis: str = ""  # "y" or "z"
+    sign: float = 1.0
+
+
+@dataclass
+class Chain:
+    """The forward kinematics from an asking face to a target face along a route.
+
+    Frames are the parts' centre-of-mass frames (:mod:`sim.conro`: box centres). Everything is
+    relative to the asking connector's part, so the chain needs no world pose at all.
+    """
+
+    model: ConroModel
+    asking: End
+    target: End
+    steps: list[_Step] = field(default_factory=list)
+    joints: list[Joint] = field(default_factory=list)
+    #: For a target on another robot (no route to it): the module whose part the chain ends
+    #: at, and that part; the owner measures :attr:`beyond`, the target part in that frame.
+    anchor: tuple[int, int] | None = None
+    beyond: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @classmethod
+    def to_other(
+        cls,
+        model: ConroModel,
+        asking: End,
+        route: Sequence[int],
+        peer_of: Callable[[End], End | None],
+        target: End,
+    ) -> Chain:
+        """The chain of ``asking``'s own robot along ``route`` (the joints that move the asking
+        face), aimed at ``target`` on a body the route does not reach: the chain ends at the
+        part of the last module that the route enters, and :attr:`beyond` must be set to the
+        target part's pose in that part's frame before each use."""
+        module, conn = asking
+        chain = cls(model, asking, target)
+        entry = model.connector(conn).link
+        for c in route:
+            chain._inside(module, entry, model.connector(c).link)
+            peer = peer_of((module, c))
+            if peer is None:
+                raise ValueError(f"route leaves module {module} through connector {c}, which has no link")
+            chain._across(c, peer[1])
+            module, entry = peer[0], model.connector(peer[1]).link
+        chain.anchor = (module, entry)
+        return chain
+
+    @classmethod
+    def along(
+        cls,
+        model: ConroModel,
+        asking: End,
+        route: Sequence[int],
+        peer_of: Callable[[End], End | None],
+        target_conn: int,
+    ) -> Chain:
+        """The chain from ``asking`` (module, connector) along ``route`` (the connector to
+        leave through at each hop) to connector ``target_conn`` of the module it leads to."""
+        module, conn = asking
+        chain = cls(model, asking, (module, conn))
+        entry = model.connector(conn).link
+        for c in route:
+            chain._inside(module, entry, model.connector(c).link)
+            peer = peer_of((module, c))
+            if peer is None:
+                raise ValueError(f"route leaves module {module} through connector {c}, which has no link")
+            chain._across(c, peer[1])
+            module, entry = peer[0], model.connector(peer[1]).link
+        chain._inside(module, entry, model.connector(target_conn).link)
+        chain.target = (module, target_conn)
+        return chain
+
+    def _inside(self, module: int, entry: int, leave: int) -> None:
+        """Steps from part ``entry`` to part ``leave`` of one module (through the centre)."""
+        m = self.model
+        cx, fx, bx = m.centre.half[0], m.front.half[0], m.back.half[0]
+        if entry == leave:
+            return
+        if entry == FRONT:  # front -> centre: undo T(cx) Ry(q1) T(fx)
+            self._const(_tx(-fx))
+            self._joint((module, 0), "y", -1.0)
+            self._const(_tx(-cx))
+        elif entry == BACK:  # back -> centre: undo T(-cx) Rz(q2) T(-bx)
+            self._const(_tx(bx))
+            self._joint((module, 1), "z", -1.0)
+            self._const(_tx(cx))
+        if leave == FRONT:
+            self._const(_tx(cx))
+            self._joint((module, 0), "y", 1.0)
+            self._const(_tx(fx))
+        elif leave == BACK:
+            self._const(_tx(-cx))
+            self._joint((module, 1), "z", 1.0)
+            self._const(_tx(-bx))
+        elif leave != CENTRE:
+            raise ValueError(f"unknown part {leave}")
+
+    def _across(self, a_conn: int, b_conn: int) -> None:
+        """From the part holding a_conn to the mated part holding b_conn."""
+        pa = np.array(self.model.connector(a_conn).position)
+        pb = np.array(self.model.connector(b_conn).position)
+        turn = _rz(mated_turn(self.model, a_conn, b_conn))
+        t = turn.copy()
+        t[:3, 3] = pa - turn[:3, :3] @ pb
+        self._const(t)
+
+    def _const(self, t: np.ndarray) -> None:
+        self.steps.append(_Step(const=t))
+
+    def _joint(self, joint: Joint, axis: str, sign: float) -> None:
+        if joint not in self.joints:
+            self.joints.append(joint)
+        self.steps.append(_Step(joint=joint, axis=axis, sign=sign))
+
+    # -- kinematics --
+
+    def target_part(self, q: np.ndarray) -> np.ndarray:
+        """The target connector's part, in the asking connector's part frame, at angles ``q``
+        (radians, in :attr:`joints` order)."""
+        index = {j: i for i, j in enumerate(self.joints)}
+        t = np.eye(4)
+        for s in self.steps:
+            if s.const is not None:
+                t = t @ s.const
+            else:
+                assert s.joint is not None
+                a = s.sign * float(q[index[s.joint]])
+                t = t @ (_ry(a) if s.axis == "y" else _rz(a))
+        return t @ self.beyond if self.anchor is not None else t
+
+    def error(self, q: np.ndarray, standoff: float = 0.0) -> np.ndarray:
+        """6-vector: where the target face is less where it should be (metres), and the
+        attitude error as a rotation vector scaled by :data:`ROT_WEIGHT_M`. The target face
+        should sit ``standoff`` in front of the asking face, square to it."""
+        return self.error_of(self.target_part(q), standoff)
+
+    def error_of(self, t: np.ndarray, standoff: float = 0.0) -> np.ndarray:
+        """:meth:`error` for the target part at ``t`` (in the asking part's frame)."""
+        a = self.model.connector(self.asking[1])
+        b = self.model.connector(self.target[1])
+        face = t[:3, :3] @ np.array(b.position) + t[:3, 3]
+        wanted = np.array(a.position) + standoff * np.array(a.normal)
+        turn = _rz(mated_turn(self.model, self.asking[1], self.target[1]))[:3, :3]
+        rot = _log_rot(t[:3, :3] @ turn.T)
+        return np.concatenate([face - wanted, ROT_WEIGHT_M * rot])
+
+    def jacobian(self, q: np.ndarray, standoff: float = 0.0, h: float = 1e-5) -> np.ndarray:
+        e0 = self.error(q, standoff)
+        jac = np.empty((6, len(q)))
+        for i in range(len(q)):
+            dq = q.copy()
+            dq[i] += h
+            jac[:, i] = (self.error(dq, standoff) - e0) / h
+        return jac
+
+
+def dls_step(
+    chain: Chain, q: np.ndarray, e: np.ndarray, standoff: float, damping: float, pitch_weight: float
+) -> np.ndarray:
+    """One damped least squares step that lowers error ``e`` at angles ``q``, pitch joints
+    pulled towards 0 with ``pitch_weight``."""
+    pitches = np.array([1.0 if dof == 0 else 0.0 for _, dof in chain.joints])
+    jac = chain.jacobian(q, standoff)
+    rows = np.vstack([jac, math.sqrt(pitch_weight) * np.diag(pitches)])
+    rhs = np.concatenate([-e, -math.sqrt(pitch_weight) * pitches * q])
+    lhs = rows.T @ rows + damping**2 * np.eye(len(q))
+    out: np.ndarray = np.linalg.solve(lhs, rows.T @ rhs)
+    return out
+
+
+def solve(
+    chain: Chain,
+    q0: np.ndarray,
+    limits_rad: np.ndarray,
+    standoff: float = 0.0,
+    iterations: int = 60,
+    damping: float = 0.01,
+    pitch_weight: float = 0.02,
+) -> np.ndarray:
+    """Joint angles (radians) near ``q0`` that put the target face ``standoff`` in front of the
+    asking face, square, within ``limits_rad`` (per joint, symmetric); pitch joints are pulled
+    towards 0 with ``pitch_weight`` (the chain lies on the floor)."""
+    q = q0.copy()
+    pitches = np.array([1.0 if dof == 0 else 0.0 for _, dof in chain.joints])
+    for _ in range(iterations):
+        e = chain.error(q, standoff)
+        if float(np.linalg.norm(e)) < 1e-5:
+            break
+        jac = chain.jacobian(q, standoff)
+        # damped least squares with a penalty on pitch: rows for sqrt(w) * q_pitch -> 0
+        rows = np.vstack([jac, math.sqrt(pitch_weight) * np.diag(pitches)])
+        rhs = np.concatenate([-e, -math.sqrt(pitch_weight) * pitches * q])
+        lhs = rows.T @ rows + damping**2 * np.eye(len(q))
+        dq = np.linalg.solve(lhs, rows.T @ rhs)
+        step = float(np.max(np.abs(dq)))
+        if step > 0.3:
+            dq *= 0.3 / step
+        q = np.clip(q + dq, -limits_rad, limits_rad)
+    return q
+
+
+def plan(chain: Chain, q0: np.ndarray, limits_rad: np.ndarray, standoff: float) -> np.ndarray:
+    """A configuration that closes the chain: :func:`solve` from the present angles and from
+    uniform curls either way round, the one with the smallest remaining error."""
+    yaws = np.array([1.0 if dof == 1 else 0.0 for _, dof in chain.joints])
+    best, best_err = q0, math.inf
+    for curl in (0.0, 0.8, -0.8, 0.4, -0.4, 1.2, -1.2):
+        start = q0 if curl == 0.0 else curl * yaws
+        q = solve(chain, start, limits_rad, standoff)
+        err = float(np.linalg.norm(chain.error(q, standoff)))
+        if err < best_err:
+            best, best_err = q, err
+    return best
+
+
+@dataclass(frozen=True, slots=True)
+class Contact:
+    """Where the two faces were when a latch closed (or a reach gave up): world poses and
+    errors, for the trace."""
+
+    cycle: int
+    asking: End
+    target: End
+    asking_face: tuple[float, float, float]
+    target_face: tuple[float, float, float]
+    asking_normal: tuple[float, float, float]
+    target_normal: tuple[float, float, float]
+    distance_m: float
+    attitude_deg: float
+    ir_mm: float
+    ir_align_deg: float
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "cycle": self.cycle,
+            "asking": list(self.asking),
+            "target": list(self.target),
+            "asking_face": [round(v, 5) for v in self.asking_face],
+            "target_face": [round(v, 5) for v in self.target_face],
+            "asking_normal": [round(v, 4) for v in self.asking_normal],
+            "target_normal": [round(v, 4) for v in self.target_normal],
+            "distance_mm": round(self.distance_m * 1000, 2),
+            "attitude_deg": round(self.attitude_deg, 2),
+            "ir_mm": round(self.ir_mm, 1),
+            "ir_align_deg": round(self.ir_align_deg, 1),
+        }
+
+
+class Reach:
+    """One docking motion in a world, stepped once per control cycle by its owner.
+
+    ``world`` is a :class:`sim.world.World`; ``sensors`` reads the asking connector's infrared
+    pair (a :class:`sim.sensors.PhysicsSensors` that provides ``ir_<c>`` and
+    ``ir_<c>_align``); ``aligned`` is the latch check (the runner's tolerance). :meth:`step`
+    returns the joint targets (degrees) the chain's modules should hold this cycle; when
+    :attr:`done` is set, :attr:`contact` says where the faces were.
+    """
+
+    def __init__(
+        self,
+        world: object,
+        sensors: object,
+        chain: Chain,
+        aligned: Callable[[], bool],
+        tolerance_m: float,
+        tolerance_deg: float,
+        *,
+        timeout: int = DEFAULT_TIMEOUT,
+        start_cycle: int = 0,
+        wiggle_deg: float | None = None,
+    ) -> None:
+        from sim.sensors import PhysicsSensors
+        from sim.world import World
+
+        assert isinstance(world, World) and isinstance(sensors, PhysicsSensors)
+        self.world = world
+        self.sensors = sensors
+        self.chain = chain
+        self.aligned = aligned
+        self.tolerance_m = tolerance_m
+        self.tolerance_deg = tolerance_deg
+        self.timeout = timeout
+        self.start_cycle = start_cycle
+        #: The pitch wave's amplitude: :data:`WIGGLE_DEG` for a loop that closes on the robot
+        #: itself, none towards a body lying apart (a pitch wave makes the chain crawl, the
+        #: caterpillar's gait, and that would carry the asking face away from it).
+        self.wiggle_deg = wiggle_deg if wiggle_deg is not None else (0.0 if chain.anchor is not None else WIGGLE_DEG)
+        model = world.model
+        lims = []
+        for _m, dof in chain.joints:
+            lim = model.limits[dof]
+            lims.append(math.radians(min(-lim.min_deg, lim.max_deg) - LIMIT_MARGIN_DEG))
+        self.limits = np.array(lims)
+        name = model.connector(chain.asking[1]).name
+        self._ir = (f"ir_{name}", f"ir_{name}_align")
+        self.phase = "bend"
+        self._settling = 0  # cycles spent in the settle phase
+        self._closing = 0  # cycles spent in the close phase
+        self.cycles = 0
+        self.done = False
+        self.latched = False
+        self.contact: Contact | None = None
+        self.command = self.measured()
+        self.standoff = STANDOFF_M
+        #: The configuration the bend heads for: the chain's kinematics solved from a few
+        #: starting curls (the loop may close either way round), the best kept.
+        self.relative()  # measures chain.beyond for a target on another body
+        self.plan = plan(chain, self.command, self.limits, STANDOFF_M)
+        self._correction = np.zeros(3)  # metres: the infrared's view of what kinematics misses
+
+    def measured(self) -> np.ndarray:
+        """The chain's joint angles (radians) as the modules measure them."""
+        return np.array([math.radians(self.world.joint_angles(m)[dof]) for m, dof in self.chain.joints])
+
+    def infrared(self) -> tuple[float, float]:
+        """The asking connector's reading: distance (mm, 0 = nothing) and angle off square."""
+        m = self.chain.asking[0]
+        r = self.sensors.read([m])[m]
+        return r[self._ir[0]], r[self._ir[1]]
+
+    def relative(self) -> np.ndarray:
+        """The target connector's part in the asking connector's part frame, as it is now:
+        what the chain's kinematics, corrected for its docks' give, put there."""
+        a = self.world.part_transform(self.chain.asking[0], self.world.model.connector(self.chain.asking[1]).link)
+        b = self.world.part_transform(self.chain.target[0], self.world.model.connector(self.chain.target[1]).link)
+        if self.chain.anchor is not None:
+            anchor = self.world.part_transform(*self.chain.anchor)
+            self.chain.beyond = np.linalg.solve(anchor, b)
+        out: np.ndarray = np.linalg.solve(a, b)
+        return out
+
+    def world_errors(self) -> tuple[float, float]:
+        """Face distance (m) and attitude error (deg) as the world measures them."""
+        a, ac = self.chain.asking
+        b, bc = self.chain.target
+        pa, _ = self.world.connector_pose(a, ac)
+        pb, _ = self.world.connector_pose(b, bc)
+        return math.dist(pa, pb), self.world.attitude_error_deg(a, ac, b, bc)
+
+    def snapshot(self, cycle: int) -> Contact:
+        a, ac = self.chain.asking
+        b, bc = self.chain.target
+        pa, na = self.world.connector_pose(a, ac)
+        pb, nb = self.world.connector_pose(b, bc)
+        ir, ir_align = self.infrared()
+        return Contact(
+            cycle,
+            (a, ac),
+            (b, bc),
+            pa,
+            pb,
+            na,
+            nb,
+            math.dist(pa, pb),
+            self.world.attitude_error_deg(a, ac, b, bc),
+            ir,
+            ir_align,
+        )
+
+    def targets(self) -> dict[int, dict[int, float]]:
+        """module -> {dof: degrees} of the current command."""
+        out: dict[int, dict[int, float]] = {}
+        for (m, dof), v in zip(self.chain.joints, self.command, strict=True):
+            out.setdefault(m, {})[dof] = math.degrees(float(v))
+        if self.wiggle_deg and not self.done:
+            # the pitch wave: adjacent modules in antiphase, so each is unloaded in turn
+            swing = self.wiggle_deg * math.sin(2 * math.pi * self.cycles / WIGGLE_PERIOD)
+            pitches = [m for m, dof in self.chain.joints if dof == 0]
+            for k, m in enumerate(pitches):
+                out[m][0] += swing if k % 2 == 0 else -swing
+        return out
+
+    def ir_sees(self) -> bool:
+        ir, ir_align = self.infrared()
+        return 0 < ir <= self.tolerance_m * 1000 and ir_align <= self.tolerance_deg
+
+    def step(self, cycle: int) -> dict[int, dict[int, float]]:
+        """Advance the motion by one control cycle; the joint targets to hold."""
+        self.cycles += 1
+        if self.aligned() and self.ir_sees():
+            self.done = self.latched = True
+            self.contact = self.snapshot(cycle)
+            return self.targets()
+        if self.cycles > self.timeout:
+            self.done = True
+            self.contact = self.snapshot(cycle)
+            return self.targets()
+        q_now = self.measured()
+        e = self.chain.error_of(self.relative(), self.standoff)
+        if self.phase == "bend":
+            gap = self.plan - self.command
+            step = np.clip(gap, -math.radians(BEND_STEP_DEG), math.radians(BEND_STEP_DEG))
+            self.command = self.command + step
+            if float(np.max(np.abs(gap))) > math.radians(BEND_STEP_DEG):
+                return self.targets()
+            self.phase, self._settling = "settle", 0
+        if self.phase == "settle":
+            # the servos drag the chain over the floor: wait until they are where they were sent
+            self._settling += 1
+            lag = float(np.max(np.abs(q_now - self.command)))
+            if lag > math.radians(SETTLED_DEG) and self._settling < SETTLE_CYCLES:
+                return self.targets()
+            self.phase, self._closing = "close", 0
+        if self.phase == "close":
+            self._closing += 1
+            square = float(np.linalg.norm(e[:3])) < 0.008 and float(np.linalg.norm(e[3:])) < 0.3 * ROT_WEIGHT_M
+            if square or self._closing >= CLOSE_CYCLES:
+                self.phase = "approach"
+        if self.phase == "approach":
+            self.standoff = max(-PRESS_M, self.standoff - APPROACH_M_PER_CYCLE)
+        dq = dls_step(self.chain, q_now, e, self.standoff, damping=0.05, pitch_weight=0.02)
+        step = np.clip(GAIN * dq, -math.radians(MAX_STEP_DEG), math.radians(MAX_STEP_DEG))
+        self.command = np.clip(self.command + step, -self.limits, self.limits)
+        return self.targets()
