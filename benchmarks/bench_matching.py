@@ -61,11 +61,28 @@ def to_regex(p: ast.Pattern, profile: Profile, consts: dict[str, int]) -> str:
     if isinstance(p, ast.TimerIs) and p.op == "==":
         return f"(?=.*,t{_fold(p.value, consts)},)"
     if isinstance(p, ast.HormoneIs):
-        args = "".join(r"\." + (a.name if isinstance(a, ast.Name) else "[^,.]+") for a in p.args)
+        tokens = (_arg_token(a, consts) for a in p.args)
+        args = "".join(r"\." + ("[^,.]+" if t is None else re.escape(str(t))) for t in tokens)
         return f"(?{'!' if p.negate else '='}.*,H{p.name}{args},)"
     if isinstance(p, ast.TruePattern):
         return ""
     raise NotImplementedError(f"no regex for {type(p).__name__}")
+
+
+def _arg_token(a: ast.ArgPattern, consts: dict[str, int]) -> str | int | None:
+    """A hormone pattern's argument as the state holds it: an atom's name, a constant
+    expression's value, or None for any value (``_``, ``?name``)."""
+    if isinstance(a, ast.Wildcard | ast.Bind):
+        return None
+    if isinstance(a, ast.Name) and a.name not in consts:
+        return a.name
+    return _fold(a, consts)
+
+
+def _program_consts(program: CompiledProgram) -> dict[str, int]:
+    consts = {"ClockCycle": program.clock_cycle}
+    consts.update({c.name: _fold(c.value, consts) for c in program.ast.consts})
+    return consts
 
 
 def _fold(e: ast.Expr, consts: dict[str, int]) -> int:
@@ -73,6 +90,8 @@ def _fold(e: ast.Expr, consts: dict[str, int]) -> int:
         return e.value
     if isinstance(e, ast.Name):
         return consts[e.name]
+    if isinstance(e, ast.Neg):
+        return -_fold(e.operand, consts)
     if isinstance(e, ast.BinOp):
         a, b = _fold(e.left, consts), _fold(e.right, consts)
         return {"+": a + b, "-": a - b, "*": a * b, "/": a // b, "%": a % b}[e.op]
@@ -83,8 +102,7 @@ class PaperMatcher:
     """The paper's method: one state string, one regex per active receptor."""
 
     def __init__(self, program: CompiledProgram) -> None:
-        consts = {"ClockCycle": program.clock_cycle}
-        consts.update({c.name: _fold(c.value, consts) for c in program.ast.consts})
+        consts = _program_consts(program)
         self.patterns = [re.compile("^" + to_regex(r.pattern, program.profile, consts)) for r in program.ast.receptors]
         self.type_token = [f"T{t.alias}" if t.alias is not None else f"T{t.name}" for t in program.profile.types]
 
@@ -114,7 +132,7 @@ class ClipsMatcher:
         self.env = clips.Environment()
         self.env.build("(deftemplate state (slot type) (slot timer))")
         self.env.build("(deftemplate hormone (slot name) (multislot args))")
-        consts = {"ClockCycle": program.clock_cycle}
+        consts = _program_consts(program)
         self.names = [r.name for r in program.ast.receptors]
         for r in program.ast.receptors:
             self.env.build(f"(defrule {r.name} {self._lhs(r.pattern, program.profile, consts)} => )")
@@ -134,7 +152,7 @@ class ClipsMatcher:
         if isinstance(p, ast.TimerIs):
             return f"(state (timer {_fold(p.value, consts)}))"
         if isinstance(p, ast.HormoneIs) and not p.negate:
-            args = " ".join(a.name if isinstance(a, ast.Name) else "?" for a in p.args)
+            args = " ".join("?" if t is None else str(t) for t in (_arg_token(a, consts) for a in p.args))
             return f"(hormone (name {p.name}) (args {args}))"
         raise NotImplementedError(f"no CLIPS rule for {type(p).__name__}")
 

@@ -51,7 +51,8 @@ def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -
         default=[],
         metavar="EV",
         help="CYCLE:cut:M.CONN | CYCLE:dock:M.CONN-M2.CONN2 | CYCLE:inject:M:HORMONE | "
-        "CYCLE:kill:M | CYCLE:restart:M (repeatable)",
+        "CYCLE:kill:M | CYCLE:restart:M | CYCLE:sense:M:NAME=VALUE (sensor S.NAME of M reads VALUE from then "
+        "on, e.g. 30:sense:m2:roll=90) (repeatable)",
     )
     p.add_argument(
         "--trace",
@@ -73,7 +74,7 @@ def prepare_run(ns: argparse.Namespace) -> tuple[CompiledProgram, Robot, list[Ev
         raise OptionError(f"--cycles {ns.cycles}: must be 0 or more")
     robot = Robot(cp, topo, seed=ns.seed)
     events = [parse_event(e, topo, cp.vocabulary) for e in ns.event]
-    check_events(events, topo, ns.cycles)
+    check_events(events, topo, ns.cycles, sensors=cp.sensor_names)
     return cp, robot, events
 
 

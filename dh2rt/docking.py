@@ -157,6 +157,23 @@ def reach_and_dock(world: DockingWorld, module: int, connector: int, route: Sequ
     world.schedule(DOCK_DELAY, carry_out)
 
 
+def reach_dock_target(
+    world: DockingWorld, module: int, connector: int, route: Sequence[int], target_conn: int
+) -> tuple[int, str] | None:
+    """For ``reach_dock(path, mine, theirs)``: the module at the end of ``route`` and the
+    request in words (``asking -> target``), if both ends may act now and the target
+    connector is free; None (logged) otherwise."""
+    target = reach_target(world, module, connector, route)
+    if target is None:
+        return None
+    here = target[0]
+    where = f"{world.where(module, connector)} -> {world.where(here, target_conn)}"
+    if world.peer_of((here, target_conn)) is not None:
+        world.note(f"reach_dock {where}: the target connector is not free")
+        return None
+    return here, where
+
+
 def reach_and_dock_to(world: DockingWorld, module: int, connector: int, route: Sequence[int], target_conn: int) -> None:
     """Carry out ``reach_dock(path, mine, theirs)`` in a world that does not model the motion:
     :data:`DOCK_DELAY` cycles later ``module``'s ``connector`` docks to connector
@@ -166,14 +183,10 @@ def reach_and_dock_to(world: DockingWorld, module: int, connector: int, route: S
     route = tuple(route)
 
     def carry_out() -> None:
-        target = reach_target(world, module, connector, route)
+        target = reach_dock_target(world, module, connector, route, target_conn)
         if target is None:
             return
-        here = target[0]
-        where = f"{world.where(module, connector)} -> {world.where(here, target_conn)}"
-        if world.peer_of((here, target_conn)) is not None:
-            world.note(f"reach_dock {where}: the target connector is not free")
-            return
+        here, where = target
         if not world.aligned(module, connector, here, target_conn):
             world.note(f"reach_dock {where}: not aligned in the world")
             return

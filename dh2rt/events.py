@@ -29,7 +29,7 @@ from dh2rt.errors import DH2Error, EventError, ProgramError, TopologyError
 from dh2rt.hormone import Hormone, Vocabulary
 from dh2rt.lang import ast
 from dh2rt.lang.parser import Parser
-from dh2rt.profile import Profile
+from dh2rt.profile import Profile, undeclared_sensor
 from dh2rt.topology import Topology
 
 KINDS = ("cut", "dock", "inject", "kill", "restart", "sense")
@@ -159,11 +159,6 @@ def check_events(
                 raise TopologyError(undeclared_sensor(ev.sensor))
         except TopologyError as exc:
             raise EventError(f"{label}: {exc}") from None
-
-
-def undeclared_sensor(name: str) -> str:
-    """The message for sensing a sensor the program does not read."""
-    return f"the program does not declare sensor {name} (add `sensor {name}` to read S.{name})"
 
 
 def parse_hormone(text: str, vocabulary: Vocabulary, where: str = "hormone") -> Hormone:

@@ -206,6 +206,11 @@ class Profile:
         return cls(name, connectors, genders, tuple(types), claimed, _sensors(name, sensor_rows))
 
 
+def undeclared_sensor(name: str) -> str:
+    """The message for sensing a sensor the program does not read."""
+    return f"the program does not declare sensor {name} (add `sensor {name}` to read S.{name})"
+
+
 def _sensors(profile: str, rows: Sequence[Any]) -> tuple[SensorSpec, ...]:
     """The sensor table of ``from_dict``; errors name the profile and the sensor."""
     specs: list[SensorSpec] = []

@@ -7,6 +7,7 @@ front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer
 "0"), ``received`` (hormone, connector it arrived at, connector it was sent through, path) and
 ``sent`` (hormone, connector, and for replies the route still to go). Physics runs add
 ``pos`` ([x, y, z] metres); the module runtime adds ``t`` (its clock when the cycle began).
+A program that declares sensors adds ``sensors`` (``{"roll": deg, ...}``: S as that cycle read it).
 A cycle in which receptor actions failed has ``faults``: ``["receptor NAME: message", ...]``.
 
 It reads an engine only, so that the in-process robot (:mod:`dh2rt.trace`) and the module
@@ -65,6 +66,8 @@ def cycle_json(
         "received": [arrival_json(a, p) for a in received],
         "sent": [emission_json(x, p) for x in sent],
     }
+    if engine.sensors:  # S, as the cycle read it, when the program declares sensors
+        record["sensors"] = dict(zip(engine.program.sensor_names, engine.sensors, strict=True))
     if faults:
         record["faults"] = list(faults)
     return record

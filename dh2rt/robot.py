@@ -22,9 +22,10 @@ from dh2rt import docking
 from dh2rt.docking import End
 from dh2rt.engine import Engine, Native
 from dh2rt.errors import EventError, TopologyError
-from dh2rt.events import Event, undeclared_sensor
+from dh2rt.events import Event
 from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.profile import undeclared_sensor
 from dh2rt.program import CompiledProgram
 from dh2rt.skew import DEFAULT_BLOCK, DEFAULT_DEPTH, SkewPlan, make_plan
 from dh2rt.topology import Link, Topology

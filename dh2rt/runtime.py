@@ -7,6 +7,9 @@ clock and no lockstep: LocalTimer is the engine's, advanced once per cycle.
 
 One cycle (:meth:`ModuleRuntime.step`)::
 
+    sensors   the declared sensors are filled from the module's body (dh2rt.sensing: its
+              sources, readings pushed to it, values ``sense`` events forced); a failing
+              read is a counted, logged sensor fault, never a stop
     receive   frames polled since the last cycle go through the liveness machine
               (:mod:`dh2rt.liveness`): a Hello verifies the connector's peer (same program
               digest) or refuses it; frames through an unverified or refused connector are
@@ -23,7 +26,10 @@ One cycle (:meth:`ModuleRuntime.step`)::
               or a processor do not all read their servos in the same cycle) the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
-              while it lasts, recover() (if the driver has one) is tried on each check.
+              while it lasts, recover() (if the driver has one) is tried on each check,
+              and only then: a servo that is gone costs a reply timeout per try (34 ms
+              with an FTDI adapter's 16 ms latency timer, 102 ms on the HIL world's
+              emulated servos), which once a cycle would stretch every cycle by it.
               A DriverError never stops the module: the engine keeps running.
 
 Liveness bound: a neighbour that stops sending is noticed in the SILENCE_CYCLES-th
@@ -52,6 +58,7 @@ from dh2rt.liveness import SILENCE_CYCLES, Beacon, Liveness, Verdict
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.program import CompiledProgram
 from dh2rt.records import cycle_json
+from dh2rt.sensing import SensorFeed, Source
 from dh2rt.transport.base import LinkEnd, Received, Transport
 from dh2rt.wire.frame import FrameCodec, Hello, program_digest
 
@@ -162,6 +169,8 @@ class ModuleRuntime:
         self.liveness = Liveness(self.digest, silence_cycles)
         self.cycle = 0
         self.stats = RuntimeCounters()
+        #: the module's sensors: sources, pushed readings, forced values (dh2rt.sensing)
+        self.sensing = SensorFeed(self.engine, offset=timer_phase, log=self._log)
         #: how late each recent cycle started (seconds after its deadline), and when the first did
         self.lateness: deque[float] = deque(maxlen=LATENESS_WINDOW)
         #: cycles per lateness bucket (LATENESS_EDGES_MS) since the first
@@ -273,6 +282,7 @@ class ModuleRuntime:
         if self.observer is not None:
             self.observer.cycle_start(self, self._started)
             engine = self.engine  # the observer may have switched the program
+        self.sensing.fill(self.cycle)
         received = self._pending
         self._pending = []
         received.extend(self.transport.poll(0.0))
@@ -339,6 +349,7 @@ class ModuleRuntime:
                 engine.link_up(c, remote)
         engine.dof[0], engine.dof[1] = old.dof[0], old.dof[1]
         self.program, self.engine = program, engine
+        self.sensing.rebind(engine)
         self.transport.codec = FrameCodec(program.vocabulary, program.profile.connector_count)
         self.digest = program_digest(program.image)
         self.liveness.announce(self.digest, version)
@@ -348,6 +359,23 @@ class ModuleRuntime:
         for c in self.liveness.connectors:
             if self.transport.send(c, hello):
                 self.stats.hellos_sent += 1
+
+    # ------------------------------------------------------------ sensors
+
+    def add_sensor_source(self, source: Source, *, every: int = 1, label: str = "") -> bool:
+        """Fill sensors from ``source`` (a ``drivers.base.SensorSource`` or a callable) every
+        ``every`` cycles, before the engine runs; False when it reads nothing the program
+        declares (it is not read while the running program declares none of its sensors)."""
+        return self.sensing.add_source(source, every=every, label=label)
+
+    def sense(self, name: str, value: int) -> None:
+        """Sensor ``name`` reads ``value`` from now on (a ``sense`` event); TopologyError if the
+        program does not declare it or the value is out of the profile's range."""
+        self.sensing.force(name, value)
+
+    def push_readings(self, values: Mapping[str, float]) -> None:
+        """Sensor readings measured elsewhere (the HIL world's physics), for the next cycle."""
+        self.sensing.push(values)
 
     def attach_driver(self, driver: Driver, note: str) -> None:
         """Actuators that were missing are back: drive them from now on (the current targets
@@ -368,7 +396,7 @@ class ModuleRuntime:
         if driver is None:
             return
         try:
-            if self.actuator_fault is not None or self.cycle % HEALTH_EVERY == self.health_offset:
+            if self.cycle % HEALTH_EVERY == self.health_offset:
                 self._check_health(driver)
             if (dof1, dof2) != self._commanded and self.actuator_fault is None:
                 driver.set_targets(dof1, dof2)
@@ -377,12 +405,16 @@ class ModuleRuntime:
             self._actuator_fault(str(exc))
 
     def _check_health(self, driver: Driver) -> None:
+        """Read the driver's health; while a fault lasts, try recover() straight away (it
+        checks the servos itself and stops at the first that does not answer: one reply
+        timeout, where health() first would wait one per servo)."""
         health = getattr(driver, "health", None)
         if health is None:
             return
-        faults = tuple(health().faults)
-        if faults and self.actuator_fault is not None and callable(getattr(driver, "recover", None)):
+        if self.actuator_fault is not None and callable(getattr(driver, "recover", None)):
             faults = tuple(cast(_Recoverable, driver).recover().faults)
+        else:
+            faults = tuple(health().faults)
         if faults:
             self._actuator_fault("; ".join(faults))
         elif self.actuator_fault is not None:
@@ -465,6 +497,7 @@ class ModuleRuntime:
         on_cycle: Callable[[ModuleRuntime], None] | None = None,
         sleep: Callable[[float], None] | None = None,
         until: float | None = None,
+        before_cycle: Callable[[ModuleRuntime], None] | None = None,
     ) -> int:
         """Cycle every ``cycle_period`` s until ``cycles`` more ran, ``stop_event`` is set, or
         the next cycle would start at or after ``until`` (a reading of this runtime's clock:
@@ -475,7 +508,10 @@ class ModuleRuntime:
         cycle's start.
         A cycle that starts more than LATE_TOLERANCE periods after its deadline counts as
         late; the schedule then restarts from now rather than bursting to catch up.
-        ``on_cycle`` runs after each cycle (the host reads commands there). Returns cycles run.
+        ``before_cycle`` runs just before each cycle (the host takes its commands there, so
+        that what arrived while the loop waited counts in the very next cycle; it may set
+        ``stop_event``, and then that cycle does not run); ``on_cycle`` runs after each
+        cycle. Returns cycles run.
         """
         period = self.cycle_period
         done = 0
@@ -484,6 +520,10 @@ class ModuleRuntime:
         while (cycles is None or done < cycles) and not (stop_event is not None and stop_event.is_set()):
             if last_start is not None and deadline >= last_start:
                 break
+            if before_cycle is not None:
+                before_cycle(self)
+                if stop_event is not None and stop_event.is_set():
+                    break
             now = self.clock()
             late = now - deadline
             self.lateness.append(late)
@@ -552,6 +592,7 @@ class ModuleRuntime:
             "lost_in_flight": s.lost_in_flight,
             "hormones_sent": s.hormones_sent,
             "hormones_received": s.hormones_received,
+            "sensor_faults": self.sensing.faults,
             **{f"engine_{k}": v for k, v in self.engine.counters.items()},
         }
 
@@ -587,6 +628,8 @@ class ModuleRuntime:
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,
             "last_fault": self.last_fault,
+            "sensors": self.sensing.values(),
+            "last_sensor_fault": self.sensing.last_fault,
         }
 
     @property

@@ -147,6 +147,61 @@ def _port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) ->
     return _PortHandler(path)
 
 
+#: Protocol 2.0 instructions whose status carries no parameters (WRITE, REG_WRITE, ACTION, REBOOT).
+_NO_PARAMETERS: Final = frozenset({0x03, 0x04, 0x05, 0x08})
+#: A PING's status: model number (2 bytes) and firmware version.
+_PING_PARAMETERS: Final = 3
+#: What a status packet's length field counts besides its parameters: instruction, error, CRC (2).
+_STATUS_OVERHEAD: Final = 4
+
+
+def _expected_parameters(txpacket: list[int]) -> int | None:
+    """How many parameters the status answering ``txpacket`` carries (None: not checked)."""
+    instruction = txpacket[7]
+    if instruction == 0x01:  # PING
+        return _PING_PARAMETERS
+    if instruction in (0x02, 0x82):  # READ, SYNC_READ: address (2), then the data length (2)
+        return txpacket[10] | (txpacket[11] << 8)
+    if instruction in _NO_PARAMETERS:
+        return 0
+    return None
+
+
+def _packet_handler(sdk: ModuleType) -> Any:
+    """A Protocol 2.0 PacketHandler that does not take a late reply to an earlier request as
+    the answer to this one.
+
+    A status packet does not say which instruction it answers; the SDK takes the first well
+    formed one from the awaited id. A reply that came after its request timed out (a servo
+    emulator that was not scheduled, a servo busy past the timeout) is still in the port when
+    the next request is sent (the SDK clears the port just before sending, and the reply may
+    come after that): a PING then read a SYNC_READ's data as its model number (seen in the
+    loop: "DOF1 servo id 1 is model 315, expected 1020"), and a read could have read another
+    register's value. Here a status whose parameter count is not the one the request asks
+    for is such a late reply: it is dropped (counted in ``stale``) and the wait goes on, within
+    the same timeout. A late reply to the same kind of request (one SYNC_READ for the next) is
+    of the right length and is taken: data one request old."""
+
+    class _PacketHandler(sdk.Protocol2PacketHandler):  # type: ignore[misc, name-defined]
+        stale = 0  # late replies dropped
+        _expect: int | None = None
+
+        def txPacket(self, port: Any, txpacket: list[int]) -> int:  # noqa: N802 - SDK's name
+            self._expect = _expected_parameters(txpacket)
+            return super().txPacket(port, txpacket)  # type: ignore[no-any-return]
+
+        def rxPacket(self, port: Any, fast_option: bool) -> tuple[list[int], int]:  # noqa: N802 - SDK's name
+            while True:
+                rxpacket, result = super().rxPacket(port, fast_option)
+                if result != 0 or fast_option or self._expect is None:
+                    return rxpacket, result
+                if (rxpacket[5] | (rxpacket[6] << 8)) - _STATUS_OVERHEAD == self._expect:
+                    return rxpacket, result
+                self.stale += 1
+
+    return _PacketHandler()
+
+
 class DynamixelDriver(ModuleDriver):
     """Both joints of one module on two Dynamixel X-series servos, in degrees.
 
@@ -244,7 +299,7 @@ class DynamixelDriver(ModuleDriver):
         if not ok:
             raise ServoCommError(f"cannot set {self.baudrate} bps on {self.port_path!r}")
         self._port = port
-        self._ph = sdk.PacketHandler(2.0)
+        self._ph = _packet_handler(sdk)
         goal, present = dxt.GOAL_POSITION, dxt.PRESENT_POSITION
         self._sync_write = sdk.GroupSyncWrite(port, self._ph, goal.address, goal.size)
         self._sync_read = sdk.GroupSyncRead(port, self._ph, present.address, present.size)

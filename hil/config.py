@@ -35,6 +35,12 @@ DRIVERS = ("recording", "none")
 DEFAULT_SERVO_IDS = (1, 2)
 DEFAULT_SERVO_BAUD = 1_000_000
 DEFAULT_SERVO_MODEL = MODEL_XM430_W350
+#: The longest servo bus latency timer a config may set (ms): a reply timeout of about 1 s.
+MAX_SERVO_LATENCY_MS = 500.0
+#: The latency timer of servos the HIL world emulates (ms; a reply timeout of 102 ms): their
+#: replies come from a thread of the world's process that waits behind physics steps (up to
+#: ``hil.physics_stand_in.MAX_CATCH_UP_S`` of them after a hiccup), not from a servo's own hardware.
+EMULATED_SERVO_LATENCY_MS = 50.0
 #: How a module is controlled: by the HIL world over stdin/stdout, or by nothing (on a robot).
 CONTROLS = ("stdio", "none")
 
@@ -103,6 +109,9 @@ class ModuleConfig:
     servo_baud: int = DEFAULT_SERVO_BAUD
     #: the model number every servo must answer a PING with (None: any model)
     servo_model: int | None = DEFAULT_SERVO_MODEL
+    #: the servo bus adapter's latency timer (ms), which sets how long the module waits for a
+    #: servo's reply (2 x this + 2 ms); None: dynamixel-sdk's 16 ms (an FTDI adapter's default)
+    servo_latency_ms: float | None = None
     #: python-can options of the ``can`` transport: interface, channel, bitrate, fd, data_bitrate
     bus_options: Mapping[str, Any] = field(default_factory=dict)
     #: connector -> its connector-local channel: on a bus, links are negotiated over these
@@ -123,6 +132,10 @@ class ModuleConfig:
     trace: bool = False
     status_every: int = STATUS_EVERY
     handshake: float = HANDSHAKE_S
+    #: sensors with no device behind them: fixed stand-in readings, by name (module.toml [sensors])
+    sensor_values: Mapping[str, int] = field(default_factory=dict)
+    #: cycles between two reads of the servos' present position and load (when the program reads any)
+    servo_sensor_every: int = 1
     #: Which life of the module this is (0 at the first start; each restart adds one), so
     #: that the records of its lives, each counting cycles from 0, can be told apart.
     life: int = 0
@@ -138,6 +151,13 @@ class ModuleConfig:
             raise ModuleConfigError(f"config status_every {self.status_every}: must be 1 or more")
         if self.cycles is not None and self.cycles < 0:
             raise ModuleConfigError(f"config cycles {self.cycles}: must be 0 or more")
+        if self.servo_sensor_every < 1:
+            raise ModuleConfigError(f"config servo_sensor_every {self.servo_sensor_every}: must be 1 or more")
+        if self.servo_latency_ms is not None and not 0 < self.servo_latency_ms <= MAX_SERVO_LATENCY_MS:
+            raise ModuleConfigError(
+                f"config servo_latency_ms {self.servo_latency_ms}: must be more than 0 and at most "
+                f"{MAX_SERVO_LATENCY_MS:g}"
+            )
         if self.control not in CONTROLS:
             raise ModuleConfigError(f"config control {self.control!r}: expected one of {', '.join(CONTROLS)}")
 
@@ -155,7 +175,7 @@ class ModuleConfig:
                 value = {str(c): end_to_json(e) for c, e in sorted(value.items())}
             elif f.name == "servo_ids":
                 value = list(value)
-            elif f.name == "bus_options":
+            elif f.name in ("bus_options", "sensor_values"):
                 value = dict(value)
             elif f.name == "trust":
                 value = [key.hex() for key in value]
@@ -204,6 +224,7 @@ class ModuleConfig:
             ("control", str),
             ("allow_unsigned", bool),
             ("trial_cycles", int),
+            ("servo_sensor_every", int),
         ):
             if name in obj:
                 kw[name] = _typed(obj, name, kind)
@@ -223,10 +244,17 @@ class ModuleConfig:
         for name in ("servo_port", "log_file", "status_file", "flash"):
             if obj.get(name) is not None:
                 kw[name] = _typed(obj, name, str)
+        if obj.get("servo_latency_ms") is not None:
+            kw["servo_latency_ms"] = float(_typed(obj, "servo_latency_ms", (int, float)))
         if "servo_model" in obj:
             kw["servo_model"] = None if obj["servo_model"] is None else _typed(obj, "servo_model", int)
         if "bus_options" in obj:
             kw["bus_options"] = dict(_typed(obj, "bus_options", Mapping))
+        if "sensor_values" in obj:
+            values = _typed(obj, "sensor_values", Mapping)
+            if not all(isinstance(k, str) and _is_int(v) for k, v in values.items()):
+                raise ModuleConfigError(f"config sensor_values {values!r}: expected sensor name -> whole number")
+            kw["sensor_values"] = dict(values)
         if "servo_ids" in obj:
             ids = obj["servo_ids"]
             if not (isinstance(ids, list | tuple) and len(ids) == 2 and all(_is_int(i) for i in ids)):

@@ -3,7 +3,7 @@ reports out, as JSON lines (one object a line) over a module process's stdin and
 as the same objects through queues for modules that run as threads.
 
 Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
-:class:`Sense`, :class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
+:class:`Sense`, :class:`Readings`, :class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
 :class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
 :class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
 ControlProtocolError naming the field; a receiver logs it and goes on.
@@ -57,6 +57,15 @@ class Sense:
 
 
 @dataclass(frozen=True)
+class Readings:
+    """Sensor readings the world measured for the module (its physics: IMU, infrared, ground
+    contact), by sensor name, in the profile's units; the module writes them into S at its next
+    cycle (rounded and clamped to the profile's ranges), except where a ``sense`` holds."""
+
+    values: Mapping[str, int]
+
+
+@dataclass(frozen=True)
 class StatusRequest:
     pass
 
@@ -66,7 +75,7 @@ class Stop:
     pass
 
 
-Command = Go | Attach | Detach | Inject | Sense | StatusRequest | Stop
+Command = Go | Attach | Detach | Inject | Sense | Readings | StatusRequest | Stop
 
 
 def command_to_json(cmd: Command) -> dict[str, Any]:
@@ -83,6 +92,8 @@ def command_to_json(cmd: Command) -> dict[str, Any]:
         return {"cmd": "inject", "hormone": cmd.hormone}
     if isinstance(cmd, Sense):
         return {"cmd": "sense", "sensor": cmd.sensor, "value": cmd.value}
+    if isinstance(cmd, Readings):
+        return {"cmd": "readings", "values": dict(cmd.values)}
     if isinstance(cmd, StatusRequest):
         return {"cmd": "status"}
     return {"cmd": "stop"}
@@ -119,6 +130,14 @@ def command_from_json(obj: object) -> Command:
         if not isinstance(sensor, str) or not sensor:
             raise ControlProtocolError(f"sense command: field 'sensor' {sensor!r} is not a name")
         return Sense(sensor, _int(obj, "value", "sense command"))
+    if kind == "readings":
+        values = obj.get("values")
+        if not isinstance(values, Mapping):
+            raise ControlProtocolError(f"readings command: field 'values' {values!r} is not an object")
+        for name, value in values.items():
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ControlProtocolError(f"readings command: sensor {name!r} value {value!r} is not a whole number")
+        return Readings(dict(values))
     if kind == "status":
         return StatusRequest()
     if kind == "stop":

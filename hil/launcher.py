@@ -126,6 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
         "with --hardware-map, for modules it names no servos for), none",
     )
     view = p.add_argument_group("with --stand-in pybullet, as dh2rt run --sim pybullet")
+    view.add_argument(
+        "--sensor-every",
+        type=int,
+        default=1,
+        metavar="N",
+        help="push each module its IMU, infrared and contact readings from physics every N world cycles "
+        "(default: 1; only the sensors the program declares are measured)",
+    )
     view.add_argument("--record", type=Path, metavar="GIF", help="write an animation of the robot (.gif)")
     view.add_argument(
         "--camera",
@@ -283,7 +291,9 @@ def _main(argv: list[str] | None) -> int:
         ns.signer = read_private_key(ns.key) if ns.key is not None else None
         check_flash_events(ns.flash_events, ns.transport, ns.cycles)
         if ns.cycles is not None:
-            check_events(events, topology, ns.cycles)
+            check_events(events, topology, ns.cycles, sensors=program.sensor_names)
+        if ns.sensor_every < 1:
+            raise OptionError(f"--sensor-every {ns.sensor_every}: must be 1 or more")
         kind, _ = parse_transport_spec(ns.transport)
         for option, value in (("--frame-loss", ns.frame_loss), ("--bit-error", ns.bit_error)):
             if not 0.0 <= value <= 1.0:
@@ -448,6 +458,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             bus_options=ns.bus_options,
             gui=ns.gui,
             signer=ns.signer,
+            sensor_every=ns.sensor_every,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:
@@ -663,6 +674,7 @@ def _summary(
             "cycle_period": world.cycle_period,
             "modules": rows,
             "events": [{"text": text, "t": t} for text, t in world.event_times],
+            "sensor_push": _push_cost(world),
             "log": world.log[-200:],
             "rollouts": [] if flashes is None else flashes.report(),
         }
@@ -700,6 +712,12 @@ def _summary(
             f"physics: {world.physics.simulated_s:.1f} s simulated; moved {world.physics.displacement() * 100:+.1f} cm "
             f"forward; servos driven through dynamixel-sdk and emulators, {faults} module(s) with an actuator fault\n"
         )
+    push = _push_cost(world)
+    if push is not None:
+        out.write(
+            f"sensors: {', '.join(world.measured)} pushed {push['pushes']} times from physics, "
+            f"{push['mean_ms']:.2f} ms each (p99 {push['p99_ms']:.2f} ms)\n"
+        )
     faulted = [r["name"] for r in rows if r.get("actuator_fault") or int(r["counters"].get("engine_faults", 0))]
     if faulted:
         out.write(f"modules with a fault at the end: {', '.join(faulted)}\n")
@@ -709,6 +727,20 @@ def _summary(
         out.write(f"{line}\n")
     out.write(f"log: {log_path} ({len(world.log)} lines)\n")
     out.flush()
+
+
+def _push_cost(world: World) -> dict[str, Any] | None:
+    """How often the world pushed sensor readings and what a push cost (None: it never did)."""
+    times = sorted(world.push_times)
+    if not times:
+        return None
+    return {
+        "sensors": list(world.measured),
+        "every": world.sensor_every,
+        "pushes": len(times),
+        "mean_ms": round(sum(times) / len(times) * 1000, 3),
+        "p99_ms": round(times[min(len(times) - 1, int(0.99 * len(times)))] * 1000, 3),
+    }
 
 
 if __name__ == "__main__":

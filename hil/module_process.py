@@ -20,9 +20,14 @@ Actuators: with ``servo_port`` the module drives its DOF1/DOF2 Dynamixel servos 
 opened (missing, wrong model, a bad bus) are reported as an actuator fault, and the module
 runs its program without actuators rather than not at all.
 
+Sensors (``S.name``; :mod:`hil.module_sensors`): the servos' present position and load when
+the program reads them, fixed stand-in readings for sensors with no device (``[sensors]``),
+readings the world pushes, and values ``sense`` commands force.
+
 Control channel: the typed commands of :mod:`hil.control` arrive as JSON lines on stdin
 (``go``: start cycling, at a CLOCK_MONOTONIC instant after exchanging Hellos until then, for
-a number of cycles; ``attach``, ``detach``, ``inject``, ``status``, ``stop``); reports go out
+a number of cycles; ``attach``, ``detach``, ``inject``, ``sense`` (a sensor forced from then on),
+``readings`` (what the world's physics measured for the module), ``status``, ``stop``); reports go out
 as JSON lines on stdout (``ready``, ``status`` every ``status_every`` cycles, ``trace``,
 ``effect``, ``log``, ``error``, and ``final`` at exit). A malformed command is refused with
 a log report naming the field. SIGTERM and SIGINT end the loop cleanly with a final report.
@@ -59,6 +64,7 @@ from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from hil.config import ModuleConfig
+from hil.module_sensors import attach_sensors
 
 if TYPE_CHECKING:
     import argparse
@@ -75,8 +81,10 @@ from hil.control import (
     Go,
     Inject,
     Log,
+    Readings,
     Ready,
     Report,
+    Sense,
     Status,
     StatusRequest,
     Stop,
@@ -107,7 +115,7 @@ def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
     try:
         driver = DynamixelDriver(
             config.servo_port, dof1_id=dof1, dof2_id=dof2, baudrate=config.servo_baud,
-            expected_model=config.servo_model,
+            expected_model=config.servo_model, latency_timer_ms=config.servo_latency_ms,
         )  # fmt: skip
         return driver, None
     except DH2Error as exc:
@@ -160,6 +168,11 @@ class ModuleHost:
             except BaseException:
                 rt.close()
                 raise
+        try:
+            attach_sensors(self.runtime, config, lambda: self.driver)
+        except BaseException:
+            self.runtime.close()
+            raise
         #: the rollout of new programs over the links (a module booted from its flash)
         self.rollout: RolloutDoor | None = self._start_rollout()
         if driver_fault is not None:
@@ -197,11 +210,11 @@ class ModuleHost:
                     # started at an agreed instant: stop at one too, so that no module runs on
                     # after its neighbours stopped and takes their silence for a lost link
                     until = start_at + self.cycles * self.config.cycle_period
-                    rt.run(None, self.stop_event, self._on_cycle, until=until)
+                    rt.run(None, self.stop_event, self._on_cycle, until=until, before_cycle=self._take_commands)
                     # what the neighbours sent in their last cycles is counted, not lost
                     rt.drain(DRAIN_PERIODS * self.config.cycle_period)
                 else:
-                    rt.run(self.cycles, self.stop_event, self._on_cycle)
+                    rt.run(self.cycles, self.stop_event, self._on_cycle, before_cycle=self._take_commands)
         except Exception as exc:  # report it to the world rather than die silently
             self.failed = True
             self.report(Failure(f"{type(exc).__name__}: {exc} ({_where(exc)})"))
@@ -333,16 +346,20 @@ class ModuleHost:
             status["program"] = program
         return status
 
-    def _on_cycle(self, rt: ModuleRuntime) -> None:
-        if self.links is not None:
-            self.links.step(rt.clock())
-        self._check_trial(rt)
+    def _take_commands(self, rt: ModuleRuntime) -> None:
+        """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
+        or pushed readings count in this very cycle)."""
         while True:
             try:
                 cmd = self.commands.get_nowait()
             except queue.Empty:
                 break
             self._command(cmd)
+
+    def _on_cycle(self, rt: ModuleRuntime) -> None:
+        if self.links is not None:
+            self.links.step(rt.clock())
+        self._check_trial(rt)
         if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
@@ -388,6 +405,11 @@ class ModuleHost:
                 from dh2rt.events import parse_hormone  # the HIL world's commands only
 
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
+            elif isinstance(cmd, Readings):
+                rt.push_readings(cmd.values)
+            elif isinstance(cmd, Sense):
+                rt.sense(cmd.sensor, cmd.value)
+                rt.log.append(f"cycle {rt.cycle}: sense: S.{cmd.sensor} = {cmd.value} from now on")
             elif isinstance(cmd, StatusRequest):
                 self.report(Status(self._status(rt)))
         except DH2Error as exc:

@@ -34,7 +34,7 @@ is not TOML names the line and column. Relative paths are relative to the file's
     # back = { link_id = 4, side = 0 }
 
     # kind = "serial": one UART per connector, like CONRO's infrared pairs
-    # [transport.connectors]
+    # [transport.connectors]         # (an empty table: a module with no serial link)
     # front = "/dev/ttyAMA1"
     # back = { device = "/dev/ttyAMA2", baud = 115200 }
 
@@ -49,7 +49,12 @@ is not TOML names the line and column. Relative paths are relative to the file's
     dof1_id = 1                      # pitch
     dof2_id = 2                      # yaw
     model = "XM430-W350"             # every servo must answer with it ("any": no check)
+    # latency_ms = 16                # the adapter's latency timer: replies wait 2 x this + 2 ms
     # stand_in = "recording"         # instead of port: record the angles ("none": drive nothing)
+
+    [sensors]                        # S.pos1/pos2/load1/load2 come from the servos
+    servo_every = 1                  # cycles between two reads of present position and load
+    stand_in = { roll = 0, contact = 1 }   # fixed readings of sensors with no device here
 
     [log]
     file = "-"                       # JSON lines; "-" is standard error
@@ -76,7 +81,7 @@ from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from drivers.dxl_table import MODEL_NAMES
-from hil.config import DEFAULTS, STAND_INS, ChannelSpec, ModuleConfig
+from hil.config import DEFAULTS, MAX_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
 
 IMAGE_NAME = "program.img"
 #: What a flash directory that holds a program has (drivers.flash_slots): the state record,
@@ -86,7 +91,7 @@ TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
 #: The transports on a shared bus, where links are negotiated over the connectors' channels.
 BUS_KINDS = ("can", "socketcan", "virtual", "udp")
 MAX_SERVO_ID = 252
-SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "log", "hil")
+SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "sensors", "log", "hil")
 
 
 @dataclass(frozen=True)
@@ -188,6 +193,7 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
             f"[transport] kind {kw['transport']!r} has its links already"
         )
     kw.update(_servos(top.table("servos"), base))
+    kw.update(_sensors(top.table("sensors"), profile))
     kw.update(_log(top.table("log"), base))
     kw.update(_hil(top.table("hil"), profile))
     try:
@@ -333,13 +339,13 @@ def _links(t: _Table, profile: Profile) -> dict[int, LinkEnd]:
 
 
 def _servos(t: _Table, base: Path) -> dict[str, Any]:
-    t.only("port", "baud", "dof1_id", "dof2_id", "model", "stand_in")
+    t.only("port", "baud", "dof1_id", "dof2_id", "model", "latency_ms", "stand_in")
     port = t.get_str("port")
     stand_in = t.get_str("stand_in", None, tuple(s for s in STAND_INS if s != "pybullet"))
     if port is not None and stand_in is not None:
         raise t.fail("stand_in", "a module has servos on a port or a stand-in, not both")
     if port is None:
-        for key in ("baud", "dof1_id", "dof2_id", "model"):
+        for key in ("baud", "dof1_id", "dof2_id", "model", "latency_ms"):
             if key in t.data:
                 raise t.fail(key, "only with a servo port")
         return {"driver": stand_in or "recording"}
@@ -352,8 +358,38 @@ def _servos(t: _Table, base: Path) -> dict[str, Any]:
         "servo_ids": (dof1, dof2),
         "servo_baud": t.get_int("baud", DEFAULTS.servo_baud, 9600),
         "servo_model": _model(t),
+        "servo_latency_ms": _latency(t),
         "driver": "none",
     }
+
+
+def _sensors(t: _Table, profile: Profile) -> dict[str, Any]:
+    """``[sensors]``: how often the servos are read as sensors, and the stand-in's fixed
+    readings of sensors with no device (each a sensor of the profile, within its range)."""
+    t.only("servo_every", "stand_in")
+    out: dict[str, Any] = {"servo_sensor_every": t.get_int("servo_every", 1, 1)}
+    stand_in = t.table("stand_in")
+    values: dict[str, int] = {}
+    for name, value in stand_in.data.items():
+        if name not in profile.sensor_names:
+            known = ", ".join(profile.sensor_names)
+            raise stand_in.fail(name, f"profile {profile.name} has no such sensor (it has: {known})")
+        spec = profile.sensor(name)
+        if not isinstance(value, int) or isinstance(value, bool) or not spec.low <= value <= spec.high:
+            raise stand_in.fail(name, f"expected a whole number {spec.low}..{spec.high} {spec.unit}, got {value!r}")
+        values[name] = value
+    out["sensor_values"] = values
+    return out
+
+
+def _latency(t: _Table) -> float | None:
+    """``latency_ms``: the adapter's latency timer (None: dynamixel-sdk's 16 ms)."""
+    if "latency_ms" not in t.data:
+        return None
+    value = t.get_number("latency_ms", 0.0)
+    if value > MAX_SERVO_LATENCY_MS:
+        raise t.fail("latency_ms", f"expected at most {MAX_SERVO_LATENCY_MS:g} ms, got {value!r}")
+    return float(value)
 
 
 def _model(t: _Table) -> int | None:
@@ -431,7 +467,7 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image
         lines += [f"{k} = {_value(v)}" for k, v in config.bus_options.items()]
     elif channel:
         lines.append(f"channel = {_q(channel)}")
-    if ports:
+    if ports or kind == "serial":  # a module with no serial link says so: an empty table
         lines += ["", "[transport.connectors]"]
         lines += [f"{name(c)} = {{ device = {_q(e.url)}, baud = {e.baudrate} }}" for c, e in sorted(ports.items())]
     if config.connector_channels:
@@ -451,8 +487,14 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image
             f"dof2_id = {config.servo_ids[1]}",
             f"model = {_q(model)}",
         ]
+        if config.servo_latency_ms is not None:
+            lines.append(f"latency_ms = {config.servo_latency_ms!r}")
     else:
         lines.append(f"stand_in = {_q(config.driver)}")
+    lines += ["", "[sensors]", f"servo_every = {config.servo_sensor_every}"]
+    if config.sensor_values:
+        values = ", ".join(f"{k} = {v}" for k, v in config.sensor_values.items())
+        lines.append(f"stand_in = {{ {values} }}")
     lines += ["", "[log]", f"file = {_q(config.log_file or '-')}", f"status_every = {config.status_every}"]
     if config.status_file:
         lines.append(f"status_file = {_q(config.status_file)}")

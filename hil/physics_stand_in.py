@@ -5,6 +5,11 @@ would on a physical CONRO-like module; the port is a pty whose far end is a Dyna
 Protocol 2.0 emulator (``hil.servo_emulator``) whose joints are that module's joints in one
 PyBullet world. The world steps physics in real time as the launcher ticks.
 
+The world also measures what the modules' other sensors would (:meth:`PhysicsStandIn.readings`:
+the IMU, each connector's infrared pair and ground contact, by ``sim.sensors``); the HIL
+world pushes those readings to the module processes, while the joints' present position and
+load reach each module through its own servos.
+
 PyBullet is not thread-safe: one lock serialises the emulators' joint reads and writes (each
 in its own thread) with the stepping.
 """
@@ -13,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from dh2rt.closing import Closing
@@ -20,6 +26,7 @@ from dh2rt.topology import Topology
 from drivers.base import Health, ModuleDriver
 from hil.servo_emulator import ServoEmulator
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from sim.sensors import JOINT_SENSORS, PhysicsSensors
 from sim.world import World as PhysicsWorld
 
 #: A long hiccup (a slow start, a paused process) is not caught up: physics never runs more
@@ -78,6 +85,21 @@ class PhysicsStandIn(Closing):
             self.close()
             raise
         self.start_centroid = self.world.centroid()
+        self._sensors: PhysicsSensors | None = None
+
+    def measure(self, names: Iterable[str]) -> tuple[str, ...]:
+        """From now on :meth:`readings` computes those of ``names`` that physics provides
+        other than the joints' (the modules read those from their servos); returns them."""
+        self._sensors = PhysicsSensors(self.world, [n for n in names if n not in JOINT_SENSORS])
+        return self._sensors.names
+
+    def readings(self, modules: Sequence[int]) -> dict[int, dict[str, float]]:
+        """What each listed module's IMU, infrared pairs and ground contact read now (the
+        sensors :meth:`measure` chose), in the profile's units."""
+        if self._sensors is None or not self._sensors.names:
+            return {m: {} for m in modules}
+        with self.lock:
+            return self._sensors.read(modules)
 
     def port(self, module: int) -> str:
         """The serial port module ``module``'s servos answer on."""

@@ -18,6 +18,14 @@ them in the typed control protocol of :mod:`hil.control`, keeps what they report
   neighbours notice the silence within the liveness bound.
 * ``restart``: the module starts again with a fresh state on the same links.
 * ``inject``: the hormone is sent to the module over its control channel.
+* ``sense``: the sensor value is sent to the module (:class:`~hil.control.Sense`), which
+  holds it from then on; the world remembers it and sends it again to a restarted module.
+
+Sensors: with the PyBullet stand-in, the world measures each module's IMU, infrared pairs and
+ground contact (the sensors the program declares; ``sim.sensors``) every ``sensor_every``
+world cycles and pushes them to the module (:class:`~hil.control.Readings`), once before
+``go`` and after each restart too; the joints' present position and load a module reads
+from its own (emulated) servos. :attr:`World.push_times` holds what each push cost.
 
 Effects that natives ask of the physical world arrive as reports; ``reach_and_dock``,
 ``reach_dock`` and ``release`` are carried out by the rules of :mod:`dh2rt.docking`, with
@@ -54,7 +62,7 @@ from dh2rt.transport.base import PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
-from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS, ChannelSpec, ModuleConfig
+from hil.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
 from hil.contact_emulator import ContactEmulator
 from hil.control import (
     Attach,
@@ -66,8 +74,10 @@ from hil.control import (
     Go,
     Inject,
     Log,
+    Readings,
     Ready,
     Report,
+    Sense,
     Status,
     Stop,
     TraceRecord,
@@ -127,7 +137,10 @@ class World:
         signer: bytes | None = None,
         trial_cycles: int = DEFAULTS.trial_cycles,
         line_baud: int = LINE_BAUD,
+        sensor_every: int = 1,
     ) -> None:
+        if sensor_every < 1:
+            raise HilWorldError(f"sensor readings pushed every {sensor_every} cycles: must be 1 or more")
         self.program = program
         self.topology = topology
         self.profile = topology.profile
@@ -199,6 +212,18 @@ class World:
             if self.emulator is not None:
                 self.emulator.close()
             raise
+        #: the sensors the world's physics measures and pushes (see the module docs)
+        self.sensor_every = sensor_every
+        self.measured: tuple[str, ...] = ()
+        if self.physics is not None:
+            self.measured = self.physics.measure(n for n in program.sensor_names if n in self.profile.sensor_names)
+        #: values ``sense`` events forced, per module (sent again to a restarted module)
+        self.sensed: dict[int, dict[str, int]] = {}
+        #: each ``sense`` sent: (module, sensor, value, monotonic s before and after sending it)
+        self.sense_times: list[tuple[int, str, int, float, float]] = []
+        #: seconds each push of readings took (measure, round, send to every module)
+        self.push_times: list[float] = []
+        self._next_push = 0
         self.reports: Reports = queue.Queue()
         #: each module process's module.toml and flash (removed by stop())
         self.workdir = Path(tempfile.mkdtemp(prefix="dh2rt-hil-"))
@@ -262,6 +287,8 @@ class World:
         real = self.hardware.get(module) if self.hardware is not None else None
         servo_port = self.physics.port(module) if self.physics is not None else None
         servos: dict[str, Any] = {}
+        if servo_port is not None:  # servos this world emulates answer from one of its threads
+            servos["servo_latency_ms"] = EMULATED_SERVO_LATENCY_MS
         if real is not None and real.servo_port:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
@@ -324,6 +351,7 @@ class World:
         # one start instant for all (CLOCK_MONOTONIC is shared by every process here): the
         # modules exchange Hellos until then and start cycling together, like modules powered
         # up at once; afterwards each keeps its own clock
+        self.push_readings()  # cycle 0 reads the body as it stands
         self._go_at = time.monotonic() + self.start_delay
         for h in self.handles:
             if h is not None:
@@ -412,6 +440,20 @@ class World:
         except (IndexError, TypeError, ValueError):
             self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
 
+    def push_readings(self, modules: Iterable[int] | None = None) -> None:
+        """Measure the sensors of ``modules`` (default: every live one) in physics and send
+        each its readings, rounded and clamped to the profile's ranges."""
+        if self.physics is None or not self.measured:
+            return
+        started = time.perf_counter()
+        alive = [m for m in (range(self.topology.size) if modules is None else modules) if self.views[m].alive]
+        specs = {n: self.profile.sensor(n) for n in self.measured}
+        for m, values in self.physics.readings(alive).items():
+            # physics measures in pairs (roll with pitch, a distance with its alignment):
+            # only what the program declares is sent
+            self._send(m, Readings({n: specs[n].reading(v) for n, v in values.items() if n in specs}))
+        self.push_times.append(time.perf_counter() - started)
+
     # ------------------------------------------------------------ the docking world
 
     def peer_of(self, end: End) -> End | None:
@@ -439,6 +481,9 @@ class World:
         self.poll()
         if self.physics is not None and self._go_at is not None and time.monotonic() >= self._go_at:
             self.physics.advance()
+            if self.measured and self.cycle >= self._next_push:
+                self._next_push = self.cycle + self.sensor_every
+                self.push_readings()
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]
@@ -473,6 +518,8 @@ class World:
             self.restart(event.module)
         elif event.kind == "inject" and event.hormone is not None:
             self.inject(event.module, event.hormone)
+        elif event.kind == "sense":
+            self.sense(event.module, event.sensor, event.value)
         self.log.append(f"world cycle {self.cycle}: {event.text or event.kind}")
         self.event_times.append((event.text or event.kind, started))
 
@@ -560,6 +607,9 @@ class World:
             self.poll(0.02)
             if self._exited(module):
                 break
+        for name, value in self.sensed.get(module, {}).items():  # its surroundings did not restart
+            self._send(module, Sense(name, value))
+        self.push_readings([module])
         # it starts on a world cycle boundary a little ahead (Hellos first) and runs the
         # cycles left from there, so it stops with the others
         base = self._go_at if self._go_at is not None else time.monotonic()
@@ -570,6 +620,13 @@ class World:
     def inject(self, module: int, hormone: Hormone) -> None:
         text = hormone.name if not hormone.args else hormone.content()
         self._send(module, Inject(text))
+
+    def sense(self, module: int, name: str, value: int) -> None:
+        """Sensor ``name`` of ``module`` reads ``value`` from now on (a ``sense`` event)."""
+        self.sensed.setdefault(module, {})[name] = value
+        before = time.monotonic()
+        self._send(module, Sense(name, value))
+        self.sense_times.append((module, name, value, before, time.monotonic()))
 
     def _send(self, module: int, cmd: Command) -> None:
         h = self.handles[module]

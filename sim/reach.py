@@ -166,17 +166,8 @@ class Chain:
         face), aimed at ``target`` on a body the route does not reach: the chain ends at the
         part of the last module that the route enters, and :attr:`beyond` must be set to the
         target part's pose in that part's frame before each use."""
-        module, conn = asking
         chain = cls(model, asking, target)
-        entry = model.connector(conn).link
-        for c in route:
-            chain._inside(module, entry, model.connector(c).link)
-            peer = peer_of((module, c))
-            if peer is None:
-                raise ValueError(f"route leaves module {module} through connector {c}, which has no link")
-            chain._across(c, peer[1])
-            module, entry = peer[0], model.connector(peer[1]).link
-        chain.anchor = (module, entry)
+        chain.anchor = chain._follow(model, asking, route, peer_of)
         return chain
 
     @classmethod
@@ -190,19 +181,27 @@ class Chain:
     ) -> Chain:
         """The chain from ``asking`` (module, connector) along ``route`` (the connector to
         leave through at each hop) to connector ``target_conn`` of the module it leads to."""
-        module, conn = asking
-        chain = cls(model, asking, (module, conn))
-        entry = model.connector(conn).link
-        for c in route:
-            chain._inside(module, entry, model.connector(c).link)
-            peer = peer_of((module, c))
-            if peer is None:
-                raise ValueError(f"route leaves module {module} through connector {c}, which has no link")
-            chain._across(c, peer[1])
-            module, entry = peer[0], model.connector(peer[1]).link
+        chain = cls(model, asking, asking)
+        module, entry = chain._follow(model, asking, route, peer_of)
         chain._inside(module, entry, model.connector(target_conn).link)
         chain.target = (module, target_conn)
         return chain
+
+    def _follow(
+        self, model: ConroModel, asking: End, route: Sequence[int], peer_of: Callable[[End], End | None]
+    ) -> tuple[int, int]:
+        """Add the steps from ``asking`` (module, connector) along ``route`` (the connector to
+        leave through at each hop); the module the route leads to and the part it enters."""
+        module, conn = asking
+        entry = model.connector(conn).link
+        for c in route:
+            self._inside(module, entry, model.connector(c).link)
+            peer = peer_of((module, c))
+            if peer is None:
+                raise ValueError(f"route leaves module {module} through connector {c}, which has no link")
+            self._across(c, peer[1])
+            module, entry = peer[0], model.connector(peer[1]).link
+        return module, entry
 
     def _inside(self, module: int, entry: int, leave: int) -> None:
         """Steps from part ``entry`` to part ``leave`` of one module (through the centre)."""

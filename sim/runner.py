@@ -134,14 +134,10 @@ class PhysicsRun:
         """Begin bending ``module``'s ``connector`` to ``target_conn`` of the module at the
         end of ``route`` (refused, logged, if the rules say no or a motion already owns one
         of the chain's joints)."""
-        target = docking.reach_target(self, module, connector, route)
+        target = docking.reach_dock_target(self, module, connector, route, target_conn)
         if target is None:
             return
-        here = target[0]
-        where = f"{self.where(module, connector)} -> {self.where(here, target_conn)}"
-        if self.peer_of((here, target_conn)) is not None:
-            self.note(f"reach_dock {where}: the target connector is not free")
-            return
+        here, where = target
         if not self.robot.profile.can_link(connector, target_conn):
             self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
             return

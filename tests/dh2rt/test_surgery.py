@@ -8,6 +8,8 @@ from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec, snake
 
 BACK = CONRO.connector_index("back")
+#: examples/locomotion.dh2's Slots: a leg hormone per slot, eight per ClockCycle.
+SLOTS = 8
 
 
 def types(robot: Robot) -> list[str]:
@@ -70,7 +72,9 @@ def test_octopod_cut_into_two_quadrupeds_that_keep_walking(locomotion: CompiledP
     assert types(robot) == expected_types(robot)
     assert robot.engine(topo.module_index("spine2")).topo_type.name == "spine_front"
     assert robot.engine(spine1).topo_type.name == "spine_rear"
-    # both halves: every leg keeps receiving its rhythm and moving, 4 leg hormones per ClockCycle
+    # the new front spine stands its half up, then starts the rhythm at its next LocalTimer 0
+    robot.run(locomotion.clock_cycle)
+    # both halves: every leg keeps receiving its rhythm and moving, one leg hormone per slot
     legs = [i for i, n in enumerate(topo.names) if "leg" in n]
     robot.record = True
     received = dict.fromkeys(legs, 0)
@@ -83,9 +87,9 @@ def test_octopod_cut_into_two_quadrupeds_that_keep_walking(locomotion: CompiledP
                 moves[rec.module].add(tuple(robot.engine(rec.module).dof))
         robot.records.clear()
     for m in legs:
-        assert abs(received[m] - cycles // locomotion.clock_cycle * 4) <= 1, (topo.names[m], received[m])
+        assert abs(received[m] - cycles // locomotion.clock_cycle * SLOTS) <= 1, (topo.names[m], received[m])
         assert len(moves[m]) >= 4, topo.names[m]
-    # diagonal legs of each quadruped move together (a trot), in both halves
-    for a, b in (("left_leg0", "right_leg1"), ("left_leg2", "right_leg3")):
-        ea, eb = robot.engine(topo.module_index(a)), robot.engine(topo.module_index(b))
-        assert ea.dof[0] == eb.dof[0]
+    # a spine module's two legs move as mirror images (same pitch, opposite yaw), in both halves
+    for i in range(4):
+        ea, eb = robot.engine(topo.module_index(f"left_leg{i}")), robot.engine(topo.module_index(f"right_leg{i}"))
+        assert ea.dof[0] == eb.dof[0] and ea.dof[1] == -eb.dof[1], (i, ea.dof, eb.dof)

@@ -255,6 +255,29 @@ def test_latency_timer_sets_this_ports_reply_timeout(emu: ServoEmulator) -> None
     assert sdk_port.LATENCY_TIMER == 16  # the process-wide default is untouched
 
 
+@pytest.mark.parametrize("late", ["read_feedback", "read_positions"])
+def test_a_late_reply_is_not_taken_as_the_answer_to_the_next_request(emu: ServoEmulator, late: str) -> None:
+    """A SYNC_READ times out and its replies come after the next request was sent (the
+    emulator answers in order): the PINGs of health() and the READs after them skip those
+    replies (another parameter count) and take their own. Seen in the loop before: "DOF1
+    servo id 1 is model 315, expected 1020", a SYNC_READ's data read as a model number."""
+    emu.start()
+    with DynamixelDriver(emu.port_path, latency_timer_ms=LATENCY_MS) as drv:
+        drv.set_targets(20.0, -10.0)
+        wait_for(reached(drv, 20.0, -10.0))
+        timeout_s = (2 * LATENCY_MS + 2) / 1000
+        emu.reply_delay_s = timeout_s + 0.15  # the first reply comes after the SDK gave up
+        with pytest.raises(ServoCommError, match="no reply in time"):
+            getattr(drv, late)()
+        emu.reply_delay_s = 0.0  # the next replies come at once, behind the late ones
+        health = drv.health()
+        assert health.faults == (), health.faults
+        assert drv.models == [dxt.MODEL_XM430_W350] * 2
+        assert drv._ph.stale == 2  # both servos' late statuses, skipped
+        dof1, dof2 = drv.read_positions()
+        assert abs(dof1 - 20.0) <= dxt.DEG_PER_TICK and abs(dof2 + 10.0) <= dxt.DEG_PER_TICK
+
+
 def test_closed_driver_reports_instead_of_crashing(driver: DynamixelDriver) -> None:
     driver.close()
     assert driver.health().faults == (f"servo port {driver.port_path} is closed",)

@@ -7,13 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.compiler import compile_file
+from dh2rt.compiler import compile_file, compile_source
 from dh2rt.errors import ServoModelMismatch, ServoNotFound
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
 from dh2rt.testing import FakeClock
 from dh2rt.transport.inproc import InprocBus, InprocTransport
 from dh2rt.wire.frame import FrameCodec
+from drivers.base import ServoSensors
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from drivers.dynamixel import DynamixelDriver
 from hil.servo_emulator import ServoEmulator
@@ -94,3 +95,56 @@ def test_missing_servo_and_wrong_model_fail_clearly_at_open() -> None:
         emulator.start()
         with pytest.raises(ServoModelMismatch, match="1060"):
             DynamixelDriver(emulator.port_path, latency_timer_ms=LATENCY_MS)
+
+
+HOLD = """
+program hold
+const ClockCycle = 4
+sensor pos1, load1
+receptor hold { DOF1(25); keep_alive() }
+"""
+
+
+@pytest.mark.parametrize("phase", [0, 7])
+def test_servos_that_are_gone_cost_a_few_reply_timeouts_not_one_a_cycle(phase: int) -> None:
+    """Both servos stop answering while the module reads them as sensors too: each request
+    then waits out its reply timeout (122 ms here). The runtime tries recover() only at its
+    health checks (one every HEALTH_EVERY cycles) and the sensor feed backs off a failing
+    source, so over 2 x HEALTH_EVERY cycles a handful of requests go out, not several a cycle
+    (before: health() and recover() every cycle while the fault lasted, which stretched each
+    cycle by three timeouts, and the modules of the loop ran 1-10 cycles of 200)."""
+    with ServoEmulator((1, 2)) as emulator:
+        emulator.start()
+        with DynamixelDriver(emulator.port_path, latency_timer_ms=LATENCY_MS) as driver:
+            program = compile_source(HOLD, "hold.dh2")
+            codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+            rt = ModuleRuntime(
+                program, InprocTransport(codec, bus=InprocBus()), driver=driver, timer_phase=phase,
+                clock=FakeClock(0.001),
+            )  # fmt: skip
+            feedback: list[int] = []
+
+            def servos() -> dict[str, float]:
+                feedback.append(rt.cycle)
+                return ServoSensors(driver).read()
+
+            rt.add_sensor_source(servos, label="servos")
+            for _ in range(HEALTH_EVERY):
+                rt.step()
+            assert rt.actuator_fault is None and rt.sensing.faults == 0
+            assert 0 < rt.status()["sensors"]["pos1"] <= 25  # on its way to DOF1(25)
+            for dxl_id in (1, 2):
+                emulator.set_fault(dxl_id, "no_reply")
+            before = emulator.packets_received
+            for _ in range(2 * HEALTH_EVERY):
+                rt.step()
+            requests = emulator.packets_received - before
+            assert rt.actuator_fault is not None and "did not answer" in rt.actuator_fault
+            # health(): 2 PINGs; then recover(): 1 PING (it stops at the first servo gone);
+            # the feed: reads 1, 2, 4, 8, 16 turns apart after the first failure
+            assert requests <= 3 + 6, (requests, feedback[-8:], rt.log)
+            assert rt.sensing.faults >= 3
+            emulator.clear_faults()
+            for _ in range(2 * HEALTH_EVERY):
+                rt.step()
+            assert rt.actuator_fault is None, rt.log
