@@ -35,6 +35,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
+from sim.crawl import Creep
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
@@ -92,6 +93,8 @@ class PhysicsRun:
         )
         #: Docking motions under way.
         self.reaches: list[Reach] = []
+        #: The lone modules that creep towards a docking motion's face, by the motion's id.
+        self.creeps: dict[int, Creep] = {}
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
@@ -163,10 +166,22 @@ class PhysicsRun:
         )
         self.note(f"reach_dock {where}: bending")
 
-    def reach_other(self, module: int, connector: int, route: tuple[int, ...], target: End, timeout: int = 400) -> bool:
+    def reach_other(
+        self,
+        module: int,
+        connector: int,
+        route: tuple[int, ...],
+        target: End,
+        timeout: int = 400,
+        *,
+        creep: bool = False,
+    ) -> bool:
         """Begin bending ``module``'s ``connector`` to ``target`` (module, connector), a face on
         a body that no route reaches (a module lying apart); the joints that move are those
-        along ``route`` from ``module`` up its own robot. False (logged) if the rules say no."""
+        along ``route`` from ``module`` up its own robot. With ``creep`` the target is a lone
+        module whose face is the front: it creeps towards the asking face meanwhile
+        (:class:`sim.crawl.Creep`, for a face beyond the straight chain's reach). False
+        (logged) if the rules say no."""
         b, bc = target
         where = f"{self.where(module, connector)} -> {self.where(b, bc)}"
         if self.peer_of((module, connector)) is not None or self.peer_of((b, bc)) is not None:
@@ -176,19 +191,20 @@ class PhysicsRun:
             self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
             return False
         chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target)
-        self.reaches.append(
-            Reach(
-                self.world,
-                self._ir,
-                chain,
-                lambda: self.aligned(module, connector, b, bc),
-                DOCK_TOLERANCE_M,
-                DOCK_TOLERANCE_DEG,
-                timeout=timeout,
-                start_cycle=self.robot.cycle,
-            )
+        reach = Reach(
+            self.world,
+            self._ir,
+            chain,
+            lambda: self.aligned(module, connector, b, bc),
+            DOCK_TOLERANCE_M,
+            DOCK_TOLERANCE_DEG,
+            timeout=timeout,
+            start_cycle=self.robot.cycle,
         )
-        self.note(f"reach_dock {where}: bending")
+        self.reaches.append(reach)
+        if creep:
+            self.creeps[id(reach)] = Creep(self._ir, b, self.world.model.connector(bc).name)
+        self.note(f"reach_dock {where}: bending" + (f"; {self.robot.where(b, bc)} creeps towards it" if creep else ""))
         return True
 
     def release(self, module: int, connector: int) -> None:
@@ -207,12 +223,15 @@ class PhysicsRun:
             b, bc = reach.chain.target
             alive = self.running(a) and self.running(b)
             targets = reach.step(self.robot.cycle - 1) if alive else {}  # the cycle just run
+            creep = self.creeps.get(id(reach))
             if not alive:
                 self.note(f"reach_dock {self.where(a, ac)}: a module of the chain stopped; motion abandoned")
                 self.reaches.remove(reach)
+                self.creeps.pop(id(reach), None)
                 continue
             if reach.done:
                 self.reaches.remove(reach)
+                self.creeps.pop(id(reach), None)
                 contact = reach.contact
                 assert contact is not None
                 free = self.peer_of((a, ac)) is None and self.peer_of((b, bc)) is None
@@ -233,6 +252,9 @@ class PhysicsRun:
                 continue
             for m, dofs in targets.items():
                 held.setdefault(m, {}).update(dofs)
+            if creep is not None:
+                d1, d2 = creep.step()
+                held.setdefault(creep.module, {}).update({0: d1, 1: d2})
         return held
 
     # ------------------------------------------------------------ events
