@@ -28,6 +28,7 @@ at that moment. ``release`` cuts a module's link at one of its connectors.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 
 from dh2rt import docking
@@ -35,7 +36,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
-from sim.crawl import Creep
+from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
@@ -95,6 +96,8 @@ class PhysicsRun:
         self.reaches: list[Reach] = []
         #: The lone modules that creep towards a docking motion's face, by the motion's id.
         self.creeps: dict[int, Creep] = {}
+        #: Released feet on their way to a face, each with the route the dock will bend.
+        self.trips: list[tuple[Trip, tuple[int, ...]]] = []
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
@@ -207,6 +210,49 @@ class PhysicsRun:
         self.note(f"reach_dock {where}: bending" + (f"; {self.robot.where(b, bc)} creeps towards it" if creep else ""))
         return True
 
+    def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
+        """A released ``foot`` (a lone module) comes to ``target``, a free face of another body
+        (the tail's back), and the two dock: :class:`sim.crawl.Trip` takes the foot to just
+        behind the face, then ``target``'s module bends along ``route`` up its own robot while
+        the foot creeps (:meth:`reach_other` with ``creep``). False (logged) if the rules say
+        no."""
+        front = self.robot.profile.connector_index("front")
+        b, bc = target
+        where = f"{self.where(foot, front)} -> {self.where(b, bc)}"
+        if any(self.peer_of((foot, c)) is not None for c in range(1, len(self.robot.profile.connectors) + 1)):
+            self.note(f"bring {where}: the foot is not lone")
+            return False
+        if self.peer_of(target) is not None or not self.robot.profile.can_link(front, bc):
+            self.note(f"bring {where}: the target is not a free face of the other gender")
+            return False
+        self.trips.append((Trip(self.world, foot, target), route))
+        self.note(f"bring {where}: the foot sets off")
+        return True
+
+    def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
+        for entry in list(self.trips):
+            trip, route = entry
+            b, bc = trip.target
+            if not (self.running(trip.module) and self.running(b)):
+                self.trips.remove(entry)
+                self.note(f"bring {self.where(trip.module, 1)}: a module stopped; trip abandoned")
+                continue
+            dofs = trip.step()
+            if not trip.done:
+                held.setdefault(trip.module, {}).update({0: dofs[0], 1: dofs[1]})
+                continue
+            self.trips.remove(entry)
+            front = self.robot.profile.connector_index("front")
+            if not trip.arrived:
+                self.note(f"bring {self.where(trip.module, front)}: the trip gave up after {trip.cycles} cycles")
+                continue
+            s, lat, heading = trip.state()
+            self.note(
+                f"bring {self.where(trip.module, front)}: arrived after {trip.cycles} cycles "
+                f"({s * 100:+.1f} cm along, {lat * 100:+.1f} cm aside, {math.degrees(heading):+.0f} deg)"
+            )
+            self.reach_other(b, bc, route, (trip.module, front), creep=True)
+
     def release(self, module: int, connector: int) -> None:
         """A module lets go of its link at ``connector`` (nothing if there is none)."""
         if self.peer_of((module, connector)) is None:
@@ -293,6 +339,8 @@ class PhysicsRun:
         self.fill_sensors()
         self.robot.step()
         held = self._step_reaches() if self.reaches else {}
+        if self.trips:
+            self._step_trips(held)
         for m, e in enumerate(self.robot.engines):
             if e is None:
                 continue
