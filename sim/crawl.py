@@ -122,13 +122,14 @@ class Trip:
     module (its heading that module's, reversed from the face's normal). In the target
     face's frame (``s`` along the module's heading from the face, ``lat`` across it, positive
     on the foot's side) the trip is: :func:`back_off` :attr:`backoff_m` away from where it
-    hung; then, turning in place (:func:`turn`) whenever its heading is more than 15 degrees
-    off the one it wants, else backing off: along a line :attr:`clear_m` beside the target's
-    module (the heading it wants leans into the line by 5 degrees per cm off it, at most
-    29) until its front is :attr:`park` [0] behind the face; then sideways (heading 80
-    degrees off) until it is within 1.5 cm of :attr:`park` [1] aside; then square (within 6
-    degrees) and still; if it ended more than 2 cm further back than the spot, it creeps
-    forward to it.
+    hung (its side of the target module is the one it is on then); then, turning in place
+    (:func:`turn`) whenever its heading is more than 8 degrees off the one it wants, else
+    backing off: along a line :attr:`clear_m` beside the target module's axis (the heading
+    it wants leans into the line by 5 degrees per cm off it, at most 29) until its front is
+    :attr:`park` [0] behind the face; then sideways (heading 80 degrees off) until it is
+    within 1.5 cm of :attr:`park` [1] aside; then square (within 6 degrees) and still; if it
+    ended more than 2 cm further back than the spot, it creeps forward to it. The line is
+    straight: it follows the tail only while the tail lies straight.
 
     Where the face is relative to the foot is read from the world (the foot's estimate of it
     from the chain's joint angles at release and its own odometry is not modelled); the
@@ -153,10 +154,11 @@ class Trip:
         self.clear_m = clear_m
         self.park = park
         self.budget = budget
-        _, lat = self._frame()[:2]
-        #: +1 if the foot starts on the target module's left, -1 on its right.
-        self.side = 1 if lat >= 0 else -1
-        self._lat0 = lat * self.side
+        #: +1 if the foot travels on the target module's left, -1 on its right (decided when
+        #: it has backed off).
+        self.side = 1
+        (fx, fy, _), _ = world.connector_pose(module, "front")
+        self._start = (fx, fy)
         self.phase = "back off"
         self.cycles = 0
         self._turning = 0
@@ -189,8 +191,12 @@ class Trip:
             self.done = True
             return 0.0, 0.0
         s, lat, heading = self.state()
-        if self.phase == "back off" and lat - self._lat0 > self.backoff_m:
-            self.phase = "along"
+        if self.phase == "back off":
+            (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
+            if math.dist((fx, fy), self._start) > self.backoff_m:
+                self.phase = "along"
+                self.side = 1 if self._frame()[1] >= 0 else -1
+                s, lat, heading = self.state()
         if self.phase == "along" and s <= self.park[0]:
             self.phase = "aside"
         if self.phase == "back off":
@@ -214,10 +220,10 @@ class Trip:
                 if abs(lat - self.park[1]) > 0.03:
                     self.phase = "aside"
         err = want - heading
-        if not self._turning and abs(err) > math.radians(6 if crawl is None else 15):
-            self._turning = 1 if err > 0 else -1
         if self._turning and (abs(err) < math.radians(4) or self._turning * err < 0):
             self._turning = 0
+        if not self._turning and abs(err) > math.radians(6 if crawl is None else 8):
+            self._turning = 1 if err > 0 else -1
         if self._turning:
             return turn(c, self._turning * self.side)
         if self.phase == "square":
