@@ -28,6 +28,7 @@ at that moment. ``release`` cuts a module's link at one of its connectors.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
 
 from dh2rt import docking
@@ -35,6 +36,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
+from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
@@ -92,6 +94,10 @@ class PhysicsRun:
         )
         #: Docking motions under way.
         self.reaches: list[Reach] = []
+        #: The lone modules that creep towards a docking motion's face, by the motion's id.
+        self.creeps: dict[int, Creep] = {}
+        #: Released feet on their way to a face, each with the route the dock will bend.
+        self.trips: list[tuple[Trip, tuple[int, ...]]] = []
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
@@ -159,10 +165,22 @@ class PhysicsRun:
         )
         self.note(f"reach_dock {where}: bending")
 
-    def reach_other(self, module: int, connector: int, route: tuple[int, ...], target: End, timeout: int = 400) -> bool:
+    def reach_other(
+        self,
+        module: int,
+        connector: int,
+        route: tuple[int, ...],
+        target: End,
+        timeout: int = 400,
+        *,
+        creep: bool = False,
+    ) -> bool:
         """Begin bending ``module``'s ``connector`` to ``target`` (module, connector), a face on
         a body that no route reaches (a module lying apart); the joints that move are those
-        along ``route`` from ``module`` up its own robot. False (logged) if the rules say no."""
+        along ``route`` from ``module`` up its own robot. With ``creep`` the target is a lone
+        module whose face is the front: it creeps towards the asking face meanwhile
+        (:class:`sim.crawl.Creep`, for a face beyond the straight chain's reach). False
+        (logged) if the rules say no."""
         b, bc = target
         where = f"{self.where(module, connector)} -> {self.where(b, bc)}"
         if self.peer_of((module, connector)) is not None or self.peer_of((b, bc)) is not None:
@@ -172,20 +190,64 @@ class PhysicsRun:
             self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
             return False
         chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target)
-        self.reaches.append(
-            Reach(
-                self.world,
-                self._ir,
-                chain,
-                lambda: self.aligned(module, connector, b, bc),
-                DOCK_TOLERANCE_M,
-                DOCK_TOLERANCE_DEG,
-                timeout=timeout,
-                start_cycle=self.robot.cycle,
-            )
+        reach = Reach(
+            self.world,
+            self._ir,
+            chain,
+            lambda: self.aligned(module, connector, b, bc),
+            DOCK_TOLERANCE_M,
+            DOCK_TOLERANCE_DEG,
+            timeout=timeout,
+            start_cycle=self.robot.cycle,
         )
-        self.note(f"reach_dock {where}: bending")
+        self.reaches.append(reach)
+        if creep:
+            self.creeps[id(reach)] = Creep(self._ir, b, self.world.model.connector(bc).name)
+        self.note(f"reach_dock {where}: bending" + (f"; {self.robot.where(b, bc)} creeps towards it" if creep else ""))
         return True
+
+    def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
+        """A released ``foot`` (a lone module) comes to ``target``, a free face of another body
+        (the tail's back), and the two dock: :class:`sim.crawl.Trip` takes the foot to just
+        behind the face, then ``target``'s module bends along ``route`` up its own robot while
+        the foot creeps (:meth:`reach_other` with ``creep``). False (logged) if the rules say
+        no."""
+        front = self.robot.profile.connector_index("front")
+        b, bc = target
+        where = f"{self.where(foot, front)} -> {self.where(b, bc)}"
+        if any(self.peer_of((foot, c)) is not None for c in range(1, len(self.robot.profile.connectors) + 1)):
+            self.note(f"bring {where}: the foot is not lone")
+            return False
+        if self.peer_of(target) is not None or not self.robot.profile.can_link(front, bc):
+            self.note(f"bring {where}: the target is not a free face of the other gender")
+            return False
+        self.trips.append((Trip(self.world, foot, target), route))
+        self.note(f"bring {where}: the foot sets off")
+        return True
+
+    def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
+        for entry in list(self.trips):
+            trip, route = entry
+            b, bc = trip.target
+            if not (self.running(trip.module) and self.running(b)):
+                self.trips.remove(entry)
+                self.note(f"bring {self.where(trip.module, 1)}: a module stopped; trip abandoned")
+                continue
+            dofs = trip.step()
+            if not trip.done:
+                held.setdefault(trip.module, {}).update({0: dofs[0], 1: dofs[1]})
+                continue
+            self.trips.remove(entry)
+            front = self.robot.profile.connector_index("front")
+            if not trip.arrived:
+                self.note(f"bring {self.where(trip.module, front)}: the trip gave up after {trip.cycles} cycles")
+                continue
+            s, lat, heading = trip.state()
+            self.note(
+                f"bring {self.where(trip.module, front)}: arrived after {trip.cycles} cycles "
+                f"({s * 100:+.1f} cm along, {lat * 100:+.1f} cm aside, {math.degrees(heading):+.0f} deg)"
+            )
+            self.reach_other(b, bc, route, (trip.module, front), creep=True)
 
     def release(self, module: int, connector: int) -> None:
         """A module lets go of its link at ``connector`` (nothing if there is none)."""
@@ -203,12 +265,15 @@ class PhysicsRun:
             b, bc = reach.chain.target
             alive = self.running(a) and self.running(b)
             targets = reach.step(self.robot.cycle - 1) if alive else {}  # the cycle just run
+            creep = self.creeps.get(id(reach))
             if not alive:
                 self.note(f"reach_dock {self.where(a, ac)}: a module of the chain stopped; motion abandoned")
                 self.reaches.remove(reach)
+                self.creeps.pop(id(reach), None)
                 continue
             if reach.done:
                 self.reaches.remove(reach)
+                self.creeps.pop(id(reach), None)
                 contact = reach.contact
                 assert contact is not None
                 free = self.peer_of((a, ac)) is None and self.peer_of((b, bc)) is None
@@ -229,6 +294,9 @@ class PhysicsRun:
                 continue
             for m, dofs in targets.items():
                 held.setdefault(m, {}).update(dofs)
+            if creep is not None:
+                d1, d2 = creep.step()
+                held.setdefault(creep.module, {}).update({0: d1, 1: d2})
         return held
 
     # ------------------------------------------------------------ events
@@ -267,6 +335,8 @@ class PhysicsRun:
         self.fill_sensors()
         self.robot.step()
         held = self._step_reaches() if self.reaches else {}
+        if self.trips:
+            self._step_trips(held)
         for m, e in enumerate(self.robot.engines):
             if e is None:
                 continue
