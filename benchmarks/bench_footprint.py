@@ -619,6 +619,9 @@ def checks(who: str, children: list[Child]) -> dict[str, Any]:
     return {
         "frames_received_min": min(int(c.get("frames_received", 0)) for c in counters),
         "send_failed": sum(int(c.get("frames_send_failed", 0)) for c in counters),
+        # of those, the program's sends through a connector with no link (the tail passing
+        # the wave on through its free back: one per hormone it gets), not lost frames
+        "send_failed_unlinked": sum(int(c.get("engine_send_failed", 0)) for c in counters),
         "links_lost": sum(int(c.get("links_lost", 0)) for c in counters),
         "late_cycles": sum(int(c.get("late_cycles", 0)) for c in counters),
         "types": [s.get("type") for s in last],
@@ -702,7 +705,7 @@ def compile_bytecode() -> bool:
     """Compile dh2rt's packages to bytecode (``__pycache__``), as ``pip install`` does on a
     module processor and python-can in the bare loop have them. Without it (a source
     checkout run with PYTHONDONTWRITEBYTECODE, as here) every module compiles its imports'
-    source at each start: 0.1 MB more resident on a bus module today, but 3.5 MB while the
+    source at each start: no more resident on a bus module today (29.6 MB), but 3.5 MB while the
     2,000-line rollout was imported at boot (2026-11-25), which the comparison then hid."""
     import compileall
 
