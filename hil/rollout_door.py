@@ -14,8 +14,8 @@ door instead and opens the host at the first thing that needs it:
 
 Until then the door keeps what the host would have been told: the latest Hello on every
 linked connector. When it opens, the new host attaches the transport's links as it always
-does and is handed those Hellos, then the event that opened it, so it starts where an
-eagerly loaded host would be. After that the host is the runtime's observer and the
+does and is handed those Hellos (the one that opened it among them), then the transfer frame
+that opened it, if one did, so it starts where an eagerly loaded host would be. After that the host is the runtime's observer and the
 transport's transfer handler, and the door only forwards the module host's calls.
 
 Before any of this the door checks that the module's lines can carry a rollout at all
@@ -97,8 +97,8 @@ class RolloutDoor:
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
         self._hellos[connector] = (remote, hello, now)
         if hello.version is not None and hello.version < self.boot.version:
-            host = self._open(f"a neighbour on version {hello.version} (through connector {connector})")
-            host.hello(connector, remote, hello, now)
+            # the host is handed every Hello kept, this one included
+            self._open(f"a neighbour on version {hello.version} (through connector {connector})")
 
     def link_down(self, connector: int, now: float) -> None:
         self._hellos.pop(connector, None)
