@@ -15,8 +15,9 @@ door instead and opens the host at the first thing that needs it:
 Until then the door keeps what the host would have been told: the latest Hello on every
 linked connector. When it opens, the new host attaches the transport's links as it always
 does and is handed those Hellos (the one that opened it among them), then the transfer frame
-that opened it, if one did, so it starts where an eagerly loaded host would be. After that the host is the runtime's observer and the
-transport's transfer handler, and the door only forwards the module host's calls.
+that opened it, if one did, so it starts where an eagerly loaded host would be. After that
+the host is the runtime's observer and the transport's transfer handler, and the door only
+forwards the module host's calls.
 
 Before any of this the door checks that the module's lines can carry a rollout at all
 (:func:`dh2rt.pacing.link_pacing`) and raises its ValueError if not, so a module on too
