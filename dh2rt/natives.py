@@ -13,13 +13,20 @@ from collections.abc import Mapping
 from dh2rt.engine import Engine, Native
 from dh2rt.hormone import Path
 
-#: How far a spine module bends (DOF2, degrees) to help the tail reach a foot.
-ASSIST_BEND_DEG = 30.0
+#: Where a module on the assimilation's way holds its yaw (DOF2, degrees): straight.
+ASSIST_YAW_DEG = 0.0
 
 
 def assist_leg_assimilation(engine: Engine) -> None:
-    """Fig. 5's ``assist_leg_assimilation()``: bend to bring the tail towards the foot."""
-    engine.dof[1] = ASSIST_BEND_DEG
+    """Fig. 5's ``assist_leg_assimilation()``: help the tail and the foot meet.
+
+    In the paper the modules bend to bring the tail towards the foot. With the CONRO
+    profile's genders the foot comes to the tail instead (docs/physics.md, *Legs to snake*):
+    it travels along the robot to the tail's back, so the modules on the way hold their yaw
+    straight (:data:`ASSIST_YAW_DEG`); a bent spine would put the tail's end off the line the
+    foot follows.
+    """
+    engine.dof[1] = ASSIST_YAW_DEG
     engine.dof_changed = True
     engine.effect("assist")
 

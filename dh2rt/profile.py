@@ -33,7 +33,9 @@ table (:data:`CONRO_SENSORS`, documented in docs/language.md, *Sensors*):
   180 when none is in view;
 * ``contact``: 1 while any part of the module touches the ground;
 * ``pos1``, ``pos2``: the joints' present angles (degrees); ``load1``, ``load2``: the
-  servos' present load, percent of their maximum torque, signed.
+  servos' present load, percent of their maximum torque, signed;
+* ``docking``: 1 while a docking motion this module asked for (``reach_dock``,
+  ``dock_tail_to_foot``) is under way, 0 otherwise: the motion controller's own state.
 """
 
 from __future__ import annotations
@@ -263,6 +265,7 @@ CONRO_DATA: dict[str, Any] = {
             ("pos2", "deg", -180, 180, "DOF2 (yaw) present angle"),
             ("load1", "%", -100, 100, "DOF1 servo's present load, percent of its maximum torque, signed"),
             ("load2", "%", -100, 100, "DOF2 servo's present load, percent of its maximum torque, signed"),
+            ("docking", "bool", 0, 1, "1 while a docking motion this module asked for is under way"),
         )
     ],
 }

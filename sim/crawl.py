@@ -94,6 +94,11 @@ class Creep:
         return creep(self.crept)
 
 
+#: How far beyond a leg's centre (m) a foot passing it keeps its front, and from how far
+#: ahead (m, along the path) it does so.
+OBSTACLE_CLEAR_M = 0.10
+OBSTACLE_AHEAD_M = 0.30
+
 #: The turning gait's period (control cycles); see the module docs.
 TURN_PERIOD = 12
 
@@ -114,6 +119,8 @@ class Poses(Protocol):
 
     def part_transform(self, module: int, link: int) -> Any: ...
 
+    def module_position(self, module: int) -> tuple[float, float, float]: ...
+
 
 class Trip:
     """A released foot's trip to a spot just behind a free face (the tail's back), facing it.
@@ -122,14 +129,31 @@ class Trip:
     module (its heading that module's, reversed from the face's normal). In the target
     face's frame (``s`` along the module's heading from the face, ``lat`` across it, positive
     on the foot's side) the trip is: :func:`back_off` :attr:`backoff_m` away from where it
-    hung (its side of the target module is the one it is on then); then, turning in place
+    hung (its side of the target module is the one it is on then), and further while a leg
+    still on the body is in the way along (see ``others``); then, turning in place
     (:func:`turn`) whenever its heading is more than 8 degrees off the one it wants, else
-    backing off: along a line :attr:`clear_m` beside the target module's axis (the heading
-    it wants leans into the line by 5 degrees per cm off it, at most 29) until its front is
-    :attr:`park` [0] behind the face; then sideways (heading 80 degrees off) until it is
-    within 1.5 cm of :attr:`park` [1] aside; then square (within 6 degrees) and still; if it
-    ended more than 2 cm further back than the spot, it creeps forward to it. The line is
-    straight: it follows the tail only while the tail lies straight.
+    backing off: along a line :attr:`clear_m` beside the robot's axis (the heading it wants
+    leans into the line by 5 degrees per cm off it, at most 29; out by up to 70 to pass a
+    leg) until its front is :attr:`margin_m` further back than :attr:`park` [0]; then,
+    back first, towards the spot :attr:`park` [1] aside on that line (re-aimed from where
+    the foot is each cycle: the gaits drift differently with the floor's friction at each
+    heading) until within 2 cm of it; then square (within 6 degrees) and still. Squared
+    within 3 cm of the axis and between 1 and 8.5 cm behind the face it has arrived (the
+    dock's creep closes the rest); otherwise it moves across again, or back along if it was
+    pushed alongside the target module. A turn keeps its direction while the foot faces
+    about the other way (the error's sign flips there from cycle to cycle).
+
+    ``others`` (the target robot's modules off the path) are the legs still on the body: a
+    foot passing one on its side keeps its front :data:`OBSTACLE_CLEAR_M` beyond the leg's
+    centre (a front foot going first ran into the rear leg and stayed there).
+
+    The line follows the target's robot as it lies: ``body`` (the modules from the target
+    module up its robot, each the one the last is docked to by its front) makes a polyline
+    from the face through each module's centre, and while backing along, ``s`` is the arc
+    length from the face along it (negative beyond the face) and ``lat`` and the heading are
+    taken against the nearest segment. Without ``body`` the line is straight along the
+    target module: it followed a tail only while the tail lay straight (a second round, with
+    the first foot docked a little askew, drifted out and ran the foot into the tail's side).
 
     Where the face is relative to the foot is read from the world (the foot's estimate of it
     from the chain's joint angles at release and its own odometry is not modelled); the
@@ -143,13 +167,22 @@ class Trip:
         target: tuple[int, int],
         *,
         backoff_m: float = 0.08,
-        clear_m: float = 0.04,
+        clear_m: float = 0.10,
         park: tuple[float, float] = (-0.03, 0.005),
         budget: int = 2500,
+        body: Callable[[], list[int]] | None = None,
+        others: Callable[[], list[int]] | None = None,
+        margin_m: float = 0.03,
     ) -> None:
         self.world = world
         self.module = module
         self.target = target
+        self.body = body
+        #: The target robot's modules off the path (the legs still on the body).
+        self.others = others
+        #: How much further back than the spot the foot goes before it moves sideways, so
+        #: that it clears the target module's corner.
+        self.margin_m = margin_m
         self.backoff_m = backoff_m
         self.clear_m = clear_m
         self.park = park
@@ -178,9 +211,64 @@ class Trip:
         heading = math.atan2(float(t[1, 0]), float(t[0, 0])) - math.atan2(uy, ux)
         return rx * ux + ry * uy, -rx * uy + ry * ux, (heading + math.pi) % (2 * math.pi) - math.pi
 
-    def state(self) -> tuple[float, float, float]:
-        """(s, lat, heading) with lat and heading mirrored to the foot's side."""
-        s, lat, heading = self._frame()
+    def _path_frame(self) -> tuple[float, float, float]:
+        """As :meth:`_frame`, against the polyline from the face through :attr:`body`'s
+        centres (the nearest segment; the first one extends beyond the face)."""
+        if self.body is None:
+            return self._frame()
+        (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
+        t = self.world.part_transform(self.module, -1)
+        psi = math.atan2(float(t[1, 0]), float(t[0, 0]))
+        s, lat, direction = self._on_path(self._polyline(), fx, fy)
+        return s, lat, (psi - direction + math.pi) % (2 * math.pi) - math.pi
+
+    def _polyline(self) -> list[tuple[float, float]]:
+        (px, py, _), _ = self.world.connector_pose(*self.target)
+        body = self.body() if self.body is not None else []
+        return [(px, py)] + [self.world.module_position(m)[:2] for m in body]
+
+    @staticmethod
+    def _on_path(points: list[tuple[float, float]], fx: float, fy: float) -> tuple[float, float, float]:
+        """(s, lat, the segment's direction) of the point (fx, fy) against the polyline."""
+        best: tuple[float, float, float, float] | None = None  # distance, s, lat, direction
+        along = 0.0
+        for i in range(len(points) - 1):
+            (ax, ay), (bx, by) = points[i], points[i + 1]
+            length = math.hypot(bx - ax, by - ay) or 1e-9
+            ux, uy = (bx - ax) / length, (by - ay) / length
+            rx, ry = fx - ax, fy - ay
+            proj = rx * ux + ry * uy
+            clamped = proj if i == 0 else max(0.0, proj)
+            if i < len(points) - 2:
+                clamped = min(clamped, length)
+            dist = math.hypot(rx - clamped * ux, ry - clamped * uy)
+            if best is None or dist < best[0]:
+                best = (dist, along + clamped, -rx * uy + ry * ux, math.atan2(uy, ux))
+            along += length
+        assert best is not None, "a polyline has at least two points"
+        return best[1], best[2], best[3]
+
+    def _clearance(self, s: float) -> float:
+        """How far beside the path (m, the foot's side) the foot's front keeps at ``s``: at
+        least :attr:`clear_m`, and :data:`OBSTACLE_CLEAR_M` beyond the centre of any module
+        of the target's robot off the path (a leg still on the body) on the foot's side, from
+        :data:`OBSTACLE_AHEAD_M` ahead of the foot to a little behind it."""
+        if self.others is None or self.body is None:
+            return self.clear_m
+        points = self._polyline()
+        clear = self.clear_m
+        for m in self.others():
+            ox, oy, _ = self.world.module_position(m)
+            so, lo, _ = self._on_path(points, ox, oy)
+            lo *= self.side
+            if lo > 0 and s - OBSTACLE_AHEAD_M <= so <= s + 0.08:
+                clear = max(clear, lo + OBSTACLE_CLEAR_M)
+        return clear
+
+    def state(self, *, path: bool = False) -> tuple[float, float, float]:
+        """(s, lat, heading) with lat and heading mirrored to the foot's side; with ``path``
+        against the target's robot as it lies (:meth:`_path_frame`), else the face's frame."""
+        s, lat, heading = self._path_frame() if path else self._frame()
         return s, lat * self.side, heading * self.side
 
     def step(self) -> tuple[float, float]:
@@ -190,46 +278,54 @@ class Trip:
         if self.cycles > self.budget:
             self.done = True
             return 0.0, 0.0
-        s, lat, heading = self.state()
         if self.phase == "back off":
             (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
-            if math.dist((fx, fy), self._start) > self.backoff_m:
-                self.phase = "along"
-                self.side = 1 if self._frame()[1] >= 0 else -1
-                s, lat, heading = self.state()
-        if self.phase == "along" and s <= self.park[0]:
-            self.phase = "aside"
-        if self.phase == "back off":
-            return back_off(c)
+            if math.dist((fx, fy), self._start) <= self.backoff_m:
+                return back_off(c)
+            s, lat, _heading = self._path_frame()
+            self.side = 1 if lat >= 0 else -1
+            # further out first if a leg still on the body is in the way along
+            if abs(lat) < self._clearance(s) - 0.01 and self.cycles < self.budget // 4:
+                return back_off(c)
+            self.phase = "along"
+        aim = self.park[0] - self.margin_m  # where the sideways leg runs
+        if self.phase == "along":
+            s, lat, heading = self.state(path=True)
+            if s <= aim:
+                self.phase = "aside"
+        if self.phase != "along":
+            s, lat, heading = self.state()
         crawl: Callable[[int], tuple[float, float]] | None = back_off
         if self.phase == "along":
-            want = max(-0.5, min(0.5, 5.0 * (lat - self.clear_m)))
+            clear = self._clearance(s)
+            # leaning in by up to 29 degrees; out by up to 70 past a leg still on the body
+            want = max(-1.2 if clear > self.clear_m else -0.5, min(0.5, 5.0 * (lat - clear)))
         elif self.phase == "aside":
-            off = lat - self.park[1]
-            if abs(off) > 0.015:
-                want = math.radians(80) * (1 if off > 0 else -1)
-            else:
+            off, ahead = lat - self.park[1], s - aim
+            if math.hypot(off, ahead) <= 0.02:
                 self.phase, want, crawl = "square", 0.0, None
+            else:
+                # back first towards the spot (the foot moves away from where its front
+                # points; too far back, it turns about and backs towards the face); the
+                # gait's drift is corrected as the foot's place is read again
+                want = math.atan2(off, ahead)
         else:
             want, crawl = 0.0, None
-            if self.phase == "forward":
-                crawl = creep
-                if s >= self.park[0] - 0.01:
-                    self.done = self.arrived = True
-                    return 0.0, 0.0
-                if abs(lat - self.park[1]) > 0.03:
-                    self.phase = "aside"
-        err = want - heading
-        if self._turning and (abs(err) < math.radians(4) or self._turning * err < 0):
+        err = (want - heading + math.pi) % (2 * math.pi) - math.pi
+        # a turn ends on target or just past it; facing about the other way, the error's sign
+        # flips from cycle to cycle, and the turn keeps its direction
+        if self._turning and (abs(err) < math.radians(4) or (self._turning * err < 0 and abs(err) < math.pi / 2)):
             self._turning = 0
         if not self._turning and abs(err) > math.radians(6 if crawl is None else 8):
             self._turning = 1 if err > 0 else -1
         if self._turning:
             return turn(c, self._turning * self.side)
         if self.phase == "square":
-            if s < self.park[0] - 0.02:
-                self.phase = "forward"
-            else:
+            if s > self.park[0] + 0.02:  # pushed alongside the target module: back along again
+                self.phase = "along"
+            elif abs(lat - self.park[1]) > 0.03 or s < aim - 0.025:
+                self.phase = "aside"
+            else:  # the last centimetres are the dock's (Creep)
                 self.done = self.arrived = True
             return 0.0, 0.0
         return crawl(c) if crawl is not None else (0.0, 0.0)

@@ -44,6 +44,8 @@ from sim.world import World
 
 #: Physics steps per DH2 control cycle: 12 steps at 240 Hz = 50 ms per cycle.
 STEPS_PER_CYCLE = 12
+#: How many docks a foot that came to a face (PhysicsRun.bring) tries before it gives up.
+BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
@@ -81,11 +83,10 @@ class PhysicsRun:
         self.start = self.world.centroid()
         self.samples: list[Sample] = []
         self.log = robot.log
-        # reach_and_dock (legs to snake: release the foot, then dock to it) follows
-        # dh2rt.docking with this run as the world: the link changes only if the two
-        # connectors are physically aligned by then (see docs/physics.md, Docking by motion,
-        # for why the tail cannot bend to a foot with this profile's genders).
-        robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: docking.reach_and_dock(self, m, *args)
+        # reach_and_dock (legs to snake's dock_tail_to_foot): the foot lets go of the body and
+        # comes to the tail by its own gaits, and they dock by motion (see docs/physics.md,
+        # Docking by motion, for why the tail cannot bend to a foot with this profile's genders)
+        robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: self._assimilate_effect(m, args)
         robot.effect_handlers["reach_dock"] = lambda _r, m, args: self.start_reach(m, *args)
         robot.effect_handlers["release"] = lambda _r, m, args: self.release(m, *args)
         #: The infrared pairs the docking motions read (every connector's).
@@ -98,9 +99,17 @@ class PhysicsRun:
         self.creeps: dict[int, Creep] = {}
         #: Released feet on their way to a face, each with the route the dock will bend.
         self.trips: list[tuple[Trip, tuple[int, ...]]] = []
+        #: Docks each foot brought so far has tried (see BRING_ATTEMPTS).
+        self.attempts: dict[int, int] = {}
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
+        #: The engines' slot of the ``docking`` sensor, if the program declares it.
+        self._docking_slot = (
+            program.sensor_names.index("docking")
+            if "docking" in program.sensor_names and "docking" in profile.sensor_names
+            else None
+        )
 
     # ------------------------------------------------------------ the docking world
 
@@ -221,9 +230,84 @@ class PhysicsRun:
         if self.peer_of(target) is not None or not self.robot.profile.can_link(front, bc):
             self.note(f"bring {where}: the target is not a free face of the other gender")
             return False
-        self.trips.append((Trip(self.world, foot, target), route))
+        self.trips.append(
+            (Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b)), route)
+        )
         self.note(f"bring {where}: the foot sets off")
         return True
+
+    def assimilate(self, module: int, connector: int, route: Sequence[int]) -> bool:
+        """``dock_tail_to_foot`` in physics (the effect ``reach_and_dock``): the foot at the end
+        of ``route`` lets go of the body at its front and comes to ``module``'s ``connector``
+        by its own gaits, then the two dock by motion (:meth:`bring`; the last two modules up
+        ``module``'s robot square its face). False (logged) if the rules say no: the route
+        leads nowhere, the foot does not hang by its front, or a foot is already on its way to
+        that face. While it lasts, ``module``'s ``docking`` sensor reads 1."""
+        target = docking.reach_target(self, module, connector, route)
+        if target is None:
+            return False
+        foot, at = target
+        front = self.robot.profile.connector_index("front")
+        where = f"{self.where(module, connector)} -> {self.where(foot, at)}"
+        if at != front:
+            self.note(f"assimilate {where}: the foot does not hang by its front")
+            return False
+        if any(trip.target == (module, connector) for trip, _ in self.trips) or any(
+            r.chain.asking == (module, connector) for r in self.reaches
+        ):
+            self.note(f"assimilate {where}: a foot is already on its way there")
+            return False
+        self.release(foot, at)
+        return self.bring(foot, (module, connector), self.squaring_route(module))
+
+    def squaring_route(self, module: int) -> tuple[int, ...]:
+        """The route up ``module``'s robot whose joints square its face to a foot that came:
+        two hops (the last two modules' joints), fewer on a shorter robot."""
+        front = self.robot.profile.connector_index("front")
+        return (front,) * min(2, len(self.body_up(module)) - 1)
+
+    def _assimilate_effect(self, module: int, args: tuple[object, ...]) -> None:
+        connector, route = args
+        assert isinstance(connector, int) and isinstance(route, tuple)
+        self.assimilate(module, connector, route)
+
+    def docking_modules(self) -> set[int]:
+        """The modules whose docking motion is under way (what their ``docking`` sensor reads)."""
+        return {r.chain.asking[0] for r in self.reaches} | {trip.target[0] for trip, _ in self.trips}
+
+    def _bring_again(self, foot: int, target: End) -> None:
+        """A dock with a foot that came (:meth:`bring`) gave up: the foot sets off again from
+        where it is (backing off, then round to the spot), up to :data:`BRING_ATTEMPTS` docks."""
+        tries = self.attempts.get(foot, 1)
+        if tries >= BRING_ATTEMPTS or not (self.running(foot) and self.running(target[0])):
+            return
+        self.attempts[foot] = tries + 1
+        b = target[0]
+        route = self.squaring_route(b)
+        trip = Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
+        self.trips.append((trip, route))
+        self.note(f"bring {self.where(foot, 1)} -> {self.where(*target)}: the foot tries again ({tries + 1})")
+
+    def body_up(self, module: int) -> list[int]:
+        """``module`` and the modules up its robot from it, each the one the last is docked to
+        by its front (a snake's or tail's spine, from its end towards its head)."""
+        front = self.robot.profile.connector_index("front")
+        chain = [module]
+        while (peer := self.peer_of((chain[-1], front))) is not None and peer[0] not in chain:
+            chain.append(peer[0])
+        return chain
+
+    def off_body(self, module: int) -> list[int]:
+        """The modules of ``module``'s robot not on :meth:`body_up` (the legs still on it)."""
+        seen, todo = {module}, [module]
+        while todo:
+            m = todo.pop()
+            for c in range(1, len(self.robot.profile.connectors) + 1):
+                peer = self.peer_of((m, c))
+                if peer is not None and peer[0] not in seen:
+                    seen.add(peer[0])
+                    todo.append(peer[0])
+        return sorted(seen - set(self.body_up(module)))
 
     def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
         for entry in list(self.trips):
@@ -291,6 +375,8 @@ class PhysicsRun:
                     f"reach_dock {self.where(a, ac)} -> {self.where(b, bc)} gave up after {reach.cycles} cycles "
                     f"({contact.distance_m * 1000:.1f} mm, {contact.attitude_deg:.1f} deg)"
                 )
+                if creep is not None:
+                    self._bring_again(b, (a, ac))
                 continue
             for m, dofs in targets.items():
                 held.setdefault(m, {}).update(dofs)
@@ -317,11 +403,17 @@ class PhysicsRun:
 
     def fill_sensors(self) -> None:
         """Every running module's sensors from its body, except those sense events set."""
+        engines = self.robot.engines
+        sensed = self.robot.sensed
+        slot = self._docking_slot
+        if slot is not None:
+            busy = self.docking_modules()
+            for m, e in enumerate(engines):
+                if e is not None and "docking" not in sensed.get(m, {}):
+                    e.sensors[slot] = int(m in busy)
         if not self._sensor_slots:
             return
-        engines = self.robot.engines
         running = [m for m, e in enumerate(engines) if e is not None]
-        sensed = self.robot.sensed
         for m, values in self.sensors.read(running).items():
             e = engines[m]
             assert e is not None

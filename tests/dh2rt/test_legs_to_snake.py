@@ -95,3 +95,24 @@ def test_interrupted_round_resumes(legs_to_snake: CompiledProgram) -> None:
     robot.inject(killed[0], Hormone("LTS"))
     run_logged(robot, 200)
     assert is_snake(robot)
+
+
+def test_the_head_holds_still_until_no_feet_are_left_then_crawls(legs_to_snake: CompiledProgram) -> None:
+    """The spine's front module is a head once its own legs are gone, while the rear feet
+    still come to the tail; it holds still until the last tail, having heard no RCT for
+    Quiet cycles, sends SNK; then the wave starts. Several seeds: the rounds' order differs."""
+    topo = parse_spec("dragon")
+    spine0 = topo.module_index("spine0")
+    quiet = 60  # the program's Quiet: 3 * RctPeriod
+    for seed in range(6):
+        robot = Robot(legs_to_snake, topo, seed=seed)
+        robot.inject(spine0, Hormone("LTS"))
+        formed = moved = None
+        for c in robot.iter_cycles(700):
+            head = robot.engine(spine0)
+            if formed is None and is_snake(robot):
+                formed = c
+            if head.dof[0] != 0 and moved is None:
+                moved = c
+        assert formed is not None, seed
+        assert moved is not None and formed <= moved <= formed + quiet + 11 + 40, (seed, formed, moved)

@@ -49,6 +49,7 @@ def test_conro_declares_its_sensors_with_units_and_ranges() -> None:
         "pos2",
         "load1",
         "load2",
+        "docking",
     )
     assert CONRO.sensor("roll") == SensorSpec("roll", "deg", -180, 180, CONRO.sensor("roll").doc)
     assert (CONRO.sensor("ir_left").unit, CONRO.sensor("ir_left").high) == ("mm", 100)
