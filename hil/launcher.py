@@ -657,6 +657,24 @@ def _draw(world: World, out: IO[str], tty: bool) -> None:
     out.flush()
 
 
+def _reaches(world: World) -> dict[str, Any] | None:
+    """The docking motions of a run on the PyBullet stand-in (hil.reach_loop): each latch and
+    each motion that gave up, with where the faces were then; None without the stand-in."""
+    r = world.reaches
+    if r is None:
+        return None
+    outcomes = [
+        {"asked": asked, "ended": ended, "steps": steps, "latched": latched}
+        for asked, ended, steps, latched in r.outcomes
+    ]
+    return {
+        "contacts": [c.as_dict() for c in r.contacts],
+        "failed": [c.as_dict() for c in r.failed],
+        "outcomes": outcomes,
+        "missed_cycles": r.missed,
+    }
+
+
 def _summary(
     world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path,
     flashes: FlashEvents | None = None,
@@ -677,6 +695,7 @@ def _summary(
             "sensor_push": _push_cost(world),
             "log": world.log[-200:],
             "rollouts": [] if flashes is None else flashes.report(),
+            "reaches": _reaches(world),
         }
         json.dump(summary, out)
         out.write("\n")

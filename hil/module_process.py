@@ -79,6 +79,7 @@ from hil.control import (
     Effect,
     Failure,
     Go,
+    Hold,
     Inject,
     Log,
     Readings,
@@ -407,6 +408,8 @@ class ModuleHost:
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
+            elif isinstance(cmd, Hold):
+                rt.hold(cmd.targets)
             elif isinstance(cmd, Sense):
                 rt.sense(cmd.sensor, cmd.value)
                 rt.log.append(f"cycle {rt.cycle}: sense: S.{cmd.sensor} = {cmd.value} from now on")
