@@ -490,7 +490,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
                 _draw(world, progress, tty)
                 if not late_warned:
                     late_warned = _warn_if_late(world)
-            time.sleep(0.02)
+            time.sleep(world.idle(0.02))
         world.tick()
     except KeyboardInterrupt:
         interrupted = True

@@ -111,6 +111,8 @@ if TYPE_CHECKING:
     from hil.reach_loop import LoopReaches
 
 
+#: How long after a world cycle begins the world's tick steps the docking motions (s).
+IDLE_PAST_S = 0.001
 #: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.
 LINE_BAUD = 115_200
 
@@ -389,6 +391,15 @@ class World:
         if self._go_at is None:
             return 0
         return max(0, int((time.monotonic() - self._go_at) / self.cycle_period))
+
+    def idle(self, most: float) -> float:
+        """Seconds the caller may sleep before its next :meth:`tick`: ``most``, or while a
+        docking motion is under way, until just after the next world cycle begins (it is
+        stepped once per world cycle)."""
+        if self.reaches is None or not self.reaches.motions or self._go_at is None:
+            return most
+        into = (time.monotonic() - self._go_at) % self.cycle_period
+        return max(0.0, min(most, self.cycle_period - into + IDLE_PAST_S))
 
     def poll(self, timeout: float = 0.0) -> None:
         """Read the modules' reports (waiting up to ``timeout`` s for the first)."""
