@@ -21,10 +21,11 @@ One cycle (:meth:`ModuleRuntime.step`)::
               ConnectorStatus 0 (engine.send_failed)
     beacons   every attached connector that carried no hormone this cycle sends what the
               liveness machine says: a KeepAlive, or a Hello
-    driver    set_targets when DOF1/DOF2 changed (or the targets an outside motion holds:
-              :meth:`ModuleRuntime.hold`, the HIL world's docking motion); every HEALTH_EVERY cycles (at an offset
-              of the module's own, its LocalTimer phase, so that modules sharing a servo bus
-              or a processor do not all read their servos in the same cycle) the driver's
+    driver    set_targets when DOF1/DOF2 changed (or the targets an outside motion holds,
+              :meth:`ModuleRuntime.hold`: the HIL world's docking motion); every
+              HEALTH_EVERY cycles (at an offset of the module's own, its LocalTimer
+              phase, so that modules sharing a servo bus or a processor do not all read
+              their servos in the same cycle) the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
               while it lasts, recover() (if the driver has one) is tried on each check,

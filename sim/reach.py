@@ -392,7 +392,7 @@ class Reach:
     :attr:`done` is set, :attr:`contact` says where the faces were.
 
     ``lock``, if given, is held around the world reads the constructor makes and not around
-    the plan (pure kinematics, about 0.2 s for snake_to_t's ten joints): a world whose physics
+    the plan (pure kinematics, about a quarter of a second for snake_to_t's 12 joints): a world whose physics
     other threads share (the loop's stand-in, hil.reach_loop) is not held up meanwhile. The
     owner holds it around :meth:`step` itself.
     """
