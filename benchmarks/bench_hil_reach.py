@@ -49,7 +49,6 @@ def in_the_loop(seed: int, at: str) -> dict[str, Any]:
         "problems": summary["problems"],
         "seconds": round(time.monotonic() - started, 1),
         "t": types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail",
-        "missed_cycles": reaches["missed_cycles"],
     }
     for outcome, contact in zip(reaches["outcomes"], reaches["contacts"] + reaches["failed"], strict=False):
         out.update(outcome)
@@ -94,13 +93,17 @@ def main(argv: list[str] | None = None) -> int:
         for where, fn in (("loop", in_the_loop), ("process", in_one_process)):
             row = {"seed": seed, "at": at, "run": where, **fn(seed, at)}
             rows.append(row)
-            loop = f"; {row['seconds']} s, exit {row['exit']}, missed {row['missed_cycles']}" if where == "loop" else ""
+            loop = (
+                f"; plan ready at {row['planned']} ({row['plan_s']} s), {row['missed']} cycles missed; "
+                f"{row['seconds']} s, exit {row['exit']}"
+                if where == "loop"
+                else ""
+            )
             print(
                 f"seed {seed} STT at {at} {where:>7}: asked {row.get('asked')}, "
                 f"{'latched' if row.get('latched') else 'NOT latched'} at {row.get('ended')} "
                 f"({row.get('steps', '-')} steps), {row.get('distance_mm')} mm, {row.get('attitude_deg')} deg, "
-                f"infrared {row.get('ir_mm')} mm {row.get('ir_align_deg')} deg; T: {row['t']}"
-                + loop,
+                f"infrared {row.get('ir_mm')} mm {row.get('ir_align_deg')} deg; T: {row['t']}" + loop,
                 flush=True,
             )
     print(json.dumps({"rows": rows}))

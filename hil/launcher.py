@@ -30,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 from types import FrameType
 from typing import IO, Any
@@ -663,15 +664,10 @@ def _reaches(world: World) -> dict[str, Any] | None:
     r = world.reaches
     if r is None:
         return None
-    outcomes = [
-        {"asked": asked, "ended": ended, "steps": steps, "latched": latched}
-        for asked, ended, steps, latched in r.outcomes
-    ]
     return {
         "contacts": [c.as_dict() for c in r.contacts],
         "failed": [c.as_dict() for c in r.failed],
-        "outcomes": outcomes,
-        "missed_cycles": r.missed,
+        "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.outcomes],
     }
 
 

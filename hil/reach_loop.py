@@ -24,6 +24,7 @@ logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -43,14 +44,35 @@ class Motion:
     """One docking motion under way in the loop."""
 
     reach: Reach
-    #: the world cycle it was asked at
-    asked: int
     #: ``asking -> target`` in words
     where: str
+    #: the world cycle it was asked at, and the one its plan was ready at
+    asked: int
+    planned: int
+    #: seconds the plan took (sim.reach.plan, in the world's thread)
+    plan_s: float
+    #: the world cycle it was last stepped at, and the world cycles since its plan was ready
+    #: that went by without a step (the world's thread came too late for them)
+    last: int = -1
+    missed: int = 0
 
     @property
     def modules(self) -> set[int]:
         return {m for m, _ in self.reach.chain.joints}
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How a motion ended: world cycles (asked, plan ready, latched or given up), its steps,
+    the world cycles it missed, the plan's seconds."""
+
+    asked: int
+    planned: int
+    ended: int
+    steps: int
+    missed: int
+    plan_s: float
+    latched: bool
 
 
 class LoopReaches:
@@ -69,12 +91,8 @@ class LoopReaches:
         #: Every link formed by a motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
-        #: (world cycle asked, world cycle latched or given up, the motion's steps, latched)
-        self.outcomes: list[tuple[int, int, int, bool]] = []
-        #: The last world cycle the motions were stepped at, and how many world cycles went
-        #: by without a step (the world's thread came too late for them).
-        self.stepped = -1
-        self.missed = 0
+        #: How each motion ended (those abandoned because a module stopped are only logged).
+        self.outcomes: list[Outcome] = []
         #: What each module was last told to hold (absent: its joints are its program's).
         self.holding: dict[int, dict[int, float]] = {}
 
@@ -99,7 +117,7 @@ class LoopReaches:
         def aligned() -> bool:  # called inside Reach.step, which the caller runs under the lock
             return world.aligned(module, connector, here, target_conn, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
 
-        cycle = w.cycle
+        cycle, started = w.cycle, time.perf_counter()
         reach = Reach(
             world,
             self.ir,
@@ -110,26 +128,28 @@ class LoopReaches:
             start_cycle=cycle,
             lock=self.physics.lock,
         )
-        self.motions.append(Motion(reach, cycle, where))
+        plan_s, planned = time.perf_counter() - started, w.cycle
+        self.motions.append(Motion(reach, where, cycle, planned, plan_s, last=planned - 1))
         modules = sorted({m for m, _ in chain.joints})
-        w.note(f"reach_dock {where}: bending ({len(chain.joints)} joints of modules {modules})")
+        w.note(
+            f"reach_dock {where}: bending ({len(chain.joints)} joints of modules {modules}; asked at world cycle "
+            f"{cycle}, planned in {plan_s:.2f} s)"
+        )
         return True
 
     def step(self, cycle: int) -> None:
         """Once per world cycle: advance every motion by one step, send the chain's modules
         the targets to hold, and latch (or give up) those that are done."""
-        if cycle <= self.stepped or not self.motions:
-            if not self.motions:
-                self.stepped = cycle
+        due = [motion for motion in self.motions if cycle > motion.last]
+        if not due:
             return
-        if self.stepped >= 0:
-            self.missed += cycle - self.stepped - 1
-        self.stepped = cycle
         w = self.world
         holds: dict[int, dict[int, float]] = {}
         done: list[Motion] = []
         with self.physics.lock:
-            for motion in list(self.motions):
+            for motion in due:
+                motion.missed += cycle - motion.last - 1
+                motion.last = cycle
                 reach = motion.reach
                 (a, _), (b, _) = reach.chain.asking, reach.chain.target
                 if not all(w.running(m) for m in {a, b} | motion.modules):
@@ -156,14 +176,15 @@ class LoopReaches:
             f"{contact.distance_m * 1000:.1f} mm, {contact.attitude_deg:.1f} deg apart; infrared "
             f"{contact.ir_mm:.1f} mm, {contact.ir_align_deg:.1f} deg"
         )
-        took = f"{reach.cycles} steps, world cycles {motion.asked}-{cycle}"
-        if reach.latched and w.latch(a, ac, b, bc):
+        took = f"{reach.cycles} steps, world cycles {motion.asked}-{cycle}, {motion.missed} missed"
+        latched = reach.latched and w.latch(a, ac, b, bc)
+        outcome = Outcome(motion.asked, motion.planned, cycle, reach.cycles, motion.missed, motion.plan_s, latched)
+        self.outcomes.append(outcome)
+        if latched:
             self.contacts.append(contact)
-            self.outcomes.append((motion.asked, cycle, reach.cycles, True))
             w.note(f"{w.where(a, ac)} docked to {w.where(b, bc)} by motion after {took} ({how})")
             return
         self.failed.append(contact)
-        self.outcomes.append((motion.asked, cycle, reach.cycles, False))
         w.note(f"reach_dock {motion.where} gave up after {took} ({how})")
 
     def _send_holds(self, holds: dict[int, dict[int, float]]) -> None:
