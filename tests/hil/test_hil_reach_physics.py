@@ -106,6 +106,8 @@ def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pyte
     assert outcome["latched"] and outcome["ended"] == contact["cycle"]
     # the chain took a motion to get there: a bend of 10 degrees and more at 2 degrees a step
     assert outcome["steps"] >= 40 and outcome["ended"] - outcome["asked"] >= outcome["steps"]
+    # stepped once per world cycle once planned (0 or 1 missed in 6 seeds on a 2-core machine)
+    assert outcome["missed"] <= outcome["steps"] // 10, outcome
     # the release came after the latch (the old head counted back once its front was linked)
     order = [i for i, line in enumerate(log) if "docked to m5.left" in line or "m2.back released" in line]
     assert len(order) == 2 and "docked" in log[order[0]]
