@@ -21,8 +21,10 @@ from dh2rt import cli
 from dh2rt.compiler import compile_file
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.testing import runtime_chain, step_all
+from dh2rt.topology import parse_spec
 from drivers.recording import RecordingDriver
 from hil.pace import PACE
+from hil.world import World
 from sim.reach import DEFAULT_TIMEOUT
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 
@@ -73,6 +75,23 @@ def test_held_joints_go_to_the_driver_in_place_of_the_program_s() -> None:
     finally:
         for m in mods:
             m.close()
+
+
+def test_a_latch_needs_the_faces_aligned_in_physics() -> None:
+    """World.latch on the straight snake: physics refuses (m0's front is nowhere near m5's
+    left), and no link is made; a latch between a connector and one already docked is
+    refused by the rules."""
+    program = compile_file(str(ROOT / "examples" / "snake_to_t.dh2"))
+    world = World(program, parse_spec("snake:8", program.profile), "serial", stand_in="pybullet")
+    try:
+        assert world.reaches is not None
+        assert not world.latch(0, FRONT, 5, LEFT)
+        assert world.peer_of((0, FRONT)) is None and world.peer_of((5, LEFT)) is None
+        assert "refused by physics: not aligned" in world.log[-1]
+        assert not world.latch(0, FRONT, 1, 2)  # m1's back is docked to m2's front
+        assert "already docked" in world.log[-1]
+    finally:
+        world.stop()
 
 
 @pytest.mark.parametrize(("seed", "at"), [(0, "m4"), (1, "m0")])
