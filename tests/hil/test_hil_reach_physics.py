@@ -30,9 +30,9 @@ from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, LEFT = 1, 3
-#: World cycles the loop runs snake_to_t for: STT at 50, the motion asked at 59-69 and latched
-#: at 259-359 (seeds 0-2, benchmarks/bench_hil_reach.py), the release 10 later; a motion that
-#: cannot latch gives up 400 steps after it was asked.
+#: World cycles the loop runs snake_to_t for: STT at 50, the motion asked at 55-69 and latched
+#: at 259-359 in every run measured (docs/hil.md, benchmarks/bench_hil_reach.py), the release
+#: 3-10 later; a motion that cannot latch gives up 400 steps after it was asked.
 T_CYCLES = 600
 
 UNREACHABLE = """program unreachable
