@@ -21,9 +21,11 @@ One cycle (:meth:`ModuleRuntime.step`)::
               ConnectorStatus 0 (engine.send_failed)
     beacons   every attached connector that carried no hormone this cycle sends what the
               liveness machine says: a KeepAlive, or a Hello
-    driver    set_targets when DOF1/DOF2 changed; every HEALTH_EVERY cycles (at an offset
-              of the module's own, its LocalTimer phase, so that modules sharing a servo bus
-              or a processor do not all read their servos in the same cycle) the driver's
+    driver    set_targets when DOF1/DOF2 changed (or the targets an outside motion holds,
+              :meth:`ModuleRuntime.hold`: the HIL world's docking motion); every
+              HEALTH_EVERY cycles (at an offset of the module's own, its LocalTimer
+              phase, so that modules sharing a servo bus or a processor do not all read
+              their servos in the same cycle) the driver's
               health() (if it has one) is read, since servo faults surface on reads, not
               on unacknowledged writes; a fault is reported (status, log, counters) and,
               while it lasts, recover() (if the driver has one) is tried on each check,
@@ -185,6 +187,8 @@ class ModuleRuntime:
         self._started = 0.0
         self._injected: list[Hormone] = []
         self._commanded: tuple[float, float] | None = (self.engine.dof[0], self.engine.dof[1])
+        #: joint targets (degrees, by DOF index 0/1) an outside motion holds (see hold())
+        self.held: dict[int, float] = {}
         #: told of cycle starts, Hellos and silent links (None: nobody)
         self.observer: LinkObserver | None = None
 
@@ -329,7 +333,8 @@ class ModuleRuntime:
             if faults:
                 self.last_fault = f"cycle {self.cycle}: {faults[-1]}"
                 self._log(f"fault: {faults[-1]}")
-        self._actuate(engine.dof[0], engine.dof[1])
+        held = self.held
+        self._actuate(held.get(0, engine.dof[0]), held.get(1, engine.dof[1]))
         engine.dof_changed = False
         if self.record:
             self.records.append(self._record(arrivals, sent, faults))
@@ -384,6 +389,17 @@ class ModuleRuntime:
         self.actuator_fault = None
         self._commanded = None
         self._log(f"actuators back: {note}")
+
+    def hold(self, targets: Mapping[int, float]) -> None:
+        """From the next cycle on, the driver is sent ``targets`` (degrees, by DOF index: 0 is
+        DOF1, 1 is DOF2) for those joints in place of the engine's DOF1/DOF2: a motion outside
+        the program owns them (docking by motion in the loop, hil.reach_loop). Empty: the
+        joints are the program's again (its targets are sent at the next cycle). The engine's
+        own DOF1/DOF2 go on as the program sets them."""
+        for dof in targets:
+            if dof not in (0, 1):
+                raise DriverError(f"hold: joint {dof} is neither DOF1 (0) nor DOF2 (1)")
+        self.held = {dof: float(v) for dof, v in targets.items()}
 
     @property
     def commanded(self) -> tuple[float, float]:

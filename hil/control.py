@@ -3,7 +3,8 @@ reports out, as JSON lines (one object a line) over a module process's stdin and
 as the same objects through queues for modules that run as threads.
 
 Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
-:class:`Sense`, :class:`Readings`, :class:`StatusRequest`, :class:`Stop`. Reports (``{"event": ...}``): :class:`Ready`,
+:class:`Sense`, :class:`Readings`, :class:`Hold`, :class:`StatusRequest`, :class:`Stop`.
+Reports (``{"event": ...}``): :class:`Ready`,
 :class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
 :class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
 ControlProtocolError naming the field; a receiver logs it and goes on.
@@ -66,6 +67,15 @@ class Readings:
 
 
 @dataclass(frozen=True)
+class Hold:
+    """Joint targets a docking motion holds (hil.reach_loop): from its next cycle the module
+    sends its servos these (degrees, by DOF index: 0 is DOF1, 1 is DOF2) in place of its
+    program's; empty: the joints are the program's again."""
+
+    targets: Mapping[int, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class StatusRequest:
     pass
 
@@ -75,7 +85,7 @@ class Stop:
     pass
 
 
-Command = Go | Attach | Detach | Inject | Sense | Readings | StatusRequest | Stop
+Command = Go | Attach | Detach | Inject | Sense | Readings | Hold | StatusRequest | Stop
 
 
 def command_to_json(cmd: Command) -> dict[str, Any]:
@@ -94,6 +104,8 @@ def command_to_json(cmd: Command) -> dict[str, Any]:
         return {"cmd": "sense", "sensor": cmd.sensor, "value": cmd.value}
     if isinstance(cmd, Readings):
         return {"cmd": "readings", "values": dict(cmd.values)}
+    if isinstance(cmd, Hold):
+        return {"cmd": "hold", "targets": {str(dof): v for dof, v in cmd.targets.items()}}
     if isinstance(cmd, StatusRequest):
         return {"cmd": "status"}
     return {"cmd": "stop"}
@@ -138,6 +150,8 @@ def command_from_json(obj: object) -> Command:
             if not isinstance(value, int) or isinstance(value, bool):
                 raise ControlProtocolError(f"readings command: sensor {name!r} value {value!r} is not a whole number")
         return Readings(dict(values))
+    if kind == "hold":
+        return Hold(_targets(obj.get("targets")))
     if kind == "status":
         return StatusRequest()
     if kind == "stop":
@@ -262,6 +276,20 @@ def _int(obj: Mapping[str, Any], name: str, where: str) -> int:
     if not isinstance(value, int) or isinstance(value, bool):
         raise ControlProtocolError(f"{where}: field {name!r} {value!r} is not a whole number")
     return value
+
+
+def _targets(targets: object) -> dict[int, float]:
+    """A hold command's joint targets: {"0" or "1": degrees}."""
+    if not isinstance(targets, Mapping):
+        raise ControlProtocolError(f"hold command: field 'targets' {targets!r} is not an object")
+    out: dict[int, float] = {}
+    for dof, value in targets.items():
+        if dof not in ("0", "1"):
+            raise ControlProtocolError(f"hold command: joint {dof!r} is neither DOF1 ('0') nor DOF2 ('1')")
+        if not isinstance(value, int | float) or isinstance(value, bool) or value != value:
+            raise ControlProtocolError(f"hold command: joint {dof} target {value!r} is not a number of degrees")
+        out[int(dof)] = float(value)
+    return out
 
 
 def _jsonable(value: Any) -> Any:

@@ -30,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 from types import FrameType
 from typing import IO, Any
@@ -490,7 +491,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
                 _draw(world, progress, tty)
                 if not late_warned:
                     late_warned = _warn_if_late(world)
-            time.sleep(0.02)
+            time.sleep(world.idle(0.02))
         world.tick()
     except KeyboardInterrupt:
         interrupted = True
@@ -657,6 +658,19 @@ def _draw(world: World, out: IO[str], tty: bool) -> None:
     out.flush()
 
 
+def _reaches(world: World) -> dict[str, Any] | None:
+    """The docking motions of a run on the PyBullet stand-in (hil.reach_loop): each latch and
+    each motion that gave up, with where the faces were then; None without the stand-in."""
+    r = world.reaches
+    if r is None:
+        return None
+    return {
+        "contacts": [c.as_dict() for c in r.contacts],
+        "failed": [c.as_dict() for c in r.failed],
+        "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.outcomes],
+    }
+
+
 def _summary(
     world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path,
     flashes: FlashEvents | None = None,
@@ -677,6 +691,7 @@ def _summary(
             "sensor_push": _push_cost(world),
             "log": world.log[-200:],
             "rollouts": [] if flashes is None else flashes.report(),
+            "reaches": _reaches(world),
         }
         json.dump(summary, out)
         out.write("\n")

@@ -27,9 +27,11 @@ readings the world pushes, and values ``sense`` commands force.
 Control channel: the typed commands of :mod:`hil.control` arrive as JSON lines on stdin
 (``go``: start cycling, at a CLOCK_MONOTONIC instant after exchanging Hellos until then, for
 a number of cycles; ``attach``, ``detach``, ``inject``, ``sense`` (a sensor forced from then on),
-``readings`` (what the world's physics measured for the module), ``status``, ``stop``); reports go out
+``readings`` (what the world's physics measured for the module), ``hold`` (joint targets a
+docking motion holds on its servos), ``status``, ``stop``); reports go out
 as JSON lines on stdout (``ready``, ``status`` every ``status_every`` cycles, ``trace``,
-``effect``, ``log``, ``error``, and ``final`` at exit). A malformed command is refused with
+``effect`` (at the end of the cycle a native asked it in), ``log``, ``error``, and ``final``
+at exit). A malformed command is refused with
 a log report naming the field. SIGTERM and SIGINT end the loop cleanly with a final report.
 Exit codes: 0 after a clean stop (a signal, or the end of a run of ``[hil] cycles``), 1
 after a failure while running, 2 for a config that is wrong or names something that is not
@@ -79,6 +81,7 @@ from hil.control import (
     Effect,
     Failure,
     Go,
+    Hold,
     Inject,
     Log,
     Readings,
@@ -365,6 +368,8 @@ class ModuleHost:
         if rt.cycle % self.config.status_every == 0:
             self._flush()
             self.report(Status(self._status(rt)))
+        elif rt.effects:  # what a native asks of the body goes out in the cycle it was asked
+            self._flush()
 
     def _reopen_servos(self, rt: ModuleRuntime) -> None:
         """Servos that could not be opened are tried again (a bus that was busy or
@@ -407,6 +412,8 @@ class ModuleHost:
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
+            elif isinstance(cmd, Hold):
+                rt.hold(cmd.targets)
             elif isinstance(cmd, Sense):
                 rt.sense(cmd.sensor, cmd.value)
                 rt.log.append(f"cycle {rt.cycle}: sense: S.{cmd.sensor} = {cmd.value} from now on")

@@ -31,7 +31,10 @@ Effects that natives ask of the physical world arrive as reports; ``reach_and_do
 ``reach_dock`` and ``release`` are carried out by the rules of :mod:`dh2rt.docking`, with
 this world as the docking world (DOCK_DELAY world cycles later for the first two: for
 ``reach_and_dock`` the foot's link is cut and the asking connector docked to it), so
-``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop.
+``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop. With the PyBullet stand-in a
+``reach_dock`` is carried out by motion instead (:mod:`hil.reach_loop`): the chain's modules
+hold the joint targets of a :class:`sim.reach.Reach` stepped once per world cycle, and the
+link is docked only once the faces latched in physics, within the physics runner's tolerance.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -53,7 +56,7 @@ from typing import TYPE_CHECKING, Any
 
 from dh2rt import docking
 from dh2rt.docking import End
-from dh2rt.errors import HilWorldError
+from dh2rt.errors import HilWorldError, TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
@@ -72,6 +75,7 @@ from hil.control import (
     Exited,
     Failure,
     Go,
+    Hold,
     Inject,
     Log,
     Readings,
@@ -104,8 +108,11 @@ _DEFAULT_CHANNELS = {
 
 if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
+    from hil.reach_loop import LoopReaches
 
 
+#: How long after a world cycle begins the world's tick steps the docking motions (s).
+IDLE_PAST_S = 0.001
 #: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.
 LINE_BAUD = 115_200
 
@@ -201,16 +208,22 @@ class World:
         #: are PyBullet joints; see hil.physics_stand_in) or "none".
         self.stand_in = stand_in
         self.physics: PhysicsStandIn | None = None
+        #: The docking motions on the PyBullet stand-in (``reach_dock`` by motion), or None.
+        self.reaches: LoopReaches | None = None
         try:
             if stand_in == "pybullet":
                 from hil.physics_stand_in import PhysicsStandIn
+                from hil.reach_loop import LoopReaches
 
                 self.physics = PhysicsStandIn(topology, seed=seed, gui=gui)
+                self.reaches = LoopReaches(self, self.physics)
             elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         except BaseException:  # a failed or interrupted start leaves no pty or thread behind
             if self.emulator is not None:
                 self.emulator.close()
+            if self.physics is not None:
+                self.physics.close()
             raise
         #: the sensors the world's physics measures and pushes (see the module docs)
         self.sensor_every = sensor_every
@@ -379,6 +392,15 @@ class World:
             return 0
         return max(0, int((time.monotonic() - self._go_at) / self.cycle_period))
 
+    def idle(self, most: float) -> float:
+        """Seconds the caller may sleep before its next :meth:`tick`: ``most``, or while a
+        docking motion is under way, until just after the next world cycle begins (it is
+        stepped once per world cycle)."""
+        if self.reaches is None or not self.reaches.motions or self._go_at is None:
+            return most
+        into = (time.monotonic() - self._go_at) % self.cycle_period
+        return max(0.0, min(most, self.cycle_period - into + IDLE_PAST_S))
+
     def poll(self, timeout: float = 0.0) -> None:
         """Read the modules' reports (waiting up to ``timeout`` s for the first)."""
         try:
@@ -433,7 +455,10 @@ class World:
                 docking.release(self, module, int(args[0]))
             elif kind == "reach_dock":
                 connector, route, target = int(args[0]), [int(c) for c in args[1]], int(args[2])
-                docking.reach_and_dock_to(self, module, connector, route, target)
+                if self.reaches is not None:  # by motion, on the stand-in's physics
+                    self.reaches.start(module, connector, route, target)
+                else:
+                    docking.reach_and_dock_to(self, module, connector, route, target)
             else:
                 connector, route = int(args[0]), [int(c) for c in args[1]]
                 docking.reach_and_dock(self, module, connector, route)
@@ -484,6 +509,8 @@ class World:
             if self.measured and self.cycle >= self._next_push:
                 self._next_push = self.cycle + self.sensor_every
                 self.push_readings()
+            if self.reaches is not None:
+                self.reaches.step(self.cycle)
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]
@@ -548,6 +575,30 @@ class World:
         if self.physics is not None:
             self.physics.dock(a, a_conn, b, b_conn)  # latches only if aligned within tolerance
 
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        """A docking motion's latch: in physics first (refused unless aligned within the
+        tolerance), then the link as for a ``dock``; False (logged) if either refuses."""
+        try:
+            docking.check_dock(self.profile, self.link_map.peer.__contains__, self.where, a, a_conn, b, b_conn)
+        except TopologyError as exc:
+            self.note(f"latch {self.where(a, a_conn)} -> {self.where(b, b_conn)} refused: {exc}")
+            return False
+        if self.physics is not None and not self.physics.dock(a, a_conn, b, b_conn):
+            self.note(f"latch {self.where(a, a_conn)} -> {self.where(b, b_conn)} refused by physics: not aligned")
+            return False
+        link = self.link_map.add(a, a_conn, b, b_conn)
+        if self.contacts is not None:
+            self.contacts.make_contact((a, a_conn), (b, b_conn))
+        else:
+            for m, c in ((a, a_conn), (b, b_conn)):
+                self._send(m, Attach(c, self.link_map.end(link, m, c)))
+        return True
+
+    def hold(self, module: int, targets: Mapping[int, float]) -> None:
+        """Tell ``module`` to hold ``targets`` (degrees by DOF index) on its servos in place of
+        its program's (a docking motion owns those joints); empty: they are the program's."""
+        self._send(module, Hold(dict(targets)))
+
     def plug_cable(self, module: int, connector: int) -> tuple[int, str]:
         """A programming cable into ``module``'s free ``connector`` (serial): an emulated
         link whose other end is a pty for the flasher. Returns (link id, the flasher's path)."""
@@ -601,6 +652,8 @@ class World:
 
     def restart(self, module: int) -> None:
         self.kill(module)
+        if self.reaches is not None:  # a new life holds nothing: what a motion wants is sent again
+            self.reaches.holding.pop(module, None)
         self._spawn(module, self.cycles, self.rng.randrange(self.program.clock_cycle))
         deadline = time.monotonic() + 30
         while not self.views[module].ready and time.monotonic() < deadline:

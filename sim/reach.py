@@ -38,9 +38,12 @@ within ``timeout`` cycles gives up.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -387,6 +390,11 @@ class Reach:
     ``ir_<c>_align``); ``aligned`` is the latch check (the runner's tolerance). :meth:`step`
     returns the joint targets (degrees) the chain's modules should hold this cycle; when
     :attr:`done` is set, :attr:`contact` says where the faces were.
+
+    ``lock``, if given, is held around the world reads the constructor makes and not around
+    the plan (pure kinematics, about a quarter of a second for snake_to_t's 12 joints): a world whose physics
+    other threads share (the loop's stand-in, hil.reach_loop) is not held up meanwhile. The
+    owner holds it around :meth:`step` itself.
     """
 
     def __init__(
@@ -401,6 +409,7 @@ class Reach:
         timeout: int = DEFAULT_TIMEOUT,
         start_cycle: int = 0,
         wiggle_deg: float | None = None,
+        lock: AbstractContextManager[Any] | None = None,
     ) -> None:
         from sim.sensors import PhysicsSensors
         from sim.world import World
@@ -433,11 +442,12 @@ class Reach:
         self.done = False
         self.latched = False
         self.contact: Contact | None = None
-        self.command = self.measured()
         self.standoff = STANDOFF_M
+        with lock if lock is not None else contextlib.nullcontext():
+            self.command = self.measured()
+            self.relative()  # measures chain.beyond for a target on another body
         #: The configuration the bend heads for: the chain's kinematics solved from a few
         #: starting curls (the loop may close either way round), the best kept.
-        self.relative()  # measures chain.beyond for a target on another body
         self.plan = plan(chain, self.command, self.limits, STANDOFF_M)
         self._correction = np.zeros(3)  # metres: the infrared's view of what kinematics misses
 

@@ -22,6 +22,7 @@ from hil.control import (
     Exited,
     Failure,
     Go,
+    Hold,
     Inject,
     Log,
     Ready,
@@ -46,6 +47,9 @@ COMMANDS: list[Command] = [
     Attach(1, PortEnd("/dev/pts/9")),
     Detach(3),
     Inject("X(A)"),
+    Hold({0: 12.5, 1: -30.0}),
+    Hold({1: 4.0}),
+    Hold(),
     StatusRequest(),
     Stop(),
 ]
@@ -81,6 +85,9 @@ def test_every_report_round_trips_through_json(rep: Report) -> None:
         ({"cmd": "attach", "connector": "2", "link": {"port": "/dev/x"}}, "'connector'"),
         ({"cmd": "detach"}, "'connector'"),
         ({"cmd": "inject", "hormone": 3}, "'hormone'"),
+        ({"cmd": "hold", "targets": [1, 2]}, "'targets'"),
+        ({"cmd": "hold", "targets": {"2": 10.0}}, "joint '2'"),
+        ({"cmd": "hold", "targets": {"0": "ten"}}, "not a number"),
         ([1, 2], "expected an object"),
     ],
 )

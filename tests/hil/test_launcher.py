@@ -205,7 +205,7 @@ def test_snake_to_t_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str])
         ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology",
          "snake:8", "--cycles", "300", "--cycle-ms", "40", "--silence-cycles", "6", "--event", "20:inject:m4:STT",
          "--json",
-         "--stand-in", "recording"]  # the rules; the motion is physics' (tests/sim/test_snake_to_t_physics.py)
+         "--stand-in", "recording"]  # the rules; by motion: tests/hil/test_hil_reach_physics.py
     )  # fmt: skip
     assert code == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
