@@ -9,8 +9,8 @@ the kinematics and odometry a module would use); the dock reads the infrared pai
 latch must have closed with the two faces within the runner's tolerance at that moment (the
 record PhysicsRun.contacts keeps, the trace's ``dock`` line). The lone-module gaits are
 measured on a 1-module snake; the dock alone with the foot put behind the tail by hand.
-What does not work yet (the program driving it; the front feet; four rounds in 1500
-cycles) is in docs/physics.md, *Legs to snake, geometry*, and wip/legs_physics.patch.
+The whole reconfiguration, driven by examples/legs_to_snake.dh2, is tested in
+tests/sim/test_legs_to_snake_physics.py (docs/physics.md, *Legs to snake in physics*).
 """
 
 from __future__ import annotations
