@@ -1,7 +1,7 @@
 """A lone module's own motion: how a released foot moves, turns, and closes a dock itself.
 
 A module on its own has two joints and three boxes. Measured in this world (docs/physics.md,
-*Legs to snake in physics*), seeds 0 to 5 (every seed but 0 turns the world's axes, against
+*Legs to snake, geometry*), seeds 0 to 5 (every seed but 0 turns the world's axes, against
 which the floor's pyramid friction differs):
 
 :func:`back_off`
@@ -99,12 +99,6 @@ class Creep:
 OBSTACLE_CLEAR_M = 0.10
 OBSTACLE_AHEAD_M = 0.30
 
-#: How many times a foot squares up near the spot before it accepts a wider one.
-SQUARE_TRIES = 3
-#: How long (cycles) a foot squared up too far behind the face creeps closer before it
-#: leaves the rest to the dock.
-FORWARD_CYCLES = 300
-
 #: The turning gait's period (control cycles); see the module docs.
 TURN_PERIOD = 12
 
@@ -198,11 +192,6 @@ class Trip:
         self.side = 1
         (fx, fy, _), _ = world.connector_pose(module, "front")
         self._start = (fx, fy)
-        cx, cy, _ = world.module_position(module)
-        #: From the foot's centre to its front face (m), as it lies straight when released.
-        self._reach = math.hypot(fx - cx, fy - cy)
-        self._squared = 0
-        self._crept = 0
         self.phase = "back off"
         self.cycles = 0
         self._turning = 0
@@ -210,20 +199,14 @@ class Trip:
         #: Whether the foot got to the spot (False: the budget ran out).
         self.arrived = False
 
-    def _frame(self, *, squared: bool = False) -> tuple[float, float, float]:
+    def _frame(self) -> tuple[float, float, float]:
         """The foot's front in the target face's frame (s, lat unmirrored) and its heading off
-        the target module's (radians, unmirrored). With ``squared``, where the front will be
-        once the foot has turned square to the face about its centre (the foot's own length
-        ahead of its centre): turned about, its front is a module's length further from the
-        face than its back."""
+        the target module's (radians, unmirrored)."""
         (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
         t = self.world.part_transform(self.module, -1)
         (px, py, _), (nx, ny, _) = self.world.connector_pose(*self.target)
         norm = math.hypot(nx, ny) or 1.0
         ux, uy = -nx / norm, -ny / norm
-        if squared:
-            cx, cy, _ = self.world.module_position(self.module)
-            fx, fy = cx + self._reach * ux, cy + self._reach * uy
         rx, ry = fx - px, fy - py
         heading = math.atan2(float(t[1, 0]), float(t[0, 0])) - math.atan2(uy, ux)
         return rx * ux + ry * uy, -rx * uy + ry * ux, (heading + math.pi) % (2 * math.pi) - math.pi
@@ -282,11 +265,10 @@ class Trip:
                 clear = max(clear, lo + OBSTACLE_CLEAR_M)
         return clear
 
-    def state(self, *, path: bool = False, squared: bool = False) -> tuple[float, float, float]:
+    def state(self, *, path: bool = False) -> tuple[float, float, float]:
         """(s, lat, heading) with lat and heading mirrored to the foot's side; with ``path``
-        against the target's robot as it lies (:meth:`_path_frame`), else the face's frame
-        (``squared``: see :meth:`_frame`)."""
-        s, lat, heading = self._path_frame() if path else self._frame(squared=squared)
+        against the target's robot as it lies (:meth:`_path_frame`), else the face's frame."""
+        s, lat, heading = self._path_frame() if path else self._frame()
         return s, lat * self.side, heading * self.side
 
     def step(self) -> tuple[float, float]:
@@ -302,9 +284,9 @@ class Trip:
                 return back_off(c)
             s, lat, _heading = self._path_frame()
             self.side = 1 if lat >= 0 else -1
-            # further out first if a leg still on the body is in the way along
-            clear = self._clearance(s)
-            if clear > self.clear_m and abs(lat) < clear - 0.01 and self.cycles < self.budget // 4:
+            # beside the robot, out to the line first (further if a leg still on the body is
+            # in the way along); behind the face (a foot going round again) it is there
+            if s > 0 and abs(lat) < self._clearance(s) - 0.01 and self.cycles < self.budget // 4:
                 return back_off(c)
             self.phase = "along"
         aim = self.park[0] - self.margin_m  # where the sideways leg runs
@@ -313,7 +295,7 @@ class Trip:
             if s <= aim:
                 self.phase = "aside"
         if self.phase != "along":
-            s, lat, heading = self.state(squared=True)
+            s, lat, heading = self.state()
         crawl: Callable[[int], tuple[float, float]] | None = back_off
         if self.phase == "along":
             clear = self._clearance(s)
@@ -321,22 +303,15 @@ class Trip:
             want = max(-1.2 if clear > self.clear_m else -0.5, min(0.5, 5.0 * (lat - clear)))
         elif self.phase == "aside":
             off, ahead = lat - self.park[1], s - aim
-            if abs(off) <= 0.02 and ahead <= 0.02:
+            if math.hypot(off, ahead) <= 0.02:
                 self.phase, want, crawl = "square", 0.0, None
             else:
                 # back first towards the spot (the foot moves away from where its front
-                # points), only across if it is already too far back: turned about, the
-                # turn back would carry it off again; the gait's drift is corrected as the
-                # foot's place is read again
-                want = math.atan2(off, max(ahead, 0.0))
+                # points; too far back, it turns about and backs towards the face); the
+                # gait's drift is corrected as the foot's place is read again
+                want = math.atan2(off, ahead)
         else:
             want, crawl = 0.0, None
-            if self.phase == "forward":  # front first, towards the face, for a while
-                crawl = creep
-                self._crept += 1
-                if s >= aim - 0.02 or self._crept > FORWARD_CYCLES:
-                    self.done = self.arrived = True  # the dock's creep closes the rest
-                    return 0.0, 0.0
         err = (want - heading + math.pi) % (2 * math.pi) - math.pi
         # a turn ends on target or just past it; facing about the other way, the error's sign
         # flips from cycle to cycle, and the turn keeps its direction
@@ -347,16 +322,10 @@ class Trip:
         if self._turning:
             return turn(c, self._turning * self.side)
         if self.phase == "square":
-            # each square turn carries the foot a few cm (the turning gait moves 7 to 10 cm
-            # in 200 cycles): after SQUARE_TRIES the spot is widened for the dock's creep
-            wide = self._squared >= SQUARE_TRIES
-            self._squared += 1
             if s > self.park[0] + 0.02:  # pushed alongside the target module: back along again
                 self.phase = "along"
-            elif abs(lat - self.park[1]) > (0.05 if wide else 0.03):
+            elif abs(lat - self.park[1]) > 0.03 or s < aim - 0.025:
                 self.phase = "aside"
-            elif s < aim - 0.04:
-                self.phase, self._crept = "forward", 0
             else:  # the last centimetres are the dock's (Creep)
                 self.done = self.arrived = True
             return 0.0, 0.0
