@@ -129,8 +129,9 @@ class Trip:
     module (its heading that module's, reversed from the face's normal). In the target
     face's frame (``s`` along the module's heading from the face, ``lat`` across it, positive
     on the foot's side) the trip is: :func:`back_off` :attr:`backoff_m` away from where it
-    hung (its side of the target module is the one it is on then), and further while a leg
-    still on the body is in the way along (see ``others``); then, turning in place
+    hung (its side of the target module is the one it is on then), and on out to the line
+    below while beside the robot (further while a leg still on the body is in the way
+    along, see ``others``); then, turning in place
     (:func:`turn`) whenever its heading is more than 8 degrees off the one it wants, else
     backing off: along a line :attr:`clear_m` beside the robot's axis (the heading it wants
     leans into the line by 5 degrees per cm off it, at most 29; out by up to 70 to pass a
@@ -141,7 +142,11 @@ class Trip:
     within 3 cm of the axis and between 1 and 8.5 cm behind the face it has arrived (the
     dock's creep closes the rest); otherwise it moves across again, or back along if it was
     pushed alongside the target module. A turn keeps its direction while the foot faces
-    about the other way (the error's sign flips there from cycle to cycle).
+    about the other way (the error's sign flips there from cycle to cycle). Too far back,
+    the foot turns about to back towards the spot; its front, read as where it is, is then
+    a module's length further from the face than its back, and a foot can press its back on
+    the tail while it still reads itself too far back (a rear foot going first at seed 0
+    did, until its budget ran out).
 
     ``others`` (the target robot's modules off the path) are the legs still on the body: a
     foot passing one on its side keeps its front :data:`OBSTACLE_CLEAR_M` beyond the leg's
