@@ -21,7 +21,11 @@ connector of the module a route leads to) is carried out by the modules' own mot
 its joints owned by the motion until the latch closes (faces within the tolerance below, and
 the asking connector's infrared pair seeing the target) or the motion gives up. Every link
 formed so is recorded in :attr:`PhysicsRun.contacts` with both faces' world poses and errors
-at that moment. ``release`` cuts a module's link at one of its connectors.
+at that moment. ``release`` cuts a module's link at one of its connectors. ``reach_and_dock``
+(legs to snake's ``dock_tail_to_foot``) is carried out by motion as well
+(:meth:`PhysicsRun.assimilate`): the foot lets go of the body, comes to the asking face by its
+own gaits (:class:`sim.crawl.Trip`) and the two dock while it creeps; the asking module's
+``docking`` sensor reads 1 meanwhile.
 
 ``dh2rt run PROGRAM --sim pybullet`` runs it through :mod:`sim.command`.
 """
@@ -230,9 +234,8 @@ class PhysicsRun:
         if self.peer_of(target) is not None or not self.robot.profile.can_link(front, bc):
             self.note(f"bring {where}: the target is not a free face of the other gender")
             return False
-        self.trips.append(
-            (Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b)), route)
-        )
+        self.trips.append((self._trip(foot, target), route))
+        self.attempts[foot] = 1
         self.note(f"bring {where}: the foot sets off")
         return True
 
@@ -278,15 +281,18 @@ class PhysicsRun:
     def _bring_again(self, foot: int, target: End) -> None:
         """A dock with a foot that came (:meth:`bring`) gave up: the foot sets off again from
         where it is (backing off, then round to the spot), up to :data:`BRING_ATTEMPTS` docks."""
-        tries = self.attempts.get(foot, 1)
-        if tries >= BRING_ATTEMPTS or not (self.running(foot) and self.running(target[0])):
-            return
+        tries = self.attempts.get(foot)
+        if tries is None or tries >= BRING_ATTEMPTS or not (self.running(foot) and self.running(target[0])):
+            return  # not a foot that came, or its last try
         self.attempts[foot] = tries + 1
+        self.trips.append((self._trip(foot, target), self.squaring_route(target[0])))
+        front = self.robot.profile.connector_index("front")
+        self.note(f"bring {self.where(foot, front)} -> {self.where(*target)}: the foot tries again ({tries + 1})")
+
+    def _trip(self, foot: int, target: End) -> Trip:
+        """A foot's trip to just behind ``target``, along ``target``'s robot as it lies."""
         b = target[0]
-        route = self.squaring_route(b)
-        trip = Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
-        self.trips.append((trip, route))
-        self.note(f"bring {self.where(foot, 1)} -> {self.where(*target)}: the foot tries again ({tries + 1})")
+        return Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
 
     def body_up(self, module: int) -> list[int]:
         """``module`` and the modules up its robot from it, each the one the last is docked to
@@ -315,7 +321,8 @@ class PhysicsRun:
             b, bc = trip.target
             if not (self.running(trip.module) and self.running(b)):
                 self.trips.remove(entry)
-                self.note(f"bring {self.where(trip.module, 1)}: a module stopped; trip abandoned")
+                front = self.robot.profile.connector_index("front")
+                self.note(f"bring {self.where(trip.module, front)}: a module stopped; trip abandoned")
                 continue
             dofs = trip.step()
             if not trip.done:
