@@ -34,7 +34,11 @@ this world as the docking world (DOCK_DELAY world cycles later for the first two
 ``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop. With the PyBullet stand-in a
 ``reach_dock`` is carried out by motion instead (:mod:`hil.reach_loop`): the chain's modules
 hold the joint targets of a :class:`sim.reach.Reach` stepped once per world cycle, and the
-link is docked only once the faces latched in physics, within the physics runner's tolerance.
+link is docked only once the faces latched in physics, within the physics runner's tolerance;
+and a ``reach_and_dock`` as ``sim.runner.PhysicsRun.assimilate`` does it: the foot lets go
+of the body, comes to the asking face by its own gaits (:class:`sim.crawl.Trip`, held on its
+own servos) and the two dock by motion while it creeps; the asking module's ``docking``
+sensor reads 1 meanwhile (pushed by the world).
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
