@@ -668,6 +668,7 @@ def _reaches(world: World) -> dict[str, Any] | None:
         "contacts": [c.as_dict() for c in r.contacts],
         "failed": [c.as_dict() for c in r.failed],
         "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.outcomes],
+        "arrivals": [asdict(a) for a in r.arrivals],
     }
 
 

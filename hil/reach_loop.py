@@ -17,6 +17,17 @@ program's DOF1/DOF2 from its next cycle on, and an empty ``Hold`` gives the join
 its program when the motion ends. The world never writes a joint itself. docs/hil.md
 ("Docking by motion in the loop") says why and what it costs.
 
+``reach_and_dock`` (legs_to_snake's ``dock_tail_to_foot``) is carried out as the physics
+runner's ``PhysicsRun.assimilate`` does it: the foot at the end of the route lets go of the
+body at its front, :class:`sim.crawl.Trip` takes it by its own gaits to just behind the asking
+face (the tail's back), each step's joint targets held by the foot's own servos through
+``Hold`` as above; once it is there the last two modules up the asking module's robot square
+their face by a :class:`sim.reach.Reach` while the foot creeps (:class:`sim.crawl.Creep`,
+held the same way); a dock that gives up sends the foot round again, up to
+``sim.runner.BRING_ATTEMPTS`` docks. While a module's motion (a trip to its face, or a
+reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
+declares the sensor; hil.control.Readings), and 0 once it ended.
+
 Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.reach.Contact`: both
 faces' world poses, distance, attitude error and the infrared reading at that moment) and
 logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches.failed`.
@@ -24,15 +35,19 @@ logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from dh2rt import docking
+from dh2rt.docking import End
+from hil.control import Readings
 from hil.physics_stand_in import PhysicsStandIn
+from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
-from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from sim.sensors import PhysicsSensors
 
 if TYPE_CHECKING:
@@ -55,10 +70,40 @@ class Motion:
     #: that went by without a step (the world's thread came too late for them)
     last: int = -1
     missed: int = 0
+    #: the lone module (a foot that came, :class:`Bringing`) creeping towards the asking face
+    #: meanwhile, if any
+    creep: Creep | None = None
 
     @property
     def modules(self) -> set[int]:
-        return {m for m, _ in self.reach.chain.joints}
+        """The modules whose joints the motion holds (the creeping foot's included)."""
+        return {m for m, _ in self.reach.chain.joints} | ({self.creep.module} if self.creep is not None else set())
+
+
+@dataclass
+class Bringing:
+    """A released foot on its way, by its own gaits, to a free face (``reach_and_dock``)."""
+
+    trip: Trip
+    #: the route up the target's robot whose joints square its face once the foot is there
+    route: tuple[int, ...]
+    #: the world cycle it set off at, and the one it was last stepped at
+    asked: int
+    last: int
+    missed: int = 0
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """A foot's trip that got to its spot: the foot, the face, world cycles (set off, arrived),
+    the trip's steps and the world cycles it missed."""
+
+    foot: int
+    target: End
+    asked: int
+    arrived: int
+    steps: int
+    missed: int
 
 
 @dataclass(frozen=True)
@@ -95,6 +140,15 @@ class LoopReaches:
         self.outcomes: list[Outcome] = []
         #: What each module was last told to hold (absent: its joints are its program's).
         self.holding: dict[int, dict[int, float]] = {}
+        #: Released feet on their way to a face (``reach_and_dock``), and every arrival.
+        self.trips: list[Bringing] = []
+        self.arrivals: list[Arrival] = []
+        #: Docks each foot brought so far has tried (see ``BRING_ATTEMPTS``).
+        self.attempts: dict[int, int] = {}
+        #: The ``docking`` reading last pushed to each module, if the program declares it.
+        program, profile = world.program, world.profile
+        self.docking_declared = "docking" in program.sensor_names and "docking" in profile.sensor_names
+        self.docking_sent: dict[int, int] = {}
 
     def start(self, module: int, connector: int, route: Sequence[int], target_conn: int) -> bool:
         """Begin bending ``module``'s ``connector`` to ``target_conn`` of the module at the end
@@ -137,17 +191,181 @@ class LoopReaches:
         )
         return True
 
-    def step(self, cycle: int) -> None:
-        """Once per world cycle: advance every motion by one step, send the chain's modules
-        the targets to hold, and latch (or give up) those that are done."""
-        due = [motion for motion in self.motions if cycle > motion.last]
-        if not due:
+    # ------------------------------------------------------------ reach_and_dock: the foot comes
+
+    def assimilate(self, module: int, connector: int, route: Sequence[int]) -> bool:
+        """``reach_and_dock(connector, route)`` by motion, as ``sim.runner.PhysicsRun.assimilate``
+        does (legs_to_snake's ``dock_tail_to_foot``): the foot at the end of ``route`` lets go
+        of the body at its front and comes to ``module``'s ``connector`` by its own gaits
+        (:class:`sim.crawl.Trip`, its joints held through :class:`hil.control.Hold`), then the
+        last two modules up ``module``'s robot square their face while the foot creeps
+        (:meth:`reach_other`); a dock that gives up sends the foot round again, up to
+        ``BRING_ATTEMPTS`` docks. False (logged) if the rules say no: the route leads nowhere,
+        the foot does not hang by its front, or a foot is already on its way to that face.
+        While it lasts, ``module``'s ``docking`` sensor reads 1."""
+        w = self.world
+        target = docking.reach_target(w, module, connector, route)
+        if target is None:
+            return False
+        foot, at = target
+        front = w.profile.connector_index("front")
+        where = f"{w.where(module, connector)} -> {w.where(foot, at)}"
+        if at != front:
+            w.note(f"assimilate {where}: the foot does not hang by its front")
+            return False
+        if any(b.trip.target == (module, connector) for b in self.trips) or any(
+            m.reach.chain.asking == (module, connector) for m in self.motions
+        ):
+            w.note(f"assimilate {where}: a foot is already on its way there")
+            return False
+        docking.release(w, foot, at)
+        return self.bring(foot, (module, connector), self.squaring_route(module))
+
+    def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
+        """A released ``foot`` (a lone module) sets off to ``target``, a free face of another
+        body (``PhysicsRun.bring``). False (logged) if the foot is not lone or the face is
+        not free or of the foot's front's gender."""
+        w = self.world
+        front = w.profile.connector_index("front")
+        b, bc = target
+        where = f"{w.where(foot, front)} -> {w.where(b, bc)}"
+        if any(w.peer_of((foot, c)) is not None for c in range(1, w.profile.connector_count + 1)):
+            w.note(f"bring {where}: the foot is not lone")
+            return False
+        if w.peer_of(target) is not None or not w.profile.can_link(front, bc):
+            w.note(f"bring {where}: the target is not a free face of the other gender")
+            return False
+        self._set_off(foot, target, route)
+        w.note(f"bring {where}: the foot sets off")
+        return True
+
+    def _set_off(self, foot: int, target: End, route: tuple[int, ...]) -> None:
+        b = target[0]
+        with self.physics.lock:  # the trip reads where the foot and the face are
+            trip = Trip(self.physics.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
+        cycle = self.world.cycle
+        self.trips.append(Bringing(trip, route, cycle, cycle - 1))
+        self.sync_docking()
+
+    def squaring_route(self, module: int) -> tuple[int, ...]:
+        """The route up ``module``'s robot whose joints square its face to a foot that came:
+        two hops, fewer on a shorter robot (``PhysicsRun.squaring_route``)."""
+        front = self.world.profile.connector_index("front")
+        return (front,) * min(2, len(self.body_up(module)) - 1)
+
+    def body_up(self, module: int) -> list[int]:
+        """``module`` and the modules up its robot from it, each the one the last is docked to
+        by its front, in the world's link map (``PhysicsRun.body_up``'s walk)."""
+        front = self.world.profile.connector_index("front")
+        chain = [module]
+        while (peer := self.world.peer_of((chain[-1], front))) is not None and peer[0] not in chain:
+            chain.append(peer[0])
+        return chain
+
+    def off_body(self, module: int) -> list[int]:
+        """The modules of ``module``'s robot not on :meth:`body_up` (the legs still on it)."""
+        w = self.world
+        seen, todo = {module}, [module]
+        while todo:
+            m = todo.pop()
+            for c in range(1, w.profile.connector_count + 1):
+                peer = w.peer_of((m, c))
+                if peer is not None and peer[0] not in seen:
+                    seen.add(peer[0])
+                    todo.append(peer[0])
+        return sorted(seen - set(self.body_up(module)))
+
+    def reach_other(self, module: int, connector: int, route: tuple[int, ...], foot: int) -> bool:
+        """Begin bending ``module``'s ``connector`` to the front of ``foot``, a lone module that
+        creeps towards it meanwhile (``PhysicsRun.reach_other`` with ``creep``); the joints
+        that bend are those along ``route`` up ``module``'s robot. False (logged) if a
+        connector is not free or the genders do not match."""
+        w = self.world
+        front = w.profile.connector_index("front")
+        where = f"{w.where(module, connector)} -> {w.where(foot, front)}"
+        if w.peer_of((module, connector)) is not None or w.peer_of((foot, front)) is not None:
+            w.note(f"reach_dock {where}: a connector is not free")
+            return False
+        if not w.profile.can_link(connector, front):
+            w.note(f"reach_dock {where}: both connectors are {w.profile.gender(connector)}")
+            return False
+        world = self.physics.world
+        chain = Chain.to_other(world.model, (module, connector), route, w.peer_of, (foot, front))
+
+        def aligned() -> bool:  # inside Reach.step, under the lock
+            return world.aligned(module, connector, foot, front, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
+
+        cycle, started = w.cycle, time.perf_counter()
+        reach = Reach(
+            world, self.ir, chain, aligned, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, start_cycle=cycle,
+            lock=self.physics.lock,
+        )  # fmt: skip
+        plan_s, planned = time.perf_counter() - started, w.cycle
+        creep = Creep(self.ir, foot, world.model.connector(front).name)
+        self.motions.append(Motion(reach, where, cycle, planned, plan_s, last=planned - 1, creep=creep))
+        w.note(f"reach_dock {where}: bending; {w.where(foot, front)} creeps towards it")
+        return True
+
+    def _bring_again(self, foot: int, target: End) -> None:
+        """A dock with a foot that came gave up: the foot sets off again from where it is, up to
+        ``BRING_ATTEMPTS`` docks (``PhysicsRun._bring_again``)."""
+        tries = self.attempts.get(foot, 1)
+        w = self.world
+        if tries >= BRING_ATTEMPTS or not (w.running(foot) and w.running(target[0])):
+            return
+        self.attempts[foot] = tries + 1
+        self._set_off(foot, target, self.squaring_route(target[0]))
+        w.note(f"bring {w.where(foot, 1)} -> {w.where(*target)}: the foot tries again ({tries + 1})")
+
+    def docking_modules(self) -> set[int]:
+        """The modules whose docking motion is under way: what their ``docking`` sensor reads
+        (``PhysicsRun.docking_modules``)."""
+        return {m.reach.chain.asking[0] for m in self.motions} | {b.trip.target[0] for b in self.trips}
+
+    def sync_docking(self, modules: Sequence[int] | None = None) -> None:
+        """Push the ``docking`` reading (1 while the module's docking motion is under way) to
+        every module (or those of ``modules``) whose reading changed since it was last sent, if
+        the program declares the sensor; a ``sense`` event's value for it holds instead."""
+        w = self.world
+        if not self.docking_declared:
+            return
+        busy = self.docking_modules()
+        for m in range(w.topology.size) if modules is None else modules:
+            value = int(m in busy)
+            if not w.running(m) or "docking" in w.sensed.get(m, {}) or self.docking_sent.get(m) == value:
+                continue
+            self.docking_sent[m] = value
+            w.send_readings(m, Readings({"docking": value}))
+
+    # ------------------------------------------------------------ each world cycle
+
+    def stepped_in(self, cycle: int) -> bool:
+        """Every motion and trip under way has made its step of world cycle ``cycle``."""
+        return all(m.last >= cycle for m in self.motions) and all(b.last >= cycle for b in self.trips)
+
+    def step(self, cycle: int, due: bool = True) -> None:
+        """Once per world cycle (``due``: the world's tick is in the moment of the cycle for it,
+        just before the next cycle begins; a cycle whose moment the tick missed is stepped as
+        soon as the next one has begun): advance every motion and every foot's trip by one
+        step, send the modules they move the targets to hold, latch (or give up) the motions
+        that are done, start the dock of every foot that arrived, and push the ``docking``
+        readings."""
+
+        def ready(last: int) -> bool:
+            return cycle > last and (due or cycle > last + 1)
+
+        moving = [motion for motion in self.motions if ready(motion.last)]
+        trips = [b for b in self.trips if ready(b.last)]
+        if not moving and not trips:
+            self.sync_docking()
             return
         w = self.world
         holds: dict[int, dict[int, float]] = {}
         done: list[Motion] = []
+        arrived: list[Bringing] = []
+        front = w.profile.connector_index("front")
         with self.physics.lock:
-            for motion in due:
+            for motion in moving:
                 motion.missed += cycle - motion.last - 1
                 motion.last = cycle
                 reach = motion.reach
@@ -163,9 +381,47 @@ class LoopReaches:
                     continue
                 for m, dofs in targets.items():
                     holds.setdefault(m, {}).update(dofs)
+                if motion.creep is not None:
+                    d1, d2 = motion.creep.step()
+                    holds.setdefault(motion.creep.module, {}).update({0: d1, 1: d2})
+            for bringing in trips:
+                bringing.missed += cycle - bringing.last - 1
+                bringing.last = cycle
+                trip = bringing.trip
+                b, _ = trip.target
+                if not (w.running(trip.module) and w.running(b)):
+                    self.trips.remove(bringing)
+                    w.note(f"bring {w.where(trip.module, front)}: a module stopped; trip abandoned")
+                    continue
+                d1, d2 = trip.step()
+                if not trip.done:
+                    holds.setdefault(trip.module, {}).update({0: d1, 1: d2})
+                    continue
+                self.trips.remove(bringing)
+                if not trip.arrived:
+                    w.note(f"bring {w.where(trip.module, front)}: the trip gave up after {trip.cycles} steps")
+                    continue
+                arrived.append(bringing)
         for motion in done:  # outside the lock: the latch takes it
             self._finish(motion, cycle)
+        for bringing in arrived:  # outside the lock: the dock's Reach takes it around its reads
+            self._arrived(bringing, cycle)
         self._send_holds(holds)
+        self.sync_docking()
+
+    def _arrived(self, bringing: Bringing, cycle: int) -> None:
+        w, trip = self.world, bringing.trip
+        front = w.profile.connector_index("front")
+        with self.physics.lock:
+            s, lat, heading = trip.state()
+        self.arrivals.append(Arrival(trip.module, trip.target, bringing.asked, cycle, trip.cycles, bringing.missed))
+        w.note(
+            f"bring {w.where(trip.module, front)}: arrived after {trip.cycles} steps, world cycles "
+            f"{bringing.asked}-{cycle}, {bringing.missed} missed ({s * 100:+.1f} cm along, {lat * 100:+.1f} cm "
+            f"aside, {math.degrees(heading):+.0f} deg)"
+        )
+        b, bc = trip.target
+        self.reach_other(b, bc, bringing.route, trip.module)
 
     def _finish(self, motion: Motion, cycle: int) -> None:
         w, reach = self.world, motion.reach
@@ -186,11 +442,23 @@ class LoopReaches:
             return
         self.failed.append(contact)
         w.note(f"reach_dock {motion.where} gave up after {took} ({how})")
+        if motion.creep is not None:
+            self._bring_again(b, (a, ac))
+
+    @property
+    def busy(self) -> bool:
+        """A docking motion or a foot's trip is under way."""
+        return bool(self.motions or self.trips)
+
+    def owned(self) -> set[int]:
+        """The modules whose joints a motion or a trip under way holds."""
+        return {m for motion in self.motions for m in motion.modules} | {b.trip.module for b in self.trips}
 
     def _send_holds(self, holds: dict[int, dict[int, float]]) -> None:
-        """Tell the chains' modules what to hold; modules no motion holds any more get their
-        joints back (an empty hold)."""
-        for m in [m for m in self.holding if m not in holds]:
+        """Tell the moving modules what to hold; modules no motion or trip holds any more get
+        their joints back (an empty hold); those of one not stepped this time keep theirs."""
+        owned = self.owned()
+        for m in [m for m in self.holding if m not in holds and m not in owned]:
             del self.holding[m]
             self.world.hold(m, {})
         for m, dofs in holds.items():

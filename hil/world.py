@@ -34,7 +34,11 @@ this world as the docking world (DOCK_DELAY world cycles later for the first two
 ``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop. With the PyBullet stand-in a
 ``reach_dock`` is carried out by motion instead (:mod:`hil.reach_loop`): the chain's modules
 hold the joint targets of a :class:`sim.reach.Reach` stepped once per world cycle, and the
-link is docked only once the faces latched in physics, within the physics runner's tolerance.
+link is docked only once the faces latched in physics, within the physics runner's tolerance;
+and a ``reach_and_dock`` as ``sim.runner.PhysicsRun.assimilate`` does it: the foot lets go
+of the body, comes to the asking face by its own gaits (:class:`sim.crawl.Trip`, held on its
+own servos) and the two dock by motion while it creeps; the asking module's ``docking``
+sensor reads 1 meanwhile (pushed by the world).
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -111,8 +115,11 @@ if TYPE_CHECKING:
     from hil.reach_loop import LoopReaches
 
 
-#: How long after a world cycle begins the world's tick steps the docking motions (s).
-IDLE_PAST_S = 0.001
+#: How long before the next world cycle begins the world's tick steps the docking motions (s):
+#: the joint targets a step computes from the body as it is then reach the modules before
+#: they take their commands for that cycle (hil.module_process: just before each cycle), so
+#: the motion's feedback is a few milliseconds old when the servos get it, not a cycle.
+STEP_LEAD_S = 0.008
 #: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.
 LINE_BAUD = 115_200
 
@@ -394,12 +401,26 @@ class World:
 
     def idle(self, most: float) -> float:
         """Seconds the caller may sleep before its next :meth:`tick`: ``most``, or while a
-        docking motion is under way, until just after the next world cycle begins (it is
-        stepped once per world cycle)."""
-        if self.reaches is None or not self.reaches.motions or self._go_at is None:
+        docking motion or a foot's trip is under way, until :data:`STEP_LEAD_S` before the
+        next world cycle begins (they are stepped once per world cycle, from then on)."""
+        if self.reaches is None or not self.reaches.busy or self._go_at is None:
             return most
-        into = (time.monotonic() - self._go_at) % self.cycle_period
-        return max(0.0, min(most, self.cycle_period - into + IDLE_PAST_S))
+        period = self.cycle_period
+        lead = min(STEP_LEAD_S, period / 4)
+        into = (time.monotonic() - self._go_at) % period
+        wait = period - lead - into
+        if wait <= 0 and self.reaches.stepped_in(self.cycle):  # this cycle's step is made: the next one's
+            wait += period
+        return max(0.0, min(most, wait))
+
+    def motions_due(self) -> bool:
+        """Whether the docking motions' step of this world cycle is due now: within
+        :data:`STEP_LEAD_S` of the next world cycle."""
+        if self._go_at is None:
+            return False
+        period = self.cycle_period
+        into = (time.monotonic() - self._go_at) % period
+        return into >= period - min(STEP_LEAD_S, period / 4)
 
     def poll(self, timeout: float = 0.0) -> None:
         """Read the modules' reports (waiting up to ``timeout`` s for the first)."""
@@ -461,7 +482,10 @@ class World:
                     docking.reach_and_dock_to(self, module, connector, route, target)
             else:
                 connector, route = int(args[0]), [int(c) for c in args[1]]
-                docking.reach_and_dock(self, module, connector, route)
+                if self.reaches is not None:  # the foot comes by its own gaits, then they dock by motion
+                    self.reaches.assimilate(module, connector, route)
+                else:
+                    docking.reach_and_dock(self, module, connector, route)
         except (IndexError, TypeError, ValueError):
             self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
 
@@ -510,7 +534,7 @@ class World:
                 self._next_push = self.cycle + self.sensor_every
                 self.push_readings()
             if self.reaches is not None:
-                self.reaches.step(self.cycle)
+                self.reaches.step(self.cycle, due=self.motions_due())
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]
@@ -594,6 +618,10 @@ class World:
                 self._send(m, Attach(c, self.link_map.end(link, m, c)))
         return True
 
+    def send_readings(self, module: int, readings: Readings) -> None:
+        """Send ``module`` sensor readings measured or known outside it (a running module only)."""
+        self._send(module, readings)
+
     def hold(self, module: int, targets: Mapping[int, float]) -> None:
         """Tell ``module`` to hold ``targets`` (degrees by DOF index) on its servos in place of
         its program's (a docking motion owns those joints); empty: they are the program's."""
@@ -654,6 +682,7 @@ class World:
         self.kill(module)
         if self.reaches is not None:  # a new life holds nothing: what a motion wants is sent again
             self.reaches.holding.pop(module, None)
+            self.reaches.docking_sent.pop(module, None)
         self._spawn(module, self.cycles, self.rng.randrange(self.program.clock_cycle))
         deadline = time.monotonic() + 30
         while not self.views[module].ready and time.monotonic() < deadline:
