@@ -117,6 +117,36 @@ def route_end(peer_of: Callable[[End], End | None], module: int, route: Sequence
     return here, at
 
 
+def body_up(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> list[int]:
+    """``module`` and the modules up its robot from it, each the one the last is docked to by
+    its front (a snake's or a tail's spine, from its end towards its head)."""
+    front = profile.connector_index("front")
+    chain = [module]
+    while (peer := peer_of((chain[-1], front))) is not None and peer[0] not in chain:
+        chain.append(peer[0])
+    return chain
+
+
+def off_body(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> list[int]:
+    """The modules of ``module``'s robot not on :func:`body_up` (the legs still on it)."""
+    seen, todo = {module}, [module]
+    while todo:
+        m = todo.pop()
+        for c in range(1, profile.connector_count + 1):
+            peer = peer_of((m, c))
+            if peer is not None and peer[0] not in seen:
+                seen.add(peer[0])
+                todo.append(peer[0])
+    return sorted(seen - set(body_up(peer_of, profile, module)))
+
+
+def squaring_route(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> tuple[int, ...]:
+    """The route up ``module``'s robot whose joints square its face to a foot that came: two
+    hops (the last two modules' joints), fewer on a shorter robot."""
+    front = profile.connector_index("front")
+    return (front,) * min(2, len(body_up(peer_of, profile, module)) - 1)
+
+
 def reach_target(world: DockingWorld, module: int, connector: int, route: Sequence[int]) -> End | None:
     """Where ``reach_and_dock(connector, route)`` from ``module`` would dock now: the module at
     the end of the route and the connector the route arrives at; None (logged) if the route

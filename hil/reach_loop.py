@@ -248,32 +248,16 @@ class LoopReaches:
         self.sync_docking()
 
     def squaring_route(self, module: int) -> tuple[int, ...]:
-        """The route up ``module``'s robot whose joints square its face to a foot that came:
-        two hops, fewer on a shorter robot (``PhysicsRun.squaring_route``)."""
-        front = self.world.profile.connector_index("front")
-        return (front,) * min(2, len(self.body_up(module)) - 1)
+        """:func:`dh2rt.docking.squaring_route` in this world."""
+        return docking.squaring_route(self.world.peer_of, self.world.profile, module)
 
     def body_up(self, module: int) -> list[int]:
-        """``module`` and the modules up its robot from it, each the one the last is docked to
-        by its front, in the world's link map (``PhysicsRun.body_up``'s walk)."""
-        front = self.world.profile.connector_index("front")
-        chain = [module]
-        while (peer := self.world.peer_of((chain[-1], front))) is not None and peer[0] not in chain:
-            chain.append(peer[0])
-        return chain
+        """:func:`dh2rt.docking.body_up` in this world."""
+        return docking.body_up(self.world.peer_of, self.world.profile, module)
 
     def off_body(self, module: int) -> list[int]:
-        """The modules of ``module``'s robot not on :meth:`body_up` (the legs still on it)."""
-        w = self.world
-        seen, todo = {module}, [module]
-        while todo:
-            m = todo.pop()
-            for c in range(1, w.profile.connector_count + 1):
-                peer = w.peer_of((m, c))
-                if peer is not None and peer[0] not in seen:
-                    seen.add(peer[0])
-                    todo.append(peer[0])
-        return sorted(seen - set(self.body_up(module)))
+        """:func:`dh2rt.docking.off_body` in this world."""
+        return docking.off_body(self.world.peer_of, self.world.profile, module)
 
     def reach_other(self, module: int, connector: int, route: tuple[int, ...], foot: int) -> bool:
         """Begin bending ``module``'s ``connector`` to the front of ``foot``, a lone module that

@@ -264,10 +264,8 @@ class PhysicsRun:
         return self.bring(foot, (module, connector), self.squaring_route(module))
 
     def squaring_route(self, module: int) -> tuple[int, ...]:
-        """The route up ``module``'s robot whose joints square its face to a foot that came:
-        two hops (the last two modules' joints), fewer on a shorter robot."""
-        front = self.robot.profile.connector_index("front")
-        return (front,) * min(2, len(self.body_up(module)) - 1)
+        """:func:`dh2rt.docking.squaring_route` in this world."""
+        return docking.squaring_route(self.peer_of, self.robot.profile, module)
 
     def _assimilate_effect(self, module: int, args: tuple[object, ...]) -> None:
         connector, route = args
@@ -295,25 +293,12 @@ class PhysicsRun:
         return Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
 
     def body_up(self, module: int) -> list[int]:
-        """``module`` and the modules up its robot from it, each the one the last is docked to
-        by its front (a snake's or tail's spine, from its end towards its head)."""
-        front = self.robot.profile.connector_index("front")
-        chain = [module]
-        while (peer := self.peer_of((chain[-1], front))) is not None and peer[0] not in chain:
-            chain.append(peer[0])
-        return chain
+        """:func:`dh2rt.docking.body_up` in this world."""
+        return docking.body_up(self.peer_of, self.robot.profile, module)
 
     def off_body(self, module: int) -> list[int]:
-        """The modules of ``module``'s robot not on :meth:`body_up` (the legs still on it)."""
-        seen, todo = {module}, [module]
-        while todo:
-            m = todo.pop()
-            for c in range(1, len(self.robot.profile.connectors) + 1):
-                peer = self.peer_of((m, c))
-                if peer is not None and peer[0] not in seen:
-                    seen.add(peer[0])
-                    todo.append(peer[0])
-        return sorted(seen - set(self.body_up(module)))
+        """:func:`dh2rt.docking.off_body` in this world."""
+        return docking.off_body(self.peer_of, self.robot.profile, module)
 
     def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
         for entry in list(self.trips):
