@@ -25,7 +25,8 @@ at that moment. ``release`` cuts a module's link at one of its connectors. ``rea
 (legs to snake's ``dock_tail_to_foot``) is carried out by motion as well
 (:meth:`PhysicsRun.assimilate`): the foot lets go of the body, comes to the asking face by its
 own gaits (:class:`sim.crawl.Trip`) and the two dock while it creeps; the asking module's
-``docking`` sensor reads 1 meanwhile.
+``docking`` sensor reads 1 meanwhile. If a module lies apart on the spot behind the face (a
+foot that died docking), the robot crawls clear of it first (:class:`sim.clearing.Clearing`).
 
 ``dh2rt run PROGRAM --sim pybullet`` runs it through :mod:`sim.command`.
 """
@@ -40,6 +41,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
+from sim.clearing import Clearing
 from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
@@ -53,6 +55,11 @@ BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
+#: The spot behind a face a foot comes to: this far out along its normal, this far either
+#: side (m). A module lying apart there (a foot that died docking) makes the robot crawl
+#: clear first (PhysicsRun.spot_taken, sim.clearing).
+SPOT_DEPTH_M = 0.25
+SPOT_HALF_WIDTH_M = 0.08
 
 
 class PhysicsRun:
@@ -103,6 +110,9 @@ class PhysicsRun:
         self.creeps: dict[int, Creep] = {}
         #: Released feet on their way to a face, each with the route the dock will bend.
         self.trips: list[tuple[Trip, tuple[int, ...]]] = []
+        #: Robots crawling clear of a body on the spot before a foot sets off: each with the
+        #: face the foot will come to and the foot (still on the body) with its connector.
+        self.clearings: list[tuple[Clearing, End, End]] = []
         #: Docks each foot brought so far has tried (see BRING_ATTEMPTS).
         self.attempts: dict[int, int] = {}
         #: Every link formed by a docking motion, and every motion that gave up.
@@ -255,13 +265,62 @@ class PhysicsRun:
         if at != front:
             self.note(f"assimilate {where}: the foot does not hang by its front")
             return False
-        if any(trip.target == (module, connector) for trip, _ in self.trips) or any(
-            r.chain.asking == (module, connector) for r in self.reaches
+        face = (module, connector)
+        if (
+            any(trip.target == face for trip, _ in self.trips)
+            or any(r.chain.asking == face for r in self.reaches)
+            or any(f == face for _, f, _ in self.clearings)
         ):
             self.note(f"assimilate {where}: a foot is already on its way there")
             return False
-        self.release(foot, at)
-        return self.bring(foot, (module, connector), self.squaring_route(module))
+        lying = self.spot_taken(face, foot)
+        if lying is not None:
+            body = self.body_up(module)[::-1]
+            self.clearings.append((Clearing(body, lambda: self.spot_taken(face, foot) is not None), face, target))
+            name = self.robot.topology.names[lying]
+            self.note(f"assimilate {where}: {name} lies behind {self.where(*face)}; the robot crawls clear first")
+            return True
+        return self._set_off(face, target)
+
+    def _set_off(self, face: End, foot_end: End) -> bool:
+        """The foot lets go of the body and comes to ``face`` (:meth:`bring`)."""
+        self.release(*foot_end)
+        return self.bring(foot_end[0], face, self.squaring_route(face[0]))
+
+    def spot_taken(self, face: End, foot: int) -> int | None:
+        """A module lying apart (not ``foot``, not on ``face``'s robot) whose centre is on the
+        spot behind ``face`` (:data:`SPOT_DEPTH_M` out along its normal, :data:`SPOT_HALF_WIDTH_M`
+        either side), or None. Read from the world, as :class:`Trip` reads where the face is
+        (the emulated infrared sees faces, not bodies: a foot that died pitched sees none)."""
+        robot = {*self.body_up(face[0]), *self.off_body(face[0])}
+        (px, py, _), (nx, ny, _) = self.world.connector_pose(*face)
+        norm = math.hypot(nx, ny) or 1.0  # the face's heading on the floor (it tilts as the robot crawls)
+        nx, ny = nx / norm, ny / norm
+        for m in range(self.robot.size):
+            if m == foot or m in robot:
+                continue
+            x, y, _ = self.world.module_position(m)
+            out, aside = (x - px) * nx + (y - py) * ny, -(x - px) * ny + (y - py) * nx
+            if 0.0 < out <= SPOT_DEPTH_M and abs(aside) <= SPOT_HALF_WIDTH_M:
+                return m
+        return None
+
+    def _step_clearings(self, held: dict[int, dict[int, float]]) -> None:
+        for entry in list(self.clearings):
+            clearing, face, foot_end = entry
+            if not (self.running(face[0]) and self.running(foot_end[0])):
+                self.clearings.remove(entry)
+                where = f"{self.where(*foot_end)} -> {self.where(*face)}"
+                self.note(f"assimilate {where}: a module stopped; crawl abandoned")
+                continue
+            for m, dof1 in clearing.step().items():
+                held.setdefault(m, {})[0] = dof1
+            if not clearing.done:
+                continue
+            self.clearings.remove(entry)
+            outcome = "clear" if clearing.cleared else "still taken; the foot sets off anyway"
+            self.note(f"{self.where(*face)}: crawled {clearing.gait_cycles} gait cycles, the spot {outcome}")
+            self._set_off(face, foot_end)
 
     def squaring_route(self, module: int) -> tuple[int, ...]:
         """:func:`dh2rt.docking.squaring_route` in this world."""
@@ -274,7 +333,11 @@ class PhysicsRun:
 
     def docking_modules(self) -> set[int]:
         """The modules whose docking motion is under way (what their ``docking`` sensor reads)."""
-        return {r.chain.asking[0] for r in self.reaches} | {trip.target[0] for trip, _ in self.trips}
+        return (
+            {r.chain.asking[0] for r in self.reaches}
+            | {trip.target[0] for trip, _ in self.trips}
+            | {face[0] for _, face, _ in self.clearings}
+        )
 
     def _bring_again(self, foot: int, target: End) -> None:
         """A dock with a foot that came (:meth:`bring`) gave up: the foot sets off again from
@@ -421,6 +484,8 @@ class PhysicsRun:
         held = self._step_reaches() if self.reaches else {}
         if self.trips:
             self._step_trips(held)
+        if self.clearings:
+            self._step_clearings(held)
         for m, e in enumerate(self.robot.engines):
             if e is None:
                 continue
