@@ -45,6 +45,7 @@ from dh2rt import docking
 from dh2rt.docking import End
 from hil.control import Readings
 from hil.physics_stand_in import PhysicsStandIn
+from sim.clearing import Clearing, spot_taken
 from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
@@ -88,6 +89,20 @@ class Bringing:
     #: the route up the target's robot whose joints square its face once the foot is there
     route: tuple[int, ...]
     #: the world cycle it set off at, and the one it was last stepped at
+    asked: int
+    last: int
+    missed: int = 0
+
+
+@dataclass
+class CrawlingClear:
+    """A robot crawling clear of a module lying on the spot behind ``face`` before ``foot``
+    (the foot's end that still hangs on the body) lets go (:class:`sim.clearing.Clearing`)."""
+
+    clearing: Clearing
+    face: End
+    foot: End
+    #: the world cycle it was asked at, and the one it was last stepped at
     asked: int
     last: int
     missed: int = 0
@@ -143,6 +158,8 @@ class LoopReaches:
         #: Released feet on their way to a face (``reach_and_dock``), and every arrival.
         self.trips: list[Bringing] = []
         self.arrivals: list[Arrival] = []
+        #: Robots crawling clear of a module on the spot before a foot sets off.
+        self.clearings: list[CrawlingClear] = []
         #: Docks each foot brought so far has tried (see ``BRING_ATTEMPTS``).
         self.attempts: dict[int, int] = {}
         #: The ``docking`` reading last pushed to each module, if the program declares it.
@@ -213,13 +230,38 @@ class LoopReaches:
         if at != front:
             w.note(f"assimilate {where}: the foot does not hang by its front")
             return False
-        if any(b.trip.target == (module, connector) for b in self.trips) or any(
-            m.reach.chain.asking == (module, connector) for m in self.motions
+        face = (module, connector)
+        if (
+            any(b.trip.target == face for b in self.trips)
+            or any(m.reach.chain.asking == face for m in self.motions)
+            or any(c.face == face for c in self.clearings)
         ):
             w.note(f"assimilate {where}: a foot is already on its way there")
             return False
-        docking.release(w, foot, at)
-        return self.bring(foot, (module, connector), self.squaring_route(module))
+        with self.physics.lock:
+            lying = self.spot_taken(face, foot)
+        if lying is not None:
+            body = self.body_up(module)[::-1]
+            clearing = Clearing(body, lambda: self.spot_taken(face, foot) is not None)  # stepped under the lock
+            cycle = w.cycle
+            self.clearings.append(CrawlingClear(clearing, face, target, cycle, cycle - 1))
+            w.note(
+                f"assimilate {where}: {w.topology.names[lying]} lies behind {w.where(*face)}; "
+                "the robot crawls clear first"
+            )
+            self.sync_docking()
+            return True
+        return self._let_go(face, target)
+
+    def _let_go(self, face: End, foot_end: End) -> bool:
+        """The foot lets go of the body at ``foot_end`` and comes to ``face`` (:meth:`bring`)."""
+        docking.release(self.world, *foot_end)
+        return self.bring(foot_end[0], face, self.squaring_route(face[0]))
+
+    def spot_taken(self, face: End, foot: int) -> int | None:
+        """:func:`sim.clearing.spot_taken` in this world (the caller holds the physics lock)."""
+        w = self.world
+        return spot_taken(self.physics.world, w.peer_of, w.profile, w.topology.size, face, foot)
 
     def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
         """A released ``foot`` (a lone module) sets off to ``target``, a free face of another
@@ -304,7 +346,11 @@ class LoopReaches:
     def docking_modules(self) -> set[int]:
         """The modules whose docking motion is under way: what their ``docking`` sensor reads
         (``PhysicsRun.docking_modules``)."""
-        return {m.reach.chain.asking[0] for m in self.motions} | {b.trip.target[0] for b in self.trips}
+        return (
+            {m.reach.chain.asking[0] for m in self.motions}
+            | {b.trip.target[0] for b in self.trips}
+            | {c.face[0] for c in self.clearings}
+        )
 
     def sync_docking(self, modules: Sequence[int] | None = None) -> None:
         """Push the ``docking`` reading (1 while the module's docking motion is under way) to
@@ -325,7 +371,11 @@ class LoopReaches:
 
     def stepped_in(self, cycle: int) -> bool:
         """Every motion and trip under way has made its step of world cycle ``cycle``."""
-        return all(m.last >= cycle for m in self.motions) and all(b.last >= cycle for b in self.trips)
+        return (
+            all(m.last >= cycle for m in self.motions)
+            and all(b.last >= cycle for b in self.trips)
+            and all(c.last >= cycle for c in self.clearings)
+        )
 
     def step(self, cycle: int, due: bool = True) -> None:
         """Once per world cycle (``due``: the world's tick is in the moment of the cycle for it,
@@ -340,13 +390,15 @@ class LoopReaches:
 
         moving = [motion for motion in self.motions if ready(motion.last)]
         trips = [b for b in self.trips if ready(b.last)]
-        if not moving and not trips:
+        crawls = [c for c in self.clearings if ready(c.last)]
+        if not moving and not trips and not crawls:
             self.sync_docking()
             return
         w = self.world
         holds: dict[int, dict[int, float]] = {}
         done: list[Motion] = []
         arrived: list[Bringing] = []
+        cleared: list[CrawlingClear] = []
         front = w.profile.connector_index("front")
         with self.physics.lock:
             for motion in moving:
@@ -386,10 +438,31 @@ class LoopReaches:
                     w.note(f"bring {w.where(trip.module, front)}: the trip gave up after {trip.cycles} steps")
                     continue
                 arrived.append(bringing)
+            for crawl in crawls:
+                crawl.missed += cycle - crawl.last - 1
+                crawl.last = cycle
+                if not (w.running(crawl.face[0]) and w.running(crawl.foot[0])):
+                    self.clearings.remove(crawl)
+                    where = f"{w.where(*crawl.foot)} -> {w.where(*crawl.face)}"
+                    w.note(f"assimilate {where}: a module stopped; crawl abandoned")
+                    continue
+                for m, dof1 in crawl.clearing.step().items():
+                    holds.setdefault(m, {})[0] = dof1
+                if crawl.clearing.done:
+                    self.clearings.remove(crawl)
+                    cleared.append(crawl)
         for motion in done:  # outside the lock: the latch takes it
             self._finish(motion, cycle)
         for bringing in arrived:  # outside the lock: the dock's Reach takes it around its reads
             self._arrived(bringing, cycle)
+        for crawl in cleared:  # outside the lock: the trip takes it
+            c = crawl.clearing
+            outcome = "clear" if c.cleared else "still taken; the foot sets off anyway"
+            w.note(
+                f"{w.where(*crawl.face)}: crawled {c.gait_cycles} gait cycles ({crawl.missed} world cycles "
+                f"missed), the spot {outcome}"
+            )
+            self._let_go(crawl.face, crawl.foot)
         self._send_holds(holds)
         self.sync_docking()
 
@@ -432,11 +505,15 @@ class LoopReaches:
     @property
     def busy(self) -> bool:
         """A docking motion or a foot's trip is under way."""
-        return bool(self.motions or self.trips)
+        return bool(self.motions or self.trips or self.clearings)
 
     def owned(self) -> set[int]:
         """The modules whose joints a motion or a trip under way holds."""
-        return {m for motion in self.motions for m in motion.modules} | {b.trip.module for b in self.trips}
+        return (
+            {m for motion in self.motions for m in motion.modules}
+            | {b.trip.module for b in self.trips}
+            | {m for c in self.clearings for m in c.clearing.body}
+        )
 
     def _send_holds(self, holds: dict[int, dict[int, float]]) -> None:
         """Tell the moving modules what to hold; modules no motion or trip holds any more get

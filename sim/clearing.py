@@ -16,14 +16,20 @@ joints and are carried along. Measured at seeds 0 to 2, the winning foot killed 
 began: four gait cycles moved the robot 17.4 to 18.2 cm and left the dead foot 31 to 33 cm
 behind the tail's back (from 12 to 14 cm).
 
-:class:`Clearing` is stepped once a control cycle by its owner, which says what lies where
-(``taken``).
+:class:`Clearing` is stepped once a control cycle by its owner (``sim.runner.PhysicsRun``,
+or ``hil.reach_loop.LoopReaches`` once a world cycle in the loop), which says what lies
+where (``taken``, usually :func:`spot_taken`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
+from dh2rt import docking
+from dh2rt.docking import End
+from dh2rt.profile import Profile
+from sim.crawl import Poses
 from sim.gaits import caterpillar_schedule
 
 #: The caterpillar program's ClockCycle (examples/caterpillar.dh2), control cycles.
@@ -32,6 +38,32 @@ CLOCK_CYCLE = 40
 MAX_GAIT_CYCLES = 8
 #: Control cycles the body lies straight after the crawl, before the foot lets go.
 SETTLE_CYCLES = 20
+#: The spot behind a face a foot comes to: this far out along its normal, this far either
+#: side (m). A module lying apart with its centre there makes the robot crawl clear first.
+SPOT_DEPTH_M = 0.25
+SPOT_HALF_WIDTH_M = 0.08
+
+
+def spot_taken(
+    world: Poses, peer_of: Callable[[End], End | None], profile: Profile, size: int, face: End, foot: int
+) -> int | None:
+    """A module lying apart (not ``foot``, not on ``face``'s robot; modules 0 to ``size`` - 1)
+    whose centre is on the spot behind ``face`` (:data:`SPOT_DEPTH_M` out along its normal,
+    :data:`SPOT_HALF_WIDTH_M` either side), or None. Read from the world, as
+    :class:`sim.crawl.Trip` reads where the face is: the emulated infrared sees faces, not
+    bodies, and a foot that died pitched shows its face to none."""
+    robot = {*docking.body_up(peer_of, profile, face[0]), *docking.off_body(peer_of, profile, face[0])}
+    (px, py, _), (nx, ny, _) = world.connector_pose(*face)
+    norm = math.hypot(nx, ny) or 1.0  # the face's heading on the floor (it tilts as the robot crawls)
+    nx, ny = nx / norm, ny / norm
+    for m in range(size):
+        if m == foot or m in robot:
+            continue
+        x, y, _ = world.module_position(m)
+        out, aside = (x - px) * nx + (y - py) * ny, -(x - px) * ny + (y - py) * nx
+        if 0.0 < out <= SPOT_DEPTH_M and abs(aside) <= SPOT_HALF_WIDTH_M:
+            return m
+    return None
 
 
 class Clearing:

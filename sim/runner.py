@@ -41,7 +41,7 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
-from sim.clearing import Clearing
+from sim.clearing import Clearing, spot_taken
 from sim.crawl import Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
@@ -55,11 +55,6 @@ BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
-#: The spot behind a face a foot comes to: this far out along its normal, this far either
-#: side (m). A module lying apart there (a foot that died docking) makes the robot crawl
-#: clear first (PhysicsRun.spot_taken, sim.clearing).
-SPOT_DEPTH_M = 0.25
-SPOT_HALF_WIDTH_M = 0.08
 
 
 class PhysicsRun:
@@ -288,22 +283,8 @@ class PhysicsRun:
         return self.bring(foot_end[0], face, self.squaring_route(face[0]))
 
     def spot_taken(self, face: End, foot: int) -> int | None:
-        """A module lying apart (not ``foot``, not on ``face``'s robot) whose centre is on the
-        spot behind ``face`` (:data:`SPOT_DEPTH_M` out along its normal, :data:`SPOT_HALF_WIDTH_M`
-        either side), or None. Read from the world, as :class:`Trip` reads where the face is
-        (the emulated infrared sees faces, not bodies: a foot that died pitched sees none)."""
-        robot = {*self.body_up(face[0]), *self.off_body(face[0])}
-        (px, py, _), (nx, ny, _) = self.world.connector_pose(*face)
-        norm = math.hypot(nx, ny) or 1.0  # the face's heading on the floor (it tilts as the robot crawls)
-        nx, ny = nx / norm, ny / norm
-        for m in range(self.robot.size):
-            if m == foot or m in robot:
-                continue
-            x, y, _ = self.world.module_position(m)
-            out, aside = (x - px) * nx + (y - py) * ny, -(x - px) * ny + (y - py) * nx
-            if 0.0 < out <= SPOT_DEPTH_M and abs(aside) <= SPOT_HALF_WIDTH_M:
-                return m
-        return None
+        """:func:`sim.clearing.spot_taken` in this world."""
+        return spot_taken(self.world, self.peer_of, self.robot.profile, self.robot.size, face, foot)
 
     def _step_clearings(self, held: dict[int, dict[int, float]]) -> None:
         for entry in list(self.clearings):

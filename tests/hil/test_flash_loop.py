@@ -16,7 +16,6 @@ rollout per seed is run once (a module-scoped fixture) and read by several tests
 from __future__ import annotations
 
 import itertools
-import os
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ from dh2rt.wire.transfer import Outcome
 from drivers.flash_cable import FlashResult
 from hil.world import World, module_pids
 from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
+from tests.hil.processes import alive
 
 TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
 NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
@@ -110,7 +110,7 @@ def test_every_module_commits_and_is_named_by_its_path(rollout: Run) -> None:
         program = status.get("program", {})
         assert program.get("version") == 2 and not program.get("trial"), (i, program)
         assert int(status.get("cycle", 0)) >= rollout.switched[i] + AFTER, (i, status.get("cycle"))
-    assert not any(_alive(p) for p in rollout.pids)
+    assert not any(alive(p) for p in rollout.pids)
 
 
 def head_emissions(records: list[dict[str, Any]]) -> list[int]:
@@ -184,9 +184,3 @@ def test_one_agreed_switch_cycle_and_table_i_hop_by_hop(rollout: Run) -> None:
             assert any(0 < lag < HOP for lag in lags), (m, r["cycle"], p, "lags in periods:", lags)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True

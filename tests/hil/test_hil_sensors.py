@@ -31,6 +31,7 @@ from dh2rt.profile import CONRO
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology, parse_spec
 from hil.world import World, module_pids
+from tests.hil.processes import alive
 
 ROOT = Path(__file__).resolve().parents[2]
 PERIOD = 0.02
@@ -114,7 +115,7 @@ def test_a_sense_event_reaches_s_in_the_named_module_and_its_program_reacts(
         pids = module_pids(world)
     finally:
         world.stop()
-    assert all(not _alive(pid) for pid in pids)
+    assert all(not alive(pid) for pid in pids)
     target = topology.module_index(who)
     ((module, name, value, before, after),) = world.sense_times
     assert (module, name, value) == (target, "roll", 90)
@@ -140,16 +141,6 @@ def test_a_sense_event_reaches_s_in_the_named_module_and_its_program_reacts(
         )
     # the module says in which cycle it took the value: the first that shows it
     assert any(f"cycle {first}: sense: S.roll = 90" in line for line in world.log), world.log
-
-
-def _alive(pid: int) -> bool:
-    try:
-        import os
-
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
 
 
 def _launch(*args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:

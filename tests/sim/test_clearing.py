@@ -1,13 +1,25 @@
 """sim.clearing: the robot crawls whole gait cycles of the caterpillar's wave, lies straight,
-and looks again, until nothing lies on the spot (or its budget runs out). The crawl in
-physics is tested in test_legs_to_snake_physics.py (a foot killed as it docks)."""
+and looks again, until nothing lies on the spot (or its budget runs out); in physics, a dead
+foot laid behind the dragon's tail is left behind before the next foot lets go. Whole
+reconfigurations with a foot killed as it docks: test_legs_to_snake_physics.py."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
+from dh2rt.compiler import compile_file
+from dh2rt.events import parse_event
+from dh2rt.profile import CONRO
+from dh2rt.robot import Robot
+from dh2rt.topology import parse_spec
 from sim.clearing import SETTLE_CYCLES, Clearing
 from sim.gaits import caterpillar_schedule
+from sim.runner import PhysicsRun
+from tests.conftest import EXAMPLES
+
+FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 
 BODY = [4, 7, 2]  # head first: module ids, not positions
 
@@ -58,3 +70,73 @@ def test_a_spot_that_stays_taken_ends_the_crawl_at_its_budget() -> None:
 def test_an_empty_body_is_refused() -> None:
     with pytest.raises(ValueError, match="at least one module"):
         Clearing([], lambda: True)
+
+
+# ---------------------------------------------------------------- in physics
+
+
+def dead_foot_behind_the_tail(run: PhysicsRun, foot: int, behind_m: float) -> None:
+    """Kill ``foot``, let go of its link and lay it (its centre) ``behind_m`` behind the tail's
+    back, its front to the tail: where a foot killed as its dock began lies (its centre 12 to
+    14 cm behind)."""
+    run.robot.kill(foot)
+    run.cut(foot, FRONT)
+    tail = run.robot.topology.names.index("tail4")
+    (px, py, pz), (nx, ny, _) = run.world.connector_pose(tail, BACK)
+    run.world.set_module_pose(foot, (px + nx * behind_m, py + ny * behind_m, pz), math.degrees(math.atan2(-ny, -nx)))
+
+
+@pytest.mark.parametrize(("seed", "behind_m"), [(0, 0.12), (1, 0.08), (2, 0.16)])
+def test_the_robot_crawls_clear_of_a_dead_foot_before_the_next_foot_lets_go(seed: int, behind_m: float) -> None:
+    """legs_to_snake on the dragon, left_leg0 dead behind the tail before LTS: the next
+    winner's round starts with the robot crawling (the tail's docking sensor reading 1), and
+    only once nothing lies on the spot does the foot let go and set off."""
+    program = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
+    dragon = parse_spec("dragon")
+    robot = Robot(program, dragon, seed=seed)
+    run = PhysicsRun(robot)
+    dead, tail = dragon.names.index("left_leg0"), dragon.names.index("tail4")
+    face = (tail, BACK)
+    try:
+        run.run(20)
+        dead_foot_behind_the_tail(run, dead, behind_m)
+        run.run(30)
+        run.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
+        docking_read: list[int] = []
+        while not run.trips and robot.cycle < 1200:
+            run.cycle()
+            if run.clearings:
+                docking_read.append(run.docking_modules() == {tail})
+        log = robot.log
+        asked = [i for i, line in enumerate(log) if "lies behind tail4.back; the robot crawls clear first" in line]
+        crawled = [i for i, line in enumerate(log) if "tail4.back: crawled" in line]
+        assert len(asked) == 1 and "left_leg0 lies behind" in log[asked[0]], log
+        assert len(crawled) == 1 and "the spot clear" in log[crawled[0]], log
+        winner = run.trips[0][0].module
+        released = [i for i, line in enumerate(log) if f"{dragon.names[winner]}.front released" in line]
+        assert released and asked[0] < crawled[0] < released[0], log  # the foot let go only after
+        assert docking_read and all(docking_read)
+        assert run.spot_taken(face, winner) is None
+        # left behind by the crawl: its centre was laid behind_m from the face (measured: 11
+        # to 14 cm further at seeds 0 to 2)
+        (px, py, _), _ = run.world.connector_pose(*face)
+        assert math.dist((px, py), run.world.module_position(dead)[:2]) > behind_m + 0.08
+    finally:
+        run.close()
+
+
+def test_nothing_on_the_spot_no_crawl() -> None:
+    """The spot is looked at once, when the round begins: with nothing lying apart the foot
+    lets go at once (the runs of tests/sim/test_legs_to_snake_physics.py measure the rest)."""
+    program = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
+    dragon = parse_spec("dragon")
+    run = PhysicsRun(Robot(program, dragon, seed=0))
+    try:
+        run.run(50)
+        run.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
+        while not run.trips and run.robot.cycle < 300:
+            run.cycle()
+        assert run.trips and not run.clearings
+        assert not any("crawls clear" in line for line in run.robot.log)
+    finally:
+        run.close()
