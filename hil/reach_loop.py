@@ -435,7 +435,10 @@ class LoopReaches:
                     continue
                 self.trips.remove(bringing)
                 if not trip.arrived:
-                    w.note(f"bring {w.where(trip.module, front)}: the trip gave up after {trip.cycles} steps")
+                    w.note(
+                        f"bring {w.where(trip.module, front)}: the trip gave up after {trip.cycles} steps "
+                        f"({trip.account()})"
+                    )
                     continue
                 arrived.append(bringing)
             for crawl in crawls:
@@ -475,7 +478,7 @@ class LoopReaches:
         w.note(
             f"bring {w.where(trip.module, front)}: arrived after {trip.cycles} steps, world cycles "
             f"{bringing.asked}-{cycle}, {bringing.missed} missed ({s * 100:+.1f} cm along, {lat * 100:+.1f} cm "
-            f"aside, {math.degrees(heading):+.0f} deg)"
+            f"aside, {math.degrees(heading):+.0f} deg; {trip.account()})"
         )
         b, bc = trip.target
         self.reach_other(b, bc, bringing.route, trip.module)

@@ -200,6 +200,9 @@ class Trip:
         self.phase = "back off"
         self.cycles = 0
         self._turning = 0
+        #: Cycles spent in each phase, and turning in each phase (:meth:`account`).
+        self.spent: dict[str, int] = {}
+        self.turning: dict[str, int] = {}
         self.done = False
         #: Whether the foot got to the spot (False: the budget ran out).
         self.arrived = False
@@ -278,6 +281,23 @@ class Trip:
 
     def step(self) -> tuple[float, float]:
         """Advance by one control cycle; the foot's joint targets (DOF1, DOF2 degrees)."""
+        targets = self._step()
+        if not self.done or self.arrived:
+            self.spent[self.phase] = self.spent.get(self.phase, 0) + 1
+            if self._turning:
+                self.turning[self.phase] = self.turning.get(self.phase, 0) + 1
+        return targets
+
+    def account(self) -> str:
+        """Where the cycles went, phase by phase, and how many of them the foot turned: the
+        first thing to read when a trip takes long or gives up."""
+        parts = []
+        for phase, cycles in self.spent.items():
+            turned = self.turning.get(phase, 0)
+            parts.append(f"{phase} {cycles}" + (f" ({turned} turning)" if turned else ""))
+        return ", ".join(parts)
+
+    def _step(self) -> tuple[float, float]:
         self.cycles += 1
         c = self.cycles
         if self.cycles > self.budget:

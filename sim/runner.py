@@ -360,12 +360,16 @@ class PhysicsRun:
             self.trips.remove(entry)
             front = self.robot.profile.connector_index("front")
             if not trip.arrived:
-                self.note(f"bring {self.where(trip.module, front)}: the trip gave up after {trip.cycles} cycles")
+                self.note(
+                    f"bring {self.where(trip.module, front)}: the trip gave up after {trip.cycles} cycles "
+                    f"({trip.account()})"
+                )
                 continue
             s, lat, heading = trip.state()
             self.note(
                 f"bring {self.where(trip.module, front)}: arrived after {trip.cycles} cycles "
-                f"({s * 100:+.1f} cm along, {lat * 100:+.1f} cm aside, {math.degrees(heading):+.0f} deg)"
+                f"({s * 100:+.1f} cm along, {lat * 100:+.1f} cm aside, {math.degrees(heading):+.0f} deg; "
+                f"{trip.account()})"
             )
             self.reach_other(b, bc, route, (trip.module, front), creep=True)
 

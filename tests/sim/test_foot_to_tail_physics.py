@@ -16,6 +16,7 @@ tests/sim/test_legs_to_snake_physics.py (docs/physics.md, *Legs to snake in phys
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -201,6 +202,12 @@ def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -
         new_tail, old_tail = robot.engines[foot], robot.engines[tail]
         assert new_tail is not None and new_tail.topo_type.name == "tail"
         assert old_tail is not None and old_tail.topo_type.name == "body"
-        assert any("arrived after" in line for line in robot.log)
+        # the arrival's note says where the trip's cycles went, phase by phase, and they add up
+        (arrival,) = [line for line in robot.log if "arrived after" in line]
+        found = re.search(r"arrived after (\d+) cycles \(.*; (.*)\)$", arrival)
+        assert found is not None, arrival
+        spent = dict(re.findall(r"(back off|along|aside|square) (\d+)", found[2]))
+        assert "back off" in spent and "square" in spent, arrival
+        assert sum(int(n) for n in spent.values()) == int(found[1]), arrival
     finally:
         run.close()
