@@ -275,9 +275,9 @@ class PhysicsRun:
             name = self.robot.topology.names[lying]
             self.note(f"assimilate {where}: {name} lies behind {self.where(*face)}; the robot crawls clear first")
             return True
-        return self._set_off(face, target)
+        return self._let_go(face, target)
 
-    def _set_off(self, face: End, foot_end: End) -> bool:
+    def _let_go(self, face: End, foot_end: End) -> bool:
         """The foot lets go of the body and comes to ``face`` (:meth:`bring`)."""
         self.release(*foot_end)
         return self.bring(foot_end[0], face, self.squaring_route(face[0]))
@@ -301,7 +301,7 @@ class PhysicsRun:
             self.clearings.remove(entry)
             outcome = "clear" if clearing.cleared else "still taken; the foot sets off anyway"
             self.note(f"{self.where(*face)}: crawled {clearing.gait_cycles} gait cycles, the spot {outcome}")
-            self._set_off(face, foot_end)
+            self._let_go(face, foot_end)
 
     def squaring_route(self, module: int) -> tuple[int, ...]:
         """:func:`dh2rt.docking.squaring_route` in this world."""
