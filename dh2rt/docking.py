@@ -127,8 +127,8 @@ def body_up(peer_of: Callable[[End], End | None], profile: Profile, module: int)
     return chain
 
 
-def off_body(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> list[int]:
-    """The modules of ``module``'s robot not on :func:`body_up` (the legs still on it)."""
+def robot_of(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> set[int]:
+    """``module`` and every module docked to it, directly or through others: its robot."""
     seen, todo = {module}, [module]
     while todo:
         m = todo.pop()
@@ -137,7 +137,12 @@ def off_body(peer_of: Callable[[End], End | None], profile: Profile, module: int
             if peer is not None and peer[0] not in seen:
                 seen.add(peer[0])
                 todo.append(peer[0])
-    return sorted(seen - set(body_up(peer_of, profile, module)))
+    return seen
+
+
+def off_body(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> list[int]:
+    """The modules of ``module``'s robot not on :func:`body_up` (the legs still on it)."""
+    return sorted(robot_of(peer_of, profile, module) - set(body_up(peer_of, profile, module)))
 
 
 def squaring_route(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> tuple[int, ...]:

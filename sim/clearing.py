@@ -52,7 +52,7 @@ def spot_taken(
     :data:`SPOT_HALF_WIDTH_M` either side), or None. Read from the world, as
     :class:`sim.crawl.Trip` reads where the face is: the emulated infrared sees faces, not
     bodies, and a foot that died pitched shows its face to none."""
-    robot = {*docking.body_up(peer_of, profile, face[0]), *docking.off_body(peer_of, profile, face[0])}
+    robot = docking.robot_of(peer_of, profile, face[0])
     (px, py, _), (nx, ny, _) = world.connector_pose(*face)
     norm = math.hypot(nx, ny) or 1.0  # the face's heading on the floor (it tilts as the robot crawls)
     nx, ny = nx / norm, ny / norm
