@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 from typing import Any
 
@@ -16,3 +17,11 @@ def strict_json(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [strict_json(v) for v in value]
     return value
+
+
+def seeds_arg(parser: argparse.ArgumentParser, text: str) -> list[int]:
+    """``--seeds`` given as comma-separated integers; a clear usage error (exit 2) otherwise."""
+    try:
+        return [int(s) for s in text.split(",")]
+    except ValueError:
+        parser.error(f"--seeds: expected comma-separated integers, got {text!r}")

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks import strict_json
+from benchmarks import seeds_arg, strict_json
 from dh2rt.compiler import compile_file
 from sim.gaits import measure_walk
 
@@ -35,10 +35,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
     parser.add_argument("--no-before", action="store_true", help="skip the earlier gait")
     args = parser.parse_args(argv)
-    try:
-        seeds = [int(s) for s in args.seeds.split(",")]
-    except ValueError:
-        parser.error(f"--seeds: expected comma-separated integers, got {args.seeds!r}")
+    seeds = seeds_arg(parser, args.seeds)
     if args.gait_cycles < 1:
         parser.error("--gait-cycles must be at least 1")
     now = compile_file(str(EXAMPLES / "locomotion.dh2"))

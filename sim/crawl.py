@@ -102,6 +102,20 @@ OBSTACLE_AHEAD_M = 0.30
 #: The turning gait's period (control cycles); see the module docs.
 TURN_PERIOD = 12
 
+#: How far before the end of the line along (m, in ``s``) the foot starts across towards its
+#: spot: it then backs diagonally past the face instead of going past it and then across
+#: (two turns of about 90 degrees in place, each drifting the foot; docs/physics.md).
+DIAGONAL_M = 0.22
+#: ... and at most this steeply (degrees off the line): a foot that came along closer to the
+#: robot than its line starts across later (one that started 16 cm before the face at 5 cm
+#: beside the axis caught its back on the tail's end and stayed there).
+DIAGONAL_LEAN_DEG = 25.0
+#: While its front is still beside the target module, a foot this close to the axis (m) backs
+#: straight along rather than in towards the spot.
+ALONGSIDE_M = 0.05
+#: A foot at most this far too far back (m) moves across to its spot instead of turning about.
+ACROSS_BEHIND_M = 0.05
+
 
 def turn(cycle: int, direction: int) -> tuple[float, float]:
     """The lone module's joint targets to turn in place: ``direction`` +1 to its left
@@ -135,18 +149,24 @@ class Trip:
     (:func:`turn`) whenever its heading is more than 8 degrees off the one it wants, else
     backing off: along a line :attr:`clear_m` beside the robot's axis (the heading it wants
     leans into the line by 5 degrees per cm off it, at most 29; out by up to 70 to pass a
-    leg) until its front is :attr:`margin_m` further back than :attr:`park` [0]; then,
-    back first, towards the spot :attr:`park` [1] aside on that line (re-aimed from where
-    the foot is each cycle: the gaits drift differently with the floor's friction at each
-    heading) until within 2 cm of it; then square (within 6 degrees) and still. Squared
-    within 3 cm of the axis and between 1 and 8.5 cm behind the face it has arrived (the
-    dock's creep closes the rest); otherwise it moves across again, or back along if it was
-    pushed alongside the target module. A turn keeps its direction while the foot faces
-    about the other way (the error's sign flips there from cycle to cycle). Too far back,
-    the foot turns about to back towards the spot; its front, read as where it is, is then
-    a module's length further from the face than its back, and a foot can press its back on
-    the tail while it still reads itself too far back (a rear foot going first at seed 0
-    did, until its budget ran out).
+    leg) until its front is :attr:`diagonal_m` short of :attr:`margin_m` further back than
+    :attr:`park` [0] (or that far back itself while a leg on the body is near); then, back
+    first, towards the spot :attr:`park` [1] aside on that line (re-aimed from where the
+    foot is each cycle: the gaits drift differently with the floor's friction at each
+    heading): from :attr:`diagonal_m` before it, the foot backs diagonally past the face,
+    leaning about 23 degrees at first, rather than going past it and then across (two turns of
+    about 90 degrees in place, each drifting it, where most trips that gave up had spent
+    their budget); once within 2 cm of the axis and between 2 and 8 cm behind the face,
+    square (within 6 degrees) and still. Squared within 3 cm of the axis and between 1
+    and 8.5 cm behind the face it has arrived (the dock's creep closes the rest);
+    otherwise it moves across again, or back along if it was pushed alongside the target
+    module. A turn keeps its direction while the foot faces about the other way (the
+    error's sign flips there from cycle to cycle). Up to :data:`ACROSS_BEHIND_M` too far
+    back, it moves straight across; further, it turns about to back towards the spot: its
+    front, read as where it is, is then a module's length further from the face than its
+    back, and a foot can press its back on the tail while it still reads itself too far
+    back (a rear foot going first at seed 0 did, before the diagonal, until its budget ran
+    out).
 
     ``others`` (the target robot's modules off the path) are the legs still on the body: a
     foot passing one on its side keeps its front :data:`OBSTACLE_CLEAR_M` beyond the leg's
@@ -178,6 +198,7 @@ class Trip:
         body: Callable[[], list[int]] | None = None,
         others: Callable[[], list[int]] | None = None,
         margin_m: float = 0.03,
+        diagonal_m: float = DIAGONAL_M,
     ) -> None:
         self.world = world
         self.module = module
@@ -188,6 +209,8 @@ class Trip:
         #: How much further back than the spot the foot goes before it moves sideways, so
         #: that it clears the target module's corner.
         self.margin_m = margin_m
+        #: How far before the line's end the foot starts across (:data:`DIAGONAL_M`).
+        self.diagonal_m = diagonal_m
         self.backoff_m = backoff_m
         self.clear_m = clear_m
         self.park = park
@@ -317,7 +340,10 @@ class Trip:
         aim = self.park[0] - self.margin_m  # where the sideways leg runs
         if self.phase == "along":
             s, lat, heading = self.state(path=True)
-            if s <= aim:
+            # across from up to DIAGONAL_M before the line's end, leaning DIAGONAL_LEAN_DEG at
+            # most, unless a leg on the body is near
+            early = min(self.diagonal_m, max(0.0, lat - self.park[1]) / math.tan(math.radians(DIAGONAL_LEAN_DEG)))
+            if s <= aim + early * (self._clearance(s) <= self.clear_m):
                 self.phase = "aside"
         if self.phase != "along":
             s, lat, heading = self.state()
@@ -328,8 +354,12 @@ class Trip:
             want = max(-1.2 if clear > self.clear_m else -0.5, min(0.5, 5.0 * (lat - clear)))
         elif self.phase == "aside":
             off, ahead = lat - self.park[1], s - aim
-            if math.hypot(off, ahead) <= 0.02:
+            if abs(off) <= 0.02 and aim - 0.02 <= s <= self.park[0] + 0.01:
                 self.phase, want, crawl = "square", 0.0, None
+            elif s > 0 and lat < ALONGSIDE_M:  # beside the target module: not into it
+                want = 0.0
+            elif -ACROSS_BEHIND_M < ahead < 0:  # a little too far back: across, not about
+                want = math.copysign(math.pi / 2, off)
             else:
                 # back first towards the spot (the foot moves away from where its front
                 # points; too far back, it turns about and backs towards the face); the

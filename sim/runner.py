@@ -42,7 +42,7 @@ from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
 from sim.clearing import Clearing, spot_taken
-from sim.crawl import Creep, Trip
+from sim.crawl import DIAGONAL_M, Creep, Trip
 from sim.reach import Chain, Contact, Reach
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
@@ -110,6 +110,9 @@ class PhysicsRun:
         self.clearings: list[tuple[Clearing, End, End]] = []
         #: Docks each foot brought so far has tried (see BRING_ATTEMPTS).
         self.attempts: dict[int, int] = {}
+        #: How far before its line's end a foot's trip starts across (sim.crawl.DIAGONAL_M; 0:
+        #: at the end, the trip before; benchmarks/bench_trips.py compares the two).
+        self.trip_diagonal_m = DIAGONAL_M
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
@@ -334,7 +337,14 @@ class PhysicsRun:
     def _trip(self, foot: int, target: End) -> Trip:
         """A foot's trip to just behind ``target``, along ``target``'s robot as it lies."""
         b = target[0]
-        return Trip(self.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
+        return Trip(
+            self.world,
+            foot,
+            target,
+            body=lambda: self.body_up(b),
+            others=lambda: self.off_body(b),
+            diagonal_m=self.trip_diagonal_m,
+        )
 
     def body_up(self, module: int) -> list[int]:
         """:func:`dh2rt.docking.body_up` in this world."""

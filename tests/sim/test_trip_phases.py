@@ -1,0 +1,140 @@
+"""sim.crawl.Trip's choices of where to go, on a world held still (no physics).
+
+The tail lies along +x with its back face at the origin (normal -x); the foot's front is put
+where each test says, its heading along +x unless said. Trip reads only poses, so a table of
+poses is its whole world here; what the gaits then do on the floor is measured in
+tests/sim/test_foot_to_tail_physics.py and tests/sim/test_legs_to_snake_physics.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sim.crawl import ACROSS_BEHIND_M, ALONGSIDE_M, DIAGONAL_LEAN_DEG, DIAGONAL_M, Trip, back_off, turn
+
+FOOT, TAIL, LEG = 0, 1, 2
+#: Centres of the tail's modules up the robot from the face (m).
+BODY = {TAIL: (0.05, 0.0), 3: (0.155, 0.0), 4: (0.26, 0.0), 5: (0.365, 0.0)}
+
+
+class StillWorld:
+    """The poses :class:`sim.crawl.Poses` asks for, set by hand."""
+
+    def __init__(self, front: tuple[float, float], heading_deg: float = 0.0) -> None:
+        self.front = front
+        self.heading = math.radians(heading_deg)
+        self.leg = (0.30, 0.065)
+
+    def connector_pose(
+        self, module: int, connector: int | str
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        if module == FOOT:
+            return (*self.front, 0.0), (math.cos(self.heading), math.sin(self.heading), 0.0)
+        return (0.0, 0.0, 0.0), (-1.0, 0.0, 0.0)
+
+    def part_transform(self, module: int, link: int) -> np.ndarray:
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        t = np.eye(4)
+        t[:2, :2] = [[c, -s], [s, c]]
+        return t
+
+    def module_position(self, module: int) -> tuple[float, float, float]:
+        x, y = self.leg if module == LEG else BODY[module]
+        return x, y, 0.0
+
+
+def trip(world: StillWorld, *, leg: bool = False) -> Trip:
+    t = Trip(
+        world,
+        FOOT,
+        (TAIL, 2),  # its back
+        body=lambda: [TAIL, 3, 4, 5],
+        others=(lambda: [LEG]) if leg else (lambda: []),
+    )
+    t.phase = "along"  # past the back-off
+    return t
+
+
+AIM = -0.03 - 0.03  # park [0] less the margin: where the line along used to end
+
+
+def early(lat: float) -> float:
+    """How far before the line's end (m) a foot ``lat`` beside the axis starts across."""
+    return min(DIAGONAL_M, (lat - 0.005) / math.tan(math.radians(DIAGONAL_LEAN_DEG)))
+
+
+@pytest.mark.parametrize("lat", [0.10, 0.05])
+@pytest.mark.parametrize("before", [0.005, 0.05, 0.5])
+def test_the_foot_starts_across_before_the_line_ends(lat: float, before: float) -> None:
+    """On its line (10 cm out) it starts across about 20 cm before the line's end, leaning
+    in about 25 degrees; closer to the robot, later, so that it leans no more."""
+    assert 0.18 < early(0.10) <= DIAGONAL_M and early(0.05) < 0.10
+    s = AIM + before * early(lat)
+    world = StillWorld((s, lat))
+    t = trip(world)
+    targets = t.step()
+    assert t.phase == "aside"
+    want = math.degrees(math.atan2(lat - t.park[1], s - AIM))
+    assert DIAGONAL_LEAN_DEG - 1 < want < 90
+    assert targets == turn(t.cycles, +1), "8 degrees off or more: it turns towards its lean"
+
+
+@pytest.mark.parametrize("lat", [0.10, 0.05])
+def test_before_that_it_keeps_backing_along(lat: float) -> None:
+    world = StillWorld((AIM + early(lat) + 0.01, lat))
+    t = trip(world)
+    t.step()
+    assert t.phase == "along"
+
+
+def test_beside_the_target_module_and_close_to_it_it_backs_straight_along() -> None:
+    """Its front still beside the tail and within ALONGSIDE_M of the axis, it does not lean
+    in (its back would catch on the tail's end): heading straight, it backs off."""
+    world = StillWorld((0.03, ALONGSIDE_M - 0.01))
+    t = trip(world)
+    t.phase = "aside"
+    assert t.step() == back_off(t.cycles)
+    world.front = (-0.01, ALONGSIDE_M - 0.01)  # past the face: in towards the spot
+    assert t.step() == turn(t.cycles, +1)
+
+
+def test_with_a_leg_on_the_body_near_it_goes_along_to_the_end() -> None:
+    """The diagonal would cut the leg's corner: the line's end stays where it was."""
+    world = StillWorld((AIM + 0.10, 0.10))
+    world.leg = (AIM + 0.10 + 0.05, 0.065)
+    t = trip(world, leg=True)
+    t.step()
+    assert t.phase == "along"
+    world.front = (AIM - 0.001, 0.17)
+    t.step()
+    assert t.phase == "aside"
+
+
+@pytest.mark.parametrize(("behind", "turns_about"), [(0.02, False), (ACROSS_BEHIND_M - 0.005, False), (0.09, True)])
+def test_a_little_too_far_back_it_moves_across_not_about(behind: float, turns_about: bool) -> None:
+    """Straight across (its front to the outside, so that it backs in) unless it is more
+    than ACROSS_BEHIND_M too far back: then it turns about to back towards the face."""
+    world = StillWorld((AIM - behind, 0.06), heading_deg=90.0)
+    t = trip(world)
+    t.phase = "aside"
+    targets = t.step()
+    assert t.phase == "aside"
+    if turns_about:
+        assert targets == turn(t.cycles, +1), "the spot is behind its back's side: it turns"
+    else:
+        assert targets == (45.0 + 40.0 * math.sin(2 * math.pi * t.cycles / 8), 0.0), "it backs across"
+
+
+@pytest.mark.parametrize(("s", "lat", "square"), [(-0.05, 0.01, True), (-0.075, -0.012, True), (-0.05, 0.03, False)])
+def test_it_squares_anywhere_in_the_box_behind_the_face(s: float, lat: float, square: bool) -> None:
+    """Within 2 cm of the axis and 2 cm to 8 cm behind the face it stops moving across and
+    squares; squared there it has arrived."""
+    world = StillWorld((s, lat))
+    t = trip(world)
+    t.phase = "aside"
+    t.step()
+    assert (t.phase == "square") is square
+    assert t.arrived is square, "square already: arrived in the same cycle"
