@@ -153,10 +153,13 @@ class Trip:
     :attr:`park` [0] (or that far back itself while a leg on the body is near); then, back
     first, towards the spot :attr:`park` [1] aside on that line (re-aimed from where the
     foot is each cycle: the gaits drift differently with the floor's friction at each
-    heading): from :attr:`diagonal_m` before it, the foot backs diagonally past the face,
-    leaning about 23 degrees at first, rather than going past it and then across (two turns of
-    about 90 degrees in place, each drifting it, where most trips that gave up had spent
-    their budget); once within 2 cm of the axis and between 2 and 8 cm behind the face,
+    heading): from up to :attr:`diagonal_m` before it, the foot backs diagonally past the
+    face, leaning :data:`DIAGONAL_LEAN_DEG` at most (so a foot that came along closer to the
+    robot starts later), rather than going past it and then across (two turns of about 90
+    degrees in place, each drifting it, where most trips that gave up had spent their
+    budget); while its front is still beside the target module within :data:`ALONGSIDE_M`
+    of the axis it backs straight instead; once within 2 cm of the axis and between 2 and
+    8 cm behind the face,
     square (within 6 degrees) and still. Squared within 3 cm of the axis and between 1
     and 8.5 cm behind the face it has arrived (the dock's creep closes the rest);
     otherwise it moves across again, or back along if it was pushed alongside the target
