@@ -58,3 +58,27 @@ def test_footprint_benchmark_reports_each_figure_against_its_bare_loop() -> None
         assert serial["ratio"][key]["median"] > 0
     assert serial["dh2rt"]["checks"]["types"] == ["head"] + ["body"] * 6 + ["tail"]
     assert all(serial[who]["checks"]["frames_received_min"] > 0 for who in ("dh2rt", "baseline"))
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["--legs", "left_leg0,tail4"], "--legs: tail4 not a foot"),
+        (["--seeds", "0,x"], "--seeds: expected"),
+        (["--jobs", "0"], "--jobs"),
+    ],
+)
+def test_trips_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:
+    """A field given wrong is named, and the exit is argparse's 2, before any world is built."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_trips", *args], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
+    assert proc.returncode == 2 and names in proc.stderr, proc.stderr[-500:]
+    assert proc.stdout == ""
+
+
+def test_trips_benchmark_help() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_trips", "--help"], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
+    assert proc.returncode == 0 and "--seeds" in proc.stdout and "diagonal" in proc.stdout
