@@ -8,7 +8,7 @@ foot and seed, the same world twice in the same run: today's trip, which starts 
 trip without the diagonal (``diagonal_m = 0``: along its line to the end, then across, as
 the trip before it did; its other rules are today's).
 Reported: how many docked, the cycles from the release to the latch (median and range), and
-the cycles the feet turned in place (from the arrival notes' accounts).
+the cycles the feet turned in place (the finished trips' accounts, ``PhysicsRun.trips_done``).
 
     python -m benchmarks.bench_trips [--seeds 0,1,2,3,4,5] [--legs left_leg0,...] [--jobs 2] [--quick]
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import statistics
 import sys
 from collections.abc import Sequence
@@ -51,17 +50,9 @@ def one_round(seed: int, leg: str, diagonal_m: float) -> dict[str, Any]:
     try:
         for _ in range(10):
             run.cycle()
-        run.release(foot, front)
-        if not run.bring(foot, (tail, back), (front, front)):
-            raise RuntimeError(f"{leg}: bring refused: {run.robot.log[-1]}")
-        cycles = 0
-        while cycles < ROUND_CYCLES and (cycles == 0 or run.trips or run.reaches):
-            run.cycle()
-            cycles += 1
+        cycles = run.bring_home(foot, (tail, back), (front, front), ROUND_CYCLES)
         docked = run.robot.peer_of((tail, back)) == (foot, front)
-        turning = sum(
-            int(n) for line in run.robot.log if "bring" in line for n in re.findall(r"\((\d+) turning\)", line)
-        )
+        turning = sum(n for trip in run.trips_done for n in trip.turning.values())
         return {"seed": seed, "leg": leg, "docked": docked, "cycles": cycles, "turning": turning}
     finally:
         run.close()

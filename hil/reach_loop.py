@@ -316,7 +316,7 @@ class LoopReaches:
             w.note(f"reach_dock {where}: both connectors are {w.profile.gender(connector)}")
             return False
         world = self.physics.world
-        chain = Chain.to_other(world.model, (module, connector), route, w.peer_of, (foot, front))
+        chain = Chain.to_other(world.model, (module, connector), route, w.peer_of, (foot, front), free_distance=True)
 
         def aligned() -> bool:  # inside Reach.step, under the lock
             return world.aligned(module, connector, foot, front, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
@@ -333,8 +333,8 @@ class LoopReaches:
         return True
 
     def _bring_again(self, foot: int, target: End) -> None:
-        """A dock with a foot that came gave up: the foot sets off again from where it is, up to
-        ``BRING_ATTEMPTS`` docks (``PhysicsRun._bring_again``)."""
+        """A trip or a dock with a foot that came gave up: the foot sets off again from where it
+        is, up to ``BRING_ATTEMPTS`` times in all (``PhysicsRun._bring_again``)."""
         tries = self.attempts.get(foot, 1)
         w = self.world
         if tries >= BRING_ATTEMPTS or not (w.running(foot) and w.running(target[0])):
@@ -439,6 +439,7 @@ class LoopReaches:
                         f"bring {w.where(trip.module, front)}: the trip gave up after {trip.cycles} steps "
                         f"({trip.account()})"
                     )
+                    self._bring_again(trip.module, trip.target)
                     continue
                 arrived.append(bringing)
             for crawl in crawls:

@@ -155,6 +155,14 @@ class Chain:
     #: at, and that part; the owner measures :attr:`beyond`, the target part in that frame.
     anchor: tuple[int, int] | None = None
     beyond: np.ndarray = field(default_factory=lambda: np.eye(4))
+    #: The distance along the asking face's normal is not the chain's to close: the target
+    #: creeps towards the face itself (:class:`sim.crawl.Creep`), and :meth:`error_of` counts
+    #: only how far the target is off the face's axis and how far off square. A chain lying
+    #: straight cannot lengthen: asked to put its face 3 cm (:data:`STANDOFF_M`) in front of
+    #: a foot parked 4 to 6 cm behind, two tail modules that were feet docked a little askew
+    #: swung their yaws to the limits (+85 and -85 degrees) and turned the face away from the
+    #: foot; 3 of the 4 legs to snake runs in 25 that did not form ended so (docs/physics.md).
+    free_distance: bool = False
 
     @classmethod
     def to_other(
@@ -164,12 +172,15 @@ class Chain:
         route: Sequence[int],
         peer_of: Callable[[End], End | None],
         target: End,
+        *,
+        free_distance: bool = False,
     ) -> Chain:
         """The chain of ``asking``'s own robot along ``route`` (the joints that move the asking
         face), aimed at ``target`` on a body the route does not reach: the chain ends at the
         part of the last module that the route enters, and :attr:`beyond` must be set to the
-        target part's pose in that part's frame before each use."""
-        chain = cls(model, asking, target)
+        target part's pose in that part's frame before each use. With ``free_distance`` the
+        target closes the distance itself (:attr:`free_distance`)."""
+        chain = cls(model, asking, target, free_distance=free_distance)
         chain.anchor = chain._follow(model, asking, route, peer_of)
         return chain
 
@@ -278,7 +289,11 @@ class Chain:
         wanted = np.array(a.position) + standoff * np.array(a.normal)
         turn = _rz(mated_turn(self.model, self.asking[1], self.target[1]))[:3, :3]
         rot = _log_rot(t[:3, :3] @ turn.T)
-        return np.concatenate([face - wanted, ROT_WEIGHT_M * rot])
+        off = face - wanted
+        if self.free_distance:
+            normal = np.array(a.normal)
+            off = off - float(off @ normal) * normal
+        return np.concatenate([off, ROT_WEIGHT_M * rot])
 
     def jacobian(self, q: np.ndarray, standoff: float = 0.0, h: float = 1e-5) -> np.ndarray:
         e0 = self.error(q, standoff)

@@ -50,7 +50,11 @@ from sim.world import World
 
 #: Physics steps per DH2 control cycle: 12 steps at 240 Hz = 50 ms per cycle.
 STEPS_PER_CYCLE = 12
-#: How many docks a foot that came to a face (PhysicsRun.bring) tries before it gives up.
+#: How many times a foot that comes to a face (PhysicsRun.bring) sets off before it gives up:
+#: a trip or a dock that gives up sends it round again from where it is. A foot left lying
+#: apart cannot ask again (it has no link to send RCT through), so without the trip's
+#: retry a foot whose trip gave up was lost and the snake never formed (seed 1, the first
+#: winner killed on its trip: the next foot pressed against the dead one for 1,700 cycles).
 BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
@@ -105,14 +109,21 @@ class PhysicsRun:
         self.creeps: dict[int, Creep] = {}
         #: Released feet on their way to a face, each with the route the dock will bend.
         self.trips: list[tuple[Trip, tuple[int, ...]]] = []
+        #: Trips that ended, arrived or not (their ``spent`` and ``turning`` say where the
+        #: cycles went).
+        self.trips_done: list[Trip] = []
         #: Robots crawling clear of a body on the spot before a foot sets off: each with the
         #: face the foot will come to and the foot (still on the body) with its connector.
         self.clearings: list[tuple[Clearing, End, End]] = []
-        #: Docks each foot brought so far has tried (see BRING_ATTEMPTS).
+        #: Times each foot brought so far has set off (see BRING_ATTEMPTS).
         self.attempts: dict[int, int] = {}
         #: How far before its line's end a foot's trip starts across (sim.crawl.DIAGONAL_M; 0:
         #: at the end, the trip before; benchmarks/bench_trips.py compares the two).
         self.trip_diagonal_m = DIAGONAL_M
+        #: Whether a dock with a creeping foot leaves the distance to the foot
+        #: (sim.reach.Chain.free_distance; False: the plan puts the face STANDOFF_M in front
+        #: of the foot, the dock before; benchmarks/bench_legs_to_snake.py compares the two).
+        self.dock_free_distance = True
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
@@ -210,7 +221,8 @@ class PhysicsRun:
         if not self.robot.profile.can_link(connector, bc):
             self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
             return False
-        chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target)
+        free = creep and self.dock_free_distance  # the creeping foot closes the distance
+        chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target, free_distance=free)
         reach = Reach(
             self.world,
             self._ir,
@@ -246,6 +258,20 @@ class PhysicsRun:
         self.attempts[foot] = 1
         self.note(f"bring {where}: the foot sets off")
         return True
+
+    def bring_home(self, foot: int, target: End, route: tuple[int, ...], budget: int) -> int:
+        """One round of legs to snake driven from Python: ``foot`` lets go of the body at its
+        front (:meth:`release`) and is brought to ``target`` (:meth:`bring`); the world runs
+        until no trip and no docking motion is left, at most ``budget`` cycles. How many ran.
+        Raises ValueError (with the refusal's note) if :meth:`bring` says no."""
+        self.release(foot, self.robot.profile.connector_index("front"))
+        if not self.bring(foot, target, route):
+            raise ValueError(self.robot.log[-1])
+        cycles = 0
+        while cycles < budget and (self.trips or self.reaches):
+            self.cycle()
+            cycles += 1
+        return cycles
 
     def assimilate(self, module: int, connector: int, route: Sequence[int]) -> bool:
         """``dock_tail_to_foot`` in physics (the effect ``reach_and_dock``): the foot at the end
@@ -324,8 +350,9 @@ class PhysicsRun:
         )
 
     def _bring_again(self, foot: int, target: End) -> None:
-        """A dock with a foot that came (:meth:`bring`) gave up: the foot sets off again from
-        where it is (backing off, then round to the spot), up to :data:`BRING_ATTEMPTS` docks."""
+        """A trip or a dock with a foot that came (:meth:`bring`) gave up: the foot sets off
+        again from where it is (backing off, then round to the spot), up to
+        :data:`BRING_ATTEMPTS` times in all."""
         tries = self.attempts.get(foot)
         if tries is None or tries >= BRING_ATTEMPTS or not (self.running(foot) and self.running(target[0])):
             return  # not a foot that came, or its last try
@@ -368,12 +395,14 @@ class PhysicsRun:
                 held.setdefault(trip.module, {}).update({0: dofs[0], 1: dofs[1]})
                 continue
             self.trips.remove(entry)
+            self.trips_done.append(trip)
             front = self.robot.profile.connector_index("front")
             if not trip.arrived:
                 self.note(
                     f"bring {self.where(trip.module, front)}: the trip gave up after {trip.cycles} cycles "
                     f"({trip.account()})"
                 )
+                self._bring_again(trip.module, trip.target)
                 continue
             s, lat, heading = trip.state()
             self.note(

@@ -82,3 +82,34 @@ def test_trips_benchmark_help() -> None:
         [sys.executable, "-m", "benchmarks.bench_trips", "--help"], capture_output=True, text=True, cwd=ROOT, timeout=60
     )
     assert proc.returncode == 0 and "--seeds" in proc.stdout and "diagonal" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["--kills", "none,late"], "--kills: late not one of none, trip, dock"),
+        (["--seeds", "1;2"], "--seeds: expected"),
+        (["--jobs", "-1"], "--jobs"),
+    ],
+)
+def test_legs_to_snake_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_legs_to_snake", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and names in proc.stderr, proc.stderr[-500:]
+    assert proc.stdout == ""
+
+
+def test_legs_to_snake_benchmark_help() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_legs_to_snake", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert proc.returncode == 0 and "--kills" in proc.stdout and "free_distance" in proc.stdout

@@ -169,12 +169,7 @@ def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -
         for _ in range(10):
             run.cycle()
         start, _ = w.connector_pose(foot, FRONT)
-        run.release(foot, FRONT)
-        assert run.bring(foot, (tail, BACK), (FRONT, FRONT))
-        for _ in range(3200):
-            run.cycle()
-            if not run.trips and not run.reaches:
-                break
+        run.bring_home(foot, (tail, BACK), (FRONT, FRONT), 3200)
         assert robot.peer_of((tail, BACK)) == (foot, FRONT), robot.log[-1]
         (contact,) = run.contacts
         assert contact.asking == (tail, BACK) and contact.target == (foot, FRONT)
@@ -192,5 +187,8 @@ def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -
         spent = dict(re.findall(r"(back off|along|aside|square) (\d+)", found[2]))
         assert "back off" in spent and "square" in spent, arrival
         assert sum(int(n) for n in spent.values()) == int(found[1]), arrival
+        # and the finished trip keeps the same account
+        (trip,) = run.trips_done
+        assert trip.arrived and {k: str(v) for k, v in trip.spent.items()} == spent
     finally:
         run.close()

@@ -17,58 +17,24 @@ docs/physics.md, *Legs to snake*.
 from __future__ import annotations
 
 import math
-from collections import Counter
 from collections.abc import Callable
 
 import pytest
 
 from dh2rt.compiler import compile_file
-from dh2rt.events import parse_event
-from dh2rt.profile import CONRO
-from dh2rt.robot import Robot
-from dh2rt.topology import parse_spec
+from sim import legs_to_snake
+from sim.legs_to_snake import BACK, DRAGON, FRONT, KillWinner, snake_of
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
 from tests.conftest import EXAMPLES
 
 PROGRAM = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
-DRAGON = parse_spec("dragon")
-FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 FEET = {DRAGON.names.index(n) for n in DRAGON.names if "leg" in n}
-#: Cycles a whole reconfiguration may take (measured 5,334 to 6,602 at seeds 0 to 2, with and
-#: without a kill; 8,840 at most over seeds 0 to 11).
-BUDGET = 11_000
-
-
-def snake_of(robot: Robot) -> list[int] | None:
-    """The live modules as one snake from head to tail (front/back links only), or None."""
-    live = [m for m, e in enumerate(robot.engines) if e is not None]
-    types = Counter(robot.engines[m].topo_type.name for m in live)  # type: ignore[union-attr]
-    if types != Counter({"head": 1, "tail": 1, "body": len(live) - 2}):
-        return None
-    head = next(m for m in live if robot.engines[m].topo_type.name == "head")  # type: ignore[union-attr]
-    chain = [head]
-    while (peer := robot.peer_of((chain[-1], BACK))) is not None:
-        if peer[1] != FRONT or peer[0] in chain:
-            return None
-        chain.append(peer[0])
-    linked = {m for m, _c in robot.peer}
-    return chain if len(chain) == len(live) and linked <= set(chain) else None
 
 
 def reconfigure(seed: int, on_cycle: Callable[[PhysicsRun], None] | None = None) -> tuple[PhysicsRun, int | None]:
-    """Run LTS on the dragon until it is one snake (or the budget runs out); the run and the
-    cycle the snake formed."""
-    robot = Robot(PROGRAM, DRAGON, seed=seed)
-    run = PhysicsRun(robot)
-    run.run(50)
-    run.apply(parse_event("50:inject:spine0:LTS", DRAGON, PROGRAM.vocabulary))
-    while robot.cycle < BUDGET:
-        run.cycle()
-        if on_cycle is not None:
-            on_cycle(run)
-        if not run.trips and not run.reaches and snake_of(robot) is not None and len(run.contacts) >= 3:
-            return run, robot.cycle
-    return run, None
+    """Run LTS on the dragon until it is one snake (or the budget runs out): the run and the
+    cycle the snake formed (sim.legs_to_snake.reconfigure with the shipped program)."""
+    return legs_to_snake.reconfigure(PROGRAM, seed, on_cycle)
 
 
 def check_latches(run: PhysicsRun, count: int) -> None:
@@ -81,7 +47,15 @@ def check_latches(run: PhysicsRun, count: int) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(seed: int) -> None:
-    run, formed = reconfigure(seed)
+    pitches: list[float] = []  # the docking chain's pitch joints as each dock begins (degrees)
+
+    def at_each_dock(run: PhysicsRun) -> None:
+        for reach in run.reaches:
+            if reach.cycles == 1:
+                joints = zip(reach.chain.joints, reach.measured(), strict=True)
+                pitches.extend(abs(math.degrees(v)) for (_m, dof), v in joints if dof == 0)
+
+    run, formed = reconfigure(seed, at_each_dock)
     robot = run.robot
     try:
         assert formed is not None, robot.log[-6:]
@@ -92,6 +66,10 @@ def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(s
         check_latches(run, 4)
         assert chain[-4:] == [c.target[0] for c in run.contacts]
         assert sum("trip gave up" in line for line in robot.log) == 0
+        # the tail's end lies flat when a dock begins: the feet that docked before do not
+        # carry a head wave's pitch (+45 or -45) into the tail (foot_wins sends their head
+        # receptors to sleep)
+        assert len(pitches) >= 8 and max(pitches) < 10.0, pitches
         # the head held still until the last foot docked, and the snake crawls away
         start = run.world.centroid()
         run.run(800)
@@ -107,20 +85,8 @@ def test_the_winning_foot_killed_mid_dock_the_next_round_completes(when: str, se
     and the three other feet are assimilated: a 10-module snake, the dead foot left lying
     apart. A foot that died docking lies on the spot behind the tail's back, where the next
     foot must park: the robot crawls clear of it first (sim.clearing)."""
-    killed: list[int] = []
-
-    def kill_the_winner(run: PhysicsRun) -> None:
-        if killed:
-            return
-        if when == "trip" and run.trips and run.trips[0][0].cycles == 400:
-            foot = run.trips[0][0].module
-        elif when == "dock" and run.creeps:
-            foot = next(iter(run.creeps.values())).module
-        else:
-            return
-        killed.append(foot)
-        run.robot.kill(foot)
-
+    kill_the_winner = KillWinner(when)
+    killed = kill_the_winner.killed
     run, formed = reconfigure(seed, kill_the_winner)
     robot = run.robot
     try:
@@ -136,3 +102,8 @@ def test_the_winning_foot_killed_mid_dock_the_next_round_completes(when: str, se
             assert any("the robot crawls clear first" in line for line in robot.log), robot.log
     finally:
         run.close()
+
+
+def test_an_unknown_interruption_is_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="unknown kill 'late': one of none, trip, dock"):
+        KillWinner("late")

@@ -1,0 +1,130 @@
+"""Legs to snake in physics, whole: how often the snake forms, and when.
+
+The dragon runs examples/legs_to_snake.dh2 in PyBullet, LTS at cycle 50
+(sim.legs_to_snake.reconfigure), at each seed without an interruption (``none``), with the
+first winning foot killed 400 cycles into its trip (``trip``) and killed as its dock begins
+(``dock``). Each run twice, in the same benchmark: with today's dock, whose plan leaves the
+distance to the creeping foot (``free_distance``), and with the plan before it, which asked
+the tail's last two modules to put their face 3 cm in front of the foot
+(``PhysicsRun.dock_free_distance = False``). Reported: how many formed the snake, the cycle it
+formed (median and range), the docks that gave up, and the latches' distances and attitudes.
+
+    python -m benchmarks.bench_legs_to_snake [--seeds 0,1,2,3] [--kills none,dock,trip] [--jobs 2] [--quick]
+
+One run is 30 to 45 s on one core. The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from benchmarks import seeds_arg, strict_json
+from dh2rt.compiler import compile_file
+from sim.legs_to_snake import KILLS, KillWinner, reconfigure
+from sim.runner import PhysicsRun
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "legs_to_snake.dh2"
+VARIANTS = {"free_distance": True, "standoff": False}
+
+
+def one_run(seed: int, kill: str, free_distance: bool) -> dict[str, Any]:
+    """One whole reconfiguration; what happened."""
+    program = compile_file(str(EXAMPLE))
+    hook = KillWinner(kill)
+
+    def setup(run: PhysicsRun) -> None:
+        run.dock_free_distance = free_distance
+
+    run, formed = reconfigure(program, seed, hook, setup=setup)
+    try:
+        return {
+            "seed": seed,
+            "kill": kill,
+            "formed": formed,
+            "gave_up": len(run.failed),
+            "latch_mm": [round(c.distance_m * 1000, 1) for c in run.contacts],
+            "latch_deg": [round(c.attitude_deg, 1) for c in run.contacts],
+        }
+    finally:
+        run.close()
+
+
+def spread(values: Sequence[float]) -> dict[str, Any]:
+    if not values:
+        return {"median": None, "range": None}
+    return {"median": statistics.median(values), "range": [min(values), max(values)]}
+
+
+def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    formed = [r["formed"] for r in runs if r["formed"] is not None]
+    return {
+        "formed": len(formed),
+        "runs": len(runs),
+        "cycles": spread(formed),
+        "docks_gave_up": sum(r["gave_up"] for r in runs),
+        "latch_mm": spread([v for r in runs for v in r["latch_mm"]]),
+        "latch_deg": spread([v for r in runs for v in r["latch_deg"]]),
+        "not_formed": [f"{r['kill']}@{r['seed']}" for r in runs if r["formed"] is None],
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description="Legs to snake in physics, whole: the dock's plan with free_distance against the 3 cm standoff"
+    )
+    parser.add_argument("--seeds", default="0,1,2,3", help="comma-separated seeds (default 0 to 3)")
+    parser.add_argument(
+        "--kills", default=",".join(KILLS), help=f"comma-separated interruptions, of {', '.join(KILLS)} (default all)"
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="runs at once, one process each (default 2)")
+    parser.add_argument("--quick", action="store_true", help="seed 0 without a kill (a smoke test)")
+    args = parser.parse_args(argv)
+    seeds = seeds_arg(parser, args.seeds)
+    kills = args.kills.split(",")
+    unknown = [k for k in kills if k not in KILLS]
+    if unknown:
+        parser.error(f"--kills: {', '.join(unknown)} not one of {', '.join(KILLS)}")
+    if args.jobs < 1:
+        parser.error("--jobs must be at least 1")
+    if args.quick:
+        seeds, kills = [0], ["none"]
+    cases = [(name, seed, kill) for name in VARIANTS for seed in seeds for kill in kills]
+    print(f"{len(cases)} runs, {args.jobs} at a time (one run: 30 to 45 s on one core)", flush=True)
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in VARIANTS}
+    try:
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            futures = [(name, pool.submit(one_run, seed, kill, VARIANTS[name])) for name, seed, kill in cases]
+            for i, (name, future) in enumerate(futures, 1):
+                r = future.result()
+                results[name].append(r)
+                state = f"formed at cycle {r['formed']}" if r["formed"] is not None else "did not form"
+                print(f"[{i}/{len(cases)}] {name:13} seed {r['seed']} kill {r['kill']:4}: {state}", flush=True)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    out: dict[str, Any] = {"bench": "legs_to_snake", "seeds": seeds, "kills": kills}
+    for name in VARIANTS:
+        s = summary(results[name])
+        out[name] = s
+        print(
+            f"{name:13} formed {s['formed']}/{s['runs']}, cycle median {s['cycles']['median']} "
+            f"(range {s['cycles']['range']}), docks given up {s['docks_gave_up']}, "
+            f"latches {s['latch_mm']['median']} mm / {s['latch_deg']['median']} deg median, "
+            f"not formed {s['not_formed'] or 'none'}"
+        )
+    now, before = out["free_distance"]["cycles"]["median"], out["standoff"]["cycles"]["median"]
+    out["median_cycle_ratio"] = round(now / before, 3) if now and before else None
+    print(f"median cycle the snake formed, free_distance / standoff: {out['median_cycle_ratio']}")
+    print(json.dumps(strict_json(out)))
+    return 0 if out["free_distance"]["formed"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
