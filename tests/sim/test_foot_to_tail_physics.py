@@ -159,9 +159,10 @@ def test_without_the_creep_the_straight_tail_cannot_reach(seed: int) -> None:
 @pytest.mark.parametrize("leg", ["left_leg1", "right_leg1"])
 def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -> None:
     """The first round with a rear foot (the program's feet win front first). Measured with
-    today's trip (the diagonal past the face): 911 to 1,152 cycles from the release to the
-    latch. Before the diagonal, right_leg1 at seed 0 turned about behind the tail and pressed
-    its back on it until its budget ran out (a strict xfail here then)."""
+    today's trip (the diagonal past the face) and dock: 938 to 1,197 cycles from the release
+    to the latch (python -m benchmarks.bench_trips). Before the diagonal, right_leg1 at seed 0
+    turned about behind the tail and pressed its back on it until its budget ran out (a
+    strict xfail here then)."""
     run = PhysicsRun(Robot(STILL, DRAGON, seed=seed))
     robot, w = run.robot, run.world
     foot, tail = DRAGON.names.index(leg), DRAGON.names.index("tail4")
