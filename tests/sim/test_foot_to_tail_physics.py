@@ -27,7 +27,7 @@ from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from sim.conro import CENTRE
 from sim.crawl import back_off, creep, turn
-from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
+from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 #: A program that holds every joint where it is: only the motions move.
@@ -191,5 +191,34 @@ def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -
         # and the finished trip keeps the same account
         (trip,) = run.trips_done
         assert trip.arrived and {k: str(v) for k, v in trip.spent.items()} == spent
+    finally:
+        run.close()
+
+
+def test_a_trip_that_gives_up_sends_the_foot_round_again_up_to_the_attempts() -> None:
+    """A foot lying apart cannot ask again (no link to send RCT through): a trip out of budget
+    sets it off again from where it is, BRING_ATTEMPTS times in all, then leaves it."""
+    run = PhysicsRun(Robot(STILL, DRAGON, seed=0))
+    foot, tail = DRAGON.names.index("left_leg1"), DRAGON.names.index("tail4")
+    try:
+        for _ in range(10):
+            run.cycle()
+        run.release(foot, FRONT)
+        assert run.bring(foot, (tail, BACK), (FRONT, FRONT))
+        set_off = 0
+        for _ in range(BRING_ATTEMPTS * 40 + 10):
+            for trip, _route in run.trips:
+                if trip.cycles == 0:
+                    trip.budget = 30  # too short to arrive: it gives up
+                    set_off += 1
+            run.cycle()
+        assert set_off == BRING_ATTEMPTS and not run.trips and not run.reaches
+        assert len(run.trips_done) == BRING_ATTEMPTS and not any(t.arrived for t in run.trips_done)
+        log = "\n".join(run.robot.log)
+        assert log.count("the trip gave up after 31 cycles") == BRING_ATTEMPTS, log
+        assert [n for n in range(2, BRING_ATTEMPTS + 1) if f"the foot tries again ({n})" in log] == list(
+            range(2, BRING_ATTEMPTS + 1)
+        )
+        assert run.robot.peer_of((tail, BACK)) is None
     finally:
         run.close()
