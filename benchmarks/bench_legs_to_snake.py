@@ -21,11 +21,10 @@ import json
 import statistics
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from benchmarks import seeds_arg, strict_json
+from benchmarks import jobs_arg, run_variants, seeds_arg, strict_json
 from dh2rt.compiler import compile_file
 from sim.legs_to_snake import KILLS, KillWinner, reconfigure
 from sim.runner import PhysicsRun
@@ -91,22 +90,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = [k for k in kills if k not in KILLS]
     if unknown:
         parser.error(f"--kills: {', '.join(unknown)} not one of {', '.join(KILLS)}")
-    if args.jobs < 1:
-        parser.error("--jobs must be at least 1")
+    jobs = jobs_arg(parser, args.jobs)
     if args.quick:
         seeds, kills = [0], ["none"]
-    cases = [(name, seed, kill) for name in VARIANTS for seed in seeds for kill in kills]
-    print(f"{len(cases)} runs, {args.jobs} at a time (one run: 30 to 45 s on one core)", flush=True)
-    results: dict[str, list[dict[str, Any]]] = {name: [] for name in VARIANTS}
-    try:
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            futures = [(name, pool.submit(one_run, seed, kill, VARIANTS[name])) for name, seed, kill in cases]
-            for i, (name, future) in enumerate(futures, 1):
-                r = future.result()
-                results[name].append(r)
-                state = f"formed at cycle {r['formed']}" if r["formed"] is not None else "did not form"
-                print(f"[{i}/{len(cases)}] {name:13} seed {r['seed']} kill {r['kill']:4}: {state}", flush=True)
-    except KeyboardInterrupt:
+    cases = [(name, one_run, (seed, kill, VARIANTS[name])) for name in VARIANTS for seed in seeds for kill in kills]
+    print(f"{len(cases)} runs, {jobs} at a time (one run: 30 to 45 s on one core)", flush=True)
+
+    def describe(name: str, r: dict[str, Any]) -> str:
+        state = f"formed at cycle {r['formed']}" if r["formed"] is not None else "did not form"
+        return f"{name:13} seed {r['seed']} kill {r['kill']:4}: {state}"
+
+    results = run_variants(jobs, cases, describe)
+    if results is None:
         print("interrupted", file=sys.stderr)
         return 130
     out: dict[str, Any] = {"bench": "legs_to_snake", "seeds": seeds, "kills": kills}

@@ -22,10 +22,9 @@ import json
 import statistics
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-from benchmarks import seeds_arg, strict_json
+from benchmarks import jobs_arg, run_variants, seeds_arg, strict_json
 from dh2rt.compiler import compile_source
 from dh2rt.profile import CONRO
 from dh2rt.robot import Robot
@@ -83,23 +82,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = [leg for leg in legs if leg not in FEET]
     if unknown:
         parser.error(f"--legs: {', '.join(unknown)} not a foot of the dragon ({', '.join(FEET)})")
-    if args.jobs < 1:
-        parser.error("--jobs must be at least 1")
+    jobs = jobs_arg(parser, args.jobs)
     if args.quick:
         seeds, legs = [0], ["left_leg1"]
     variants = {"diagonal": DIAGONAL_M, "to_the_end": 0.0}
-    cases = [(name, seed, leg) for name in variants for seed in seeds for leg in legs]
-    print(f"{len(cases)} rounds, {args.jobs} at a time (one round: about 10 to 25 s on one core)", flush=True)
-    results: dict[str, list[dict[str, Any]]] = {name: [] for name in variants}
-    try:
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            futures = [(name, pool.submit(one_round, seed, leg, variants[name])) for name, seed, leg in cases]
-            for i, (name, future) in enumerate(futures, 1):
-                r = future.result()
-                results[name].append(r)
-                state = f"docked after {r['cycles']} cycles" if r["docked"] else "did not dock"
-                print(f"[{i}/{len(cases)}] {name:10} {r['leg']:10} seed {r['seed']}: {state}", flush=True)
-    except KeyboardInterrupt:
+    cases = [(name, one_round, (seed, leg, variants[name])) for name in variants for seed in seeds for leg in legs]
+    print(f"{len(cases)} rounds, {jobs} at a time (one round: about 10 to 25 s on one core)", flush=True)
+
+    def describe(name: str, r: dict[str, Any]) -> str:
+        state = f"docked after {r['cycles']} cycles" if r["docked"] else "did not dock"
+        return f"{name:10} {r['leg']:10} seed {r['seed']}: {state}"
+
+    results = run_variants(jobs, cases, describe)
+    if results is None:
         print("interrupted", file=sys.stderr)
         return 130
     out: dict[str, Any] = {"bench": "trips", "seeds": seeds, "legs": legs}

@@ -17,7 +17,9 @@ pitch joints held near 0 (the robot lies on the floor; yaws do the bending when 
 
 ``bend``
     joint targets move, at most :data:`MAX_STEP_DEG` a cycle, towards the configuration that
-    puts the asking face :data:`STANDOFF_M` in front of the target, square to it;
+    puts the asking face :data:`STANDOFF_M` in front of the target, square to it (for a
+    target that creeps towards the face itself, on the face's axis and square at whatever
+    distance: :attr:`Chain.free_distance`);
 ``approach``
     the standoff shrinks to zero (and a little past it, :data:`PRESS_M`) while the chain
     keeps the faces square;
