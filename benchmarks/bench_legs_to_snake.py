@@ -58,7 +58,7 @@ def one_run(seed: int, kill: str, free_distance: bool) -> dict[str, Any]:
 def spread(values: Sequence[float]) -> dict[str, Any]:
     if not values:
         return {"median": None, "range": None}
-    return {"median": statistics.median(values), "range": [min(values), max(values)]}
+    return {"median": round(statistics.median(values), 2), "range": [min(values), max(values)]}
 
 
 def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
