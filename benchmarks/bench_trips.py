@@ -34,7 +34,7 @@ from sim.runner import PhysicsRun
 
 FEET = ("left_leg0", "right_leg0", "left_leg1", "right_leg1")
 #: Cycles after the release a round may take (a trip's budget is 2,500, a dock 400, and a
-#: dock that gives up sends the foot round again).
+#: trip or a dock that gives up sends the foot round again).
 ROUND_CYCLES = 3200
 
 

@@ -261,6 +261,11 @@ class Chain:
             self.joints.append(joint)
         self.steps.append(_Step(joint=joint, axis=axis, sign=sign))
 
+    def limits_rad(self) -> np.ndarray:
+        """Each joint's range (radians, symmetric), :data:`LIMIT_MARGIN_DEG` inside the servo's."""
+        lims = [self.model.limits[dof] for _m, dof in self.joints]
+        return np.array([math.radians(min(-lim.min_deg, lim.max_deg) - LIMIT_MARGIN_DEG) for lim in lims])
+
     # -- kinematics --
 
     def target_part(self, q: np.ndarray) -> np.ndarray:
@@ -445,11 +450,7 @@ class Reach:
         #: caterpillar's gait, and that would carry the asking face away from it).
         self.wiggle_deg = wiggle_deg if wiggle_deg is not None else (0.0 if chain.anchor is not None else WIGGLE_DEG)
         model = world.model
-        lims = []
-        for _m, dof in chain.joints:
-            lim = model.limits[dof]
-            lims.append(math.radians(min(-lim.min_deg, lim.max_deg) - LIMIT_MARGIN_DEG))
-        self.limits = np.array(lims)
+        self.limits = chain.limits_rad()
         name = model.connector(chain.asking[1]).name
         self._ir = (f"ir_{name}", f"ir_{name}_align")
         self.phase = "bend"

@@ -17,7 +17,7 @@ import pytest
 from dh2rt.docking import End
 from dh2rt.profile import CONRO
 from sim.conro import DEFAULT_MODEL
-from sim.reach import LIMIT_MARGIN_DEG, ROT_WEIGHT_M, STANDOFF_M, Chain, _rz, mated_turn, plan
+from sim.reach import ROT_WEIGHT_M, STANDOFF_M, Chain, _rz, mated_turn, plan
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 #: Three tail modules in a row, 0 the tail's end: each one's front docked to the next's back.
@@ -47,15 +47,6 @@ def creep_chain(behind_m: float, aside_m: float, turned_deg: float, *, free_dist
     return chain
 
 
-def limits(chain: Chain) -> np.ndarray:
-    return np.array(
-        [
-            math.radians(min(-lim.min_deg, lim.max_deg) - LIMIT_MARGIN_DEG)
-            for lim in (DEFAULT_MODEL.limits[d] for _, d in chain.joints)
-        ]
-    )
-
-
 def test_the_chain_is_the_two_modules_pitch_and_yaw() -> None:
     chain = creep_chain(0.05, 0.0, 0.0, free_distance=True)
     assert sorted(chain.joints) == [(0, 0), (0, 1), (1, 0), (1, 1)]
@@ -67,7 +58,7 @@ def test_a_foot_square_behind_the_face_asks_for_no_bend(behind_m: float) -> None
     chain = creep_chain(behind_m, 0.0, 0.0, free_distance=True)
     q0 = np.zeros(len(chain.joints))
     assert float(np.linalg.norm(chain.error(q0, STANDOFF_M))) < 1e-9
-    q = plan(chain, q0, limits(chain), STANDOFF_M)
+    q = plan(chain, q0, chain.limits_rad(), STANDOFF_M)
     assert float(np.max(np.abs(np.degrees(q)))) < 1.0
 
 
@@ -80,7 +71,7 @@ def test_without_free_distance_the_plan_trades_the_axis_for_the_distance(behind_
     errors = {}
     for free in (False, True):
         chain = creep_chain(behind_m, 0.02, 0.0, free_distance=free)
-        q = plan(chain, np.zeros(len(chain.joints)), limits(chain), STANDOFF_M)
+        q = plan(chain, np.zeros(len(chain.joints)), chain.limits_rad(), STANDOFF_M)
         errors[free] = chain.error(q, STANDOFF_M)
     normal = np.array(DEFAULT_MODEL.connector(BACK).normal)
     before, now = errors[False], errors[True]
@@ -97,7 +88,7 @@ def test_a_foot_aside_or_turned_is_squared_by_the_yaws(aside_m: float, turned_de
     chain = creep_chain(0.05, aside_m, turned_deg, free_distance=True)
     q0 = np.zeros(len(chain.joints))
     assert float(np.linalg.norm(chain.error(q0, STANDOFF_M))) > 0.005
-    q = plan(chain, q0, limits(chain), STANDOFF_M)
+    q = plan(chain, q0, chain.limits_rad(), STANDOFF_M)
     assert float(np.linalg.norm(chain.error(q, STANDOFF_M))) < 1e-3
     pitches = [abs(math.degrees(v)) for (_, dof), v in zip(chain.joints, q, strict=True) if dof == 0]
     assert max(pitches) < 10.0
