@@ -140,9 +140,12 @@ def robot_of(peer_of: Callable[[End], End | None], profile: Profile, module: int
     return seen
 
 
-def off_body(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> list[int]:
-    """The modules of ``module``'s robot not on :func:`body_up` (the legs still on it)."""
-    return sorted(robot_of(peer_of, profile, module) - set(body_up(peer_of, profile, module)))
+def off_path(peer_of: Callable[[End], End | None], profile: Profile, module: int, count: int, foot: int) -> list[int]:
+    """What a ``foot`` on its way to ``module``'s robot steers round, of the ``count`` modules
+    in the world: every module but the foot and those on :func:`body_up` (the path it
+    follows). That is the legs still on the robot, and any module lying apart from it: a
+    foot that died on its way lies beside the robot, where the next foot passes."""
+    return sorted(set(range(count)) - set(body_up(peer_of, profile, module)) - {foot})
 
 
 def squaring_route(peer_of: Callable[[End], End | None], profile: Profile, module: int) -> tuple[int, ...]:

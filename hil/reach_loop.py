@@ -284,7 +284,9 @@ class LoopReaches:
     def _set_off(self, foot: int, target: End, route: tuple[int, ...]) -> None:
         b = target[0]
         with self.physics.lock:  # the trip reads where the foot and the face are
-            trip = Trip(self.physics.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_body(b))
+            trip = Trip(
+                self.physics.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_path(b, foot)
+            )
         cycle = self.world.cycle
         self.trips.append(Bringing(trip, route, cycle, cycle - 1))
         self.sync_docking()
@@ -297,9 +299,9 @@ class LoopReaches:
         """:func:`dh2rt.docking.body_up` in this world."""
         return docking.body_up(self.world.peer_of, self.world.profile, module)
 
-    def off_body(self, module: int) -> list[int]:
-        """:func:`dh2rt.docking.off_body` in this world."""
-        return docking.off_body(self.world.peer_of, self.world.profile, module)
+    def off_path(self, module: int, foot: int) -> list[int]:
+        """:func:`dh2rt.docking.off_path` in this world."""
+        return docking.off_path(self.world.peer_of, self.world.profile, module, self.world.topology.size, foot)
 
     def reach_other(self, module: int, connector: int, route: tuple[int, ...], foot: int) -> bool:
         """Begin bending ``module``'s ``connector`` to the front of ``foot``, a lone module that

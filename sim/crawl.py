@@ -94,8 +94,8 @@ class Creep:
         return creep(self.crept)
 
 
-#: How far beyond a leg's centre (m) a foot passing it keeps its front, and from how far
-#: ahead (m, along the path) it does so.
+#: How far beyond a leg's centre (or a module's lying beside the robot; m) a foot passing it
+#: keeps its front, and from how far ahead (m, along the path) it does so.
 OBSTACLE_CLEAR_M = 0.10
 OBSTACLE_AHEAD_M = 0.30
 
@@ -144,7 +144,7 @@ class Trip:
     face's frame (``s`` along the module's heading from the face, ``lat`` across it, positive
     on the foot's side) the trip is: :func:`back_off` :attr:`backoff_m` away from where it
     hung (its side of the target module is the one it is on then), and on out to the line
-    below while beside the robot (further while a leg still on the body is in the way
+    below while beside the robot (further while a module off the path is in the way
     along, see ``others``); then, turning in place
     (:func:`turn`) whenever its heading is more than 8 degrees off the one it wants, else
     backing off: along a line :attr:`clear_m` beside the robot's axis (the heading it wants
@@ -171,9 +171,11 @@ class Trip:
     back (a rear foot going first at seed 0 did, before the diagonal, until its budget ran
     out).
 
-    ``others`` (the target robot's modules off the path) are the legs still on the body: a
-    foot passing one on its side keeps its front :data:`OBSTACLE_CLEAR_M` beyond the leg's
-    centre (a front foot going first ran into the rear leg and stayed there).
+    ``others`` (the modules off the path) are the legs still on the body, and any module
+    lying apart beside the robot: a foot passing one on its side keeps its front
+    :data:`OBSTACLE_CLEAR_M` beyond the module's centre (a front foot going first ran into
+    the rear leg and stayed there; a rear foot hanging beside the front foot that died on its
+    way turned in place against it, between it and the body, for 2,000 cycles).
 
     The line follows the target's robot as it lies: ``body`` (the modules from the target
     module up its robot, each the one the last is docked to by its front) makes a polyline
@@ -207,7 +209,7 @@ class Trip:
         self.module = module
         self.target = target
         self.body = body
-        #: The target robot's modules off the path (the legs still on the body).
+        #: The modules off the path (the legs still on the body, a module lying beside it).
         self.others = others
         #: How much further back than the spot the foot goes before it moves sideways, so
         #: that it clears the target module's corner.
@@ -285,8 +287,11 @@ class Trip:
     def _clearance(self, s: float) -> float:
         """How far beside the path (m, the foot's side) the foot's front keeps at ``s``: at
         least :attr:`clear_m`, and :data:`OBSTACLE_CLEAR_M` beyond the centre of any module
-        of the target's robot off the path (a leg still on the body) on the foot's side, from
-        :data:`OBSTACLE_AHEAD_M` ahead of the foot to a little behind it."""
+        off the path (:attr:`others`) on the foot's side, from :data:`OBSTACLE_AHEAD_M`
+        ahead of the foot to a little behind it. A module whose centre lies further out
+        than that from the line :attr:`clear_m` beside the path is not in the way; nor is
+        one beyond the face (a foot killed as it docked: the robot crawls clear of it first,
+        :mod:`sim.clearing`, and the foot's way to its spot is the diagonal's)."""
         if self.others is None or self.body is None:
             return self.clear_m
         points = self._polyline()
@@ -295,7 +300,7 @@ class Trip:
             ox, oy, _ = self.world.module_position(m)
             so, lo, _ = self._on_path(points, ox, oy)
             lo *= self.side
-            if lo > 0 and s - OBSTACLE_AHEAD_M <= so <= s + 0.08:
+            if 0 < lo < self.clear_m + OBSTACLE_CLEAR_M and max(0.0, s - OBSTACLE_AHEAD_M) < so <= s + 0.08:
                 clear = max(clear, lo + OBSTACLE_CLEAR_M)
         return clear
 
@@ -335,7 +340,7 @@ class Trip:
                 return back_off(c)
             s, lat, _heading = self._path_frame()
             self.side = 1 if lat >= 0 else -1
-            # beside the robot, out to the line first (further if a leg still on the body is
+            # beside the robot, out to the line first (further if a module off the path is
             # in the way along); behind the face (a foot going round again) it is there
             if s > 0 and abs(lat) < self._clearance(s) - 0.01 and self.cycles < self.budget // 4:
                 return back_off(c)
@@ -353,7 +358,7 @@ class Trip:
         crawl: Callable[[int], tuple[float, float]] | None = back_off
         if self.phase == "along":
             clear = self._clearance(s)
-            # leaning in by up to 29 degrees; out by up to 70 past a leg still on the body
+            # leaning in by up to 29 degrees; out by up to 70 past a module off the path
             want = max(-1.2 if clear > self.clear_m else -0.5, min(0.5, 5.0 * (lat - clear)))
         elif self.phase == "aside":
             off, ahead = lat - self.park[1], s - aim

@@ -369,7 +369,7 @@ class PhysicsRun:
             foot,
             target,
             body=lambda: self.body_up(b),
-            others=lambda: self.off_body(b),
+            others=lambda: self.off_path(b, foot),
             diagonal_m=self.trip_diagonal_m,
         )
 
@@ -377,9 +377,9 @@ class PhysicsRun:
         """:func:`dh2rt.docking.body_up` in this world."""
         return docking.body_up(self.peer_of, self.robot.profile, module)
 
-    def off_body(self, module: int) -> list[int]:
-        """:func:`dh2rt.docking.off_body` in this world."""
-        return docking.off_body(self.peer_of, self.robot.profile, module)
+    def off_path(self, module: int, foot: int) -> list[int]:
+        """:func:`dh2rt.docking.off_path` in this world."""
+        return docking.off_path(self.peer_of, self.robot.profile, module, len(self.robot.engines), foot)
 
     def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
         for entry in list(self.trips):

@@ -13,7 +13,16 @@ import math
 import numpy as np
 import pytest
 
-from sim.crawl import ACROSS_BEHIND_M, ALONGSIDE_M, DIAGONAL_LEAN_DEG, DIAGONAL_M, Trip, back_off, turn
+from sim.crawl import (
+    ACROSS_BEHIND_M,
+    ALONGSIDE_M,
+    DIAGONAL_LEAN_DEG,
+    DIAGONAL_M,
+    OBSTACLE_CLEAR_M,
+    Trip,
+    back_off,
+    turn,
+)
 
 FOOT, TAIL, LEG = 0, 1, 2
 #: Centres of the tail's modules up the robot from the face (m).
@@ -111,6 +120,38 @@ def test_with_a_leg_on_the_body_near_it_goes_along_to_the_end() -> None:
     world.front = (AIM - 0.001, 0.17)
     t.step()
     assert t.phase == "aside"
+
+
+@pytest.mark.parametrize(
+    ("hung", "where", "in_the_way"),
+    [
+        (0.66, (0.60, 0.145), True),
+        (0.66, (0.72, 0.12), True),
+        (0.66, (0.60, 0.10 + OBSTACLE_CLEAR_M), False),
+        (0.20, (-0.05, 0.03), False),
+        (0.20, (0.05, 0.13), True),
+    ],
+)
+def test_a_module_lying_beside_the_robot_is_steered_round_like_a_leg(
+    hung: float, where: tuple[float, float], in_the_way: bool
+) -> None:
+    """A foot that died on its way lies beside the robot where the next foot hangs (seed 11,
+    the trip kill: the next foot turned in place between it and the body for 2,000 cycles).
+    The next foot backs off on out past it, its front OBSTACLE_CLEAR_M beyond its centre,
+    before it sets off along, as past a leg on the body. Further out than that from the foot's
+    line, or beyond the face (a foot killed as it docked: the robot crawls clear of it
+    first), it is not in the way."""
+    world = StillWorld((hung, 0.03), heading_deg=-90.0)  # hanging, its front on the body
+    world.leg = where  # the module lying apart, in the LEG slot of others
+    t = Trip(world, FOOT, (TAIL, 2), body=lambda: [TAIL, 3, 4, 5], others=lambda: [LEG])
+    world.front = (hung, 0.03 + t.backoff_m + 0.005)  # backed off its 8 cm
+    t.step()
+    assert t.phase == ("back off" if in_the_way else "along")
+    assert t.step() == back_off(t.cycles) if in_the_way else t.phase == "along"
+    if in_the_way:
+        world.front = (hung, where[1] + OBSTACLE_CLEAR_M)  # out past it
+        t.step()
+        assert t.phase == "along"
 
 
 @pytest.mark.parametrize(("behind", "turns_about"), [(0.02, False), (ACROSS_BEHIND_M - 0.005, False), (0.09, True)])
