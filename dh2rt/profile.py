@@ -26,7 +26,8 @@ whatever fills a sensor (the physics stand-in, a servo driver, a ``sense`` event
 to the nearest integer and clamps to the range (:meth:`SensorSpec.reading`). The CONRO
 table (:data:`CONRO_SENSORS`, documented in docs/language.md, *Sensors*):
 
-* ``roll``, ``pitch``: the module's attitude from its IMU, degrees;
+* ``roll``, ``pitch``: the module's attitude from its IMU, degrees; ``yaw``: the turn about
+  the vertical its IMU's gyro integrated since the first reading, degrees, unwrapped;
 * ``ir_<connector>``: distance (mm) to the nearest connector facing this one within the
   infrared pair's range and cone, 0 when none is in view (a face in contact reads 1);
   ``ir_<connector>_align``: how far (degrees) that face is from squarely facing this one,
@@ -252,6 +253,7 @@ CONRO_DATA: dict[str, Any] = {
         for name, unit, low, high, doc in (
             ("roll", "deg", -180, 180, "IMU: rotation about the module's x axis, left side up > 0"),
             ("pitch", "deg", -90, 90, "IMU: rotation about the module's y axis, front end down > 0"),
+            ("yaw", "deg", -720, 720, "IMU: turn about the vertical since the module's first reading, left > 0"),
             *(
                 row
                 for c in ("front", "back", "left", "right")

@@ -63,7 +63,7 @@ RAY_MARGIN_M = 0.001
 #: ``ir_<c>_align`` when nothing is in view: no face is less square than that.
 NOTHING_IN_VIEW_DEG = 180.0
 
-IMU_SENSORS = ("roll", "pitch")
+IMU_SENSORS = ("roll", "pitch", "yaw")
 CONTACT_SENSOR = "contact"
 JOINT_SENSORS = ("pos1", "pos2", "load1", "load2")
 
@@ -117,6 +117,9 @@ class PhysicsSensors:
         self.world = world
         self.names: tuple[str, ...] = tuple(n for n in physics_sensor_names(model) if n in wanted)
         self._imu = any(n in wanted for n in IMU_SENSORS)
+        #: Each module's heading (radians, unwrapped) at its first read and at its last.
+        self._yaw_first: dict[int, float] = {}
+        self._yaw_last: dict[int, float] = {}
         self._contact = CONTACT_SENSOR in wanted
         self._joints = any(n in wanted for n in JOINT_SENSORS)
         self._max_torque = tuple(lim.max_torque_nm for lim in model.limits)
@@ -163,8 +166,14 @@ class PhysicsSensors:
         body = self._bodies[module]
         if self._imu:
             orn = p.getBasePositionAndOrientation(body, physicsClientId=cid)[1]
-            roll, pitch, _ = p.getEulerFromQuaternion(orn, physicsClientId=cid)
+            roll, pitch, yaw = p.getEulerFromQuaternion(orn, physicsClientId=cid)
             into["roll"], into["pitch"] = math.degrees(roll), math.degrees(pitch)
+            last = self._yaw_last.get(module)
+            if last is None:
+                self._yaw_first[module] = last = yaw
+            yaw = last + (yaw - last + math.pi) % (2 * math.pi) - math.pi  # the turn since the last read
+            self._yaw_last[module] = yaw
+            into["yaw"] = math.degrees(yaw - self._yaw_first[module])
         if self._joints:
             states = p.getJointStates(body, self._joint_ids[module], physicsClientId=cid)
             into["pos1"], into["pos2"] = math.degrees(states[0][0]), math.degrees(states[1][0])

@@ -43,6 +43,7 @@ def test_conro_declares_its_sensors_with_units_and_ranges() -> None:
     assert CONRO.sensor_names == (
         "roll",
         "pitch",
+        "yaw",
         *(n for c in CONRO.connectors for n in (f"ir_{c}", f"ir_{c}_align")),
         "contact",
         "pos1",
@@ -54,7 +55,8 @@ def test_conro_declares_its_sensors_with_units_and_ranges() -> None:
     assert CONRO.sensor("roll") == SensorSpec("roll", "deg", -180, 180, CONRO.sensor("roll").doc)
     assert (CONRO.sensor("ir_left").unit, CONRO.sensor("ir_left").high) == ("mm", 100)
     assert (CONRO.sensor("load2").low, CONRO.sensor("load2").high) == (-100, 100)
-    with pytest.raises(TopologyError, match=r"profile conro has no sensor 'light' \(it has: roll, pitch, "):
+    assert (CONRO.sensor("yaw").unit, CONRO.sensor("yaw").low, CONRO.sensor("yaw").high) == ("deg", -720, 720)
+    with pytest.raises(TopologyError, match=r"profile conro has no sensor 'light' \(it has: roll, pitch, yaw, "):
         CONRO.sensor("light")
 
 

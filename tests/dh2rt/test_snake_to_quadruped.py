@@ -51,7 +51,8 @@ def test_snake_becomes_quadruped_and_snake(seed: int, at: str, cycle: int) -> No
     prog = compile_file(str(EXAMPLES / "snake_to_quadruped.dh2"))
     topo = parse_spec("snake:9")
     robot = Robot(prog, topo, seed=seed)
-    robot.run(cycle + 1100, [parse_event(f"{cycle}:inject:{at}:QSS", topo, prog.vocabulary)])
+    # the split, then the snake lies still for Still (240) cycles before it backs away
+    robot.run(cycle + 1300, [parse_event(f"{cycle}:inject:{at}:QSS", topo, prog.vocabulary)])
     assert link_set(robot) == QUAD_LINKS, robot.log
     docks = [line for line in robot.log if "docked to" in line]
     assert [d.split(": ", 1)[1] for d in docks] == [

@@ -99,6 +99,24 @@ def test_pitch_is_positive_front_end_down() -> None:
         assert PhysicsSensors(w, ["pitch"]).read([0])[0]["pitch"] == pytest.approx(30.0, abs=1.0)
 
 
+def test_yaw_is_the_turn_since_the_first_reading_left_positive_and_unwrapped() -> None:
+    """The heading a gyro integrates: 0 at the first reading whatever the module's heading in
+    the world, positive turning left (counter-clockwise seen from above), and on past 180
+    degrees as the module goes on turning (read at least every half turn)."""
+    with World(parse_spec("snake:1")) as w:
+        w.set_module_pose(0, (0.0, 0.0, Z_REST), 130.0)
+        w.step(24)
+        sensors = PhysicsSensors(w, ["yaw"])
+        assert sensors.read([0])[0]["yaw"] == pytest.approx(0.0, abs=0.5)
+        for turned in (60, 120, 180, 240, 300, 420, 300, 180, 60, 0, -100, -200):
+            w.set_module_pose(0, (0.0, 0.0, Z_REST), 130.0 + turned)
+            w.step(24)
+            assert sensors.read([0])[0]["yaw"] == pytest.approx(turned, abs=1.0)
+            _, normal = w.connector_pose(0, "front")
+        # left positive: the front's normal points 130 - 200 = -70 degrees off the world's x
+        assert math.degrees(math.atan2(normal[1], normal[0])) == pytest.approx(-70.0, abs=1.0)
+
+
 def test_a_physics_run_fills_the_sensors_a_program_declares(watcher: CompiledProgram) -> None:
     """End to end: a rolled-over module's program sees S.roll, rounded to an integer."""
     run = PhysicsRun(Robot(watcher, parse_spec("snake:1")))
