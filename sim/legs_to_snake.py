@@ -22,8 +22,8 @@ from sim.runner import PhysicsRun
 
 DRAGON = parse_spec("dragon")
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
-#: Cycles a whole reconfiguration may take (measured 4,161 to 9,236 over the 71 of
-#: benchmarks.bench_legs_to_snake's 72 runs at seeds 0 to 11 that formed; docs/physics.md).
+#: Cycles a whole reconfiguration may take (measured 4,161 to 9,236 over the 72 runs of
+#: benchmarks.bench_legs_to_snake at seeds 0 to 11, every one of which formed; docs/physics.md).
 BUDGET = 11_000
 #: When LTS is injected (at spine0).
 LTS_CYCLE = 50

@@ -54,7 +54,8 @@ STEPS_PER_CYCLE = 12
 #: a trip or a dock that gives up sends it round again from where it is. A foot left lying
 #: apart cannot ask again (it has no link to send RCT through), so without the trip's
 #: retry a foot whose trip gave up was lost and the snake never formed (seed 1, the first
-#: winner killed on its trip: the next foot pressed against the dead one for 1,700 cycles).
+#: winner killed on its trip: the next foot pressed against the dead one for 1,700 cycles,
+#: before the trip steered round a module lying beside the robot).
 BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
