@@ -11,6 +11,10 @@ that reads none costs nothing, and one that reads only ``roll`` casts no ray.
   (independent of heading). Roll is about the module's x axis (forward), positive when its
   left side is up; pitch about its y axis, positive when its front end is down (the sense
   of a positive DOF1). No noise, no drift.
+* ``yaw``: the same IMU's heading as its gyro integrates it: how far the module has turned
+  about the vertical since this object first read it (degrees, left > 0), unwrapped from
+  one reading to the next (each step taken the shorter way round, so a module read at
+  least every half turn counts whole turns). No drift either.
 * ``ir_<c>`` and ``ir_<c>_align``: CONRO's infrared pairs, an emitter and a receiver on each
   docking face. Face C of a module sees face D of another module when their centres are at
   most :data:`IR_RANGE_M` apart, each lies within :data:`IR_CONE_DEG` of the other's outward

@@ -11,8 +11,8 @@ faces within tolerance at that moment (PhysicsRun.contacts, the trace's ``dock``
 
 A reconfiguration takes 4,266 to 6,208 cycles here (seeds 0 to 2, with and without a kill,
 and 11 with the trip kill; a trip is 55 to 85 cm at 8 to 10 cm per 100 cycles, plus the
-turns), not the 1500 of the issue's command: docs/physics.md, *Legs to snake*. ``python -m benchmarks.bench_legs_to_snake``
-runs the same at more seeds.
+turns), not the 1500 of the issue's command: docs/physics.md, *Legs to snake*.
+``python -m benchmarks.bench_legs_to_snake`` runs the same at more seeds.
 """
 
 from __future__ import annotations
