@@ -346,18 +346,19 @@ class Trip:
                 return back_off(c)
             self.phase = "along"
         aim = self.park[0] - self.margin_m  # where the sideways leg runs
+        clear = self.clear_m
         if self.phase == "along":
             s, lat, heading = self.state(path=True)
+            clear = self._clearance(s)
             # across from up to DIAGONAL_M before the line's end, leaning DIAGONAL_LEAN_DEG at
-            # most, unless a leg on the body is near
+            # most, unless a module off the path is near
             early = min(self.diagonal_m, max(0.0, lat - self.park[1]) / math.tan(math.radians(DIAGONAL_LEAN_DEG)))
-            if s <= aim + early * (self._clearance(s) <= self.clear_m):
+            if s <= aim + early * (clear <= self.clear_m):
                 self.phase = "aside"
         if self.phase != "along":
             s, lat, heading = self.state()
         crawl: Callable[[int], tuple[float, float]] | None = back_off
-        if self.phase == "along":
-            clear = self._clearance(s)
+        if self.phase == "along":  # still along: ``clear`` is this cycle's, at this ``s``
             # leaning in by up to 29 degrees; out by up to 70 past a module off the path
             want = max(-1.2 if clear > self.clear_m else -0.5, min(0.5, 5.0 * (lat - clear)))
         elif self.phase == "aside":
