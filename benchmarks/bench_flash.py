@@ -10,7 +10,7 @@ into a robot running the caterpillar with ClockCycle 40 at 20 ms cycles.
   processes whose infrared links are pty pairs relayed by the link emulator at 115,200 baud
   (10 bits a byte). After WARMUP cycles a programming cable is plugged into the head's free
   front connector, and PLUGGED cycles later (the head has opened its end, as a cable is in
-  before ``dh2rt flash`` runs) :class:`~drivers.flash_cable.FlashCable` starts offering the
+  before ``dh2rt flash`` runs) :class:`~firmware.flash.cable.FlashCable` starts offering the
   image through it (paced as a module's rollout is). Times run from the flasher's start, as
   the simulation's from the entry point's first cycle. *Staged*: until the last module's log
   says "image staged", timed by the trace record of the cycle it logged it in (``t``,
@@ -76,7 +76,7 @@ from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.serial_framing import encode_serial
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+from firmware.flash.cable import FlashCable, FlashResult, hello_codec
 from hil.link_emulator import LinkEmulator
 from hil.world import World
 from tests.dh2rt.rollout_sim import CAN, SERIAL, Medium, flash_time, make_images

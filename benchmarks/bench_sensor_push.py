@@ -22,7 +22,7 @@ import time
 
 from dh2rt.profile import CONRO
 from dh2rt.topology import parse_spec
-from hil.control import Readings, command_to_json
+from firmware.control import Readings, command_to_json
 from hil.physics_stand_in import PhysicsStandIn
 from sim.gaits import STEPS_PER_CYCLE
 

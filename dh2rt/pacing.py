@@ -2,7 +2,7 @@
 
 Split from :mod:`dh2rt.rollout` so that a module can check, when it boots, that its lines
 can carry a rollout at all (and say why not) without loading the rollout's state machines,
-which it loads only once an image concerns it (:mod:`hil.rollout_door`).
+which it loads only once an image concerns it (:mod:`firmware.flash.door`).
 """
 
 from __future__ import annotations

@@ -85,7 +85,7 @@ class Driver(Protocol):
 
 
 class LinkObserver(Protocol):
-    """Who else watches the links (a rollout host, :mod:`hil.rollout_host`): told of each
+    """Who else watches the links (a rollout host, :mod:`firmware.flash.module_host`): told of each
     cycle's start before the engine runs, of every Hello (verified or refused), and of
     connectors liveness found silent. It may switch the program at a cycle start."""
 

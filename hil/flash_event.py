@@ -1,5 +1,5 @@
 """The launcher's ``--event CYCLE:flash:M:IMAGE``: a programming cable into module M's free
-connector at a world cycle, the flasher on it (:class:`drivers.flash_cable.FlashCable`, in a
+connector at a world cycle, the flasher on it (:class:`firmware.flash.cable.FlashCable`, in a
 thread of the launcher), its progress, and the rollout report at the end.
 
 On serial links the cable is one more emulated link into M's first free connector (front,
@@ -25,7 +25,7 @@ from dh2rt.transport.base import PortEnd, Transport
 from dh2rt.transport.registry import open_transport
 from dh2rt.transport.serial_link import SerialTransport
 from drivers.connector_channel import ConnectorChannels
-from drivers.flash_cable import BusCable, FlashCable, FlashResult, hello_codec
+from firmware.flash.cable import BusCable, FlashCable, FlashResult, hello_codec
 from hil.world import World
 
 #: Seconds a rollout may take before the flasher gives up.

@@ -31,7 +31,7 @@ from dh2rt.errors import OptionError
 from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd
 from drivers.dxl_table import MODEL_NAMES
-from hil.config import DEFAULTS
+from firmware.config import DEFAULTS
 
 _KEYS = ("servo_port", "servo_ids", "servo_baud", "servo_model", "can_channel", "connectors")
 

@@ -52,8 +52,8 @@ from dh2rt.signed_image import read_private_key
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
+from firmware.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
-from hil.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
 from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash_event
 from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.supervisor import reap_exited_children

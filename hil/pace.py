@@ -38,7 +38,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from dh2rt.errors import MachineTooSlow
-from hil.config import CYCLE_PERIOD_S
+from firmware.config import CYCLE_PERIOD_S
 from hil.launcher import TOO_SLOW
 
 #: Sleeps the real-time probe makes, and how long each asks for (s).

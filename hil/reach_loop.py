@@ -11,7 +11,7 @@ emulated serial link or the link map, the contact emulator on a bus), after the 
 physics; a motion that gives up (``sim.reach.DEFAULT_TIMEOUT`` steps) links nothing.
 
 The modules move themselves: each world cycle the world sends every module of the chain a
-:class:`hil.control.Hold` with the joint targets the motion wants of it; the module writes
+:class:`firmware.control.Hold` with the joint targets the motion wants of it; the module writes
 them to its own servos through its own driver (dynamixel-sdk over its pty) in place of its
 program's DOF1/DOF2 from its next cycle on, and an empty ``Hold`` gives the joints back to
 its program when the motion ends. The world never writes a joint itself. docs/hil.md
@@ -26,7 +26,7 @@ their face by a :class:`sim.reach.Reach` while the foot creeps (:class:`sim.craw
 held the same way); a dock that gives up sends the foot round again, up to
 ``sim.runner.BRING_ATTEMPTS`` docks. While a module's motion (a trip to its face, or a
 reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
-declares the sensor; hil.control.Readings), and 0 once it ended.
+declares the sensor; firmware.control.Readings), and 0 once it ended.
 
 Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.reach.Contact`: both
 faces' world poses, distance, attitude error and the infrared reading at that moment) and
@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 from dh2rt import docking
 from dh2rt.docking import End
-from hil.control import Readings
+from firmware.control import Readings
 from hil.physics_stand_in import PhysicsStandIn
 from sim.clearing import Clearing, spot_taken
 from sim.crawl import Creep, Trip
@@ -214,7 +214,7 @@ class LoopReaches:
         """``reach_and_dock(connector, route)`` by motion, as ``sim.runner.PhysicsRun.assimilate``
         does (legs_to_snake's ``dock_tail_to_foot``): the foot at the end of ``route`` lets go
         of the body at its front and comes to ``module``'s ``connector`` by its own gaits
-        (:class:`sim.crawl.Trip`, its joints held through :class:`hil.control.Hold`), then the
+        (:class:`sim.crawl.Trip`, its joints held through :class:`firmware.control.Hold`), then the
         last two modules up ``module``'s robot square their face while the foot creeps
         (:meth:`reach_other`); a dock that gives up sends the foot round again, up to
         ``BRING_ATTEMPTS`` docks. False (logged) if the rules say no: the route leads nowhere,

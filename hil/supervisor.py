@@ -1,8 +1,8 @@
 """Starting, talking to and ending module processes and threads.
 
-A module runs as an OS process (``python -m hil.module_process``) over the transports that
+A module runs as an OS process (``python -m firmware.main_loop``) over the transports that
 cross processes, or as a thread of the world's process over the in-process buses. Either
-way the world holds a :class:`ModuleHandle`: it sends typed commands (:mod:`hil.control`)
+way the world holds a :class:`ModuleHandle`: it sends typed commands (:mod:`firmware.control`)
 and receives typed reports on one queue shared by all modules.
 
 Each process starts in a session and process group of its own (``start_new_session``), so
@@ -28,9 +28,9 @@ from types import FrameType
 from typing import Protocol
 
 from dh2rt.errors import ControlProtocolError
-from hil.config import ModuleConfig
-from hil.control import Command, Exited, Log, Report, command_to_json, report_from_json
-from hil.module_toml import IMAGE_NAME, dump_toml
+from firmware.config import ModuleConfig
+from firmware.control import Command, Exited, Log, Report, command_to_json, report_from_json
+from firmware.module_toml import IMAGE_NAME, dump_toml
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,7 +139,7 @@ class ThreadModule:
     """One module as a thread of the world's process (in-process buses only)."""
 
     def __init__(self, config: ModuleConfig, reports: Reports) -> None:
-        from hil.module_process import ModuleHost
+        from firmware.main_loop import ModuleHost
 
         module = self.module = config.module
         life = self.life = config.life

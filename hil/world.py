@@ -7,8 +7,8 @@ id and sides per docked connector pair over ``vcan0``/``can0``/``udp``/``virtual
 ``inproc``, or a pair of pty ends through the :class:`~hil.link_emulator.LinkEmulator` over
 ``serial``); it starts the modules through :mod:`hil.supervisor` (one OS process each over
 ``socketcan``, ``udp`` and ``serial``; one thread each over the in-process buses
-``virtual`` and ``inproc``), each from a typed :class:`~hil.config.ModuleConfig`, talks to
-them in the typed control protocol of :mod:`hil.control`, keeps what they report in
+``virtual`` and ``inproc``), each from a typed :class:`~firmware.config.ModuleConfig`, talks to
+them in the typed control protocol of :mod:`firmware.control`, keeps what they report in
 :mod:`hil.status` views, and carries out events at world cycles:
 
 * ``cut``: CAN: both ends are told to detach the link id; serial: the emulator undocks the
@@ -18,12 +18,12 @@ them in the typed control protocol of :mod:`hil.control`, keeps what they report
   neighbours notice the silence within the liveness bound.
 * ``restart``: the module starts again with a fresh state on the same links.
 * ``inject``: the hormone is sent to the module over its control channel.
-* ``sense``: the sensor value is sent to the module (:class:`~hil.control.Sense`), which
+* ``sense``: the sensor value is sent to the module (:class:`~firmware.control.Sense`), which
   holds it from then on; the world remembers it and sends it again to a restarted module.
 
 Sensors: with the PyBullet stand-in, the world measures each module's IMU, infrared pairs and
 ground contact (the sensors the program declares; ``sim.sensors``) every ``sensor_every``
-world cycles and pushes them to the module (:class:`~hil.control.Readings`), once before
+world cycles and pushes them to the module (:class:`~firmware.control.Readings`), once before
 ``go`` and after each restart too; the joints' present position and load a module reads
 from its own (emulated) servos. :attr:`World.push_times` holds what each push cost.
 
@@ -68,10 +68,8 @@ from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
-from hil.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
-from hil.contact_emulator import ContactEmulator
-from hil.control import (
+from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
+from firmware.control import (
     Attach,
     Command,
     Detach,
@@ -90,6 +88,8 @@ from hil.control import (
     Stop,
     TraceRecord,
 )
+from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
+from hil.contact_emulator import ContactEmulator
 from hil.hardware_map import HardwareMap
 from hil.link_emulator import LinkEmulator
 from hil.link_map import LinkMap
@@ -117,7 +117,7 @@ if TYPE_CHECKING:
 
 #: How long before the next world cycle begins the world's tick steps the docking motions (s):
 #: the joint targets a step computes from the body as it is then reach the modules before
-#: they take their commands for that cycle (hil.module_process: just before each cycle), so
+#: they take their commands for that cycle (firmware.main_loop: just before each cycle), so
 #: the motion's feedback is a few milliseconds old when the servos get it, not a cycle.
 STEP_LEAD_S = 0.008
 #: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.

@@ -12,7 +12,7 @@ emulation of one; ``--contact-pin``: its GPIO contact pin) held against one modu
 connector: the two negotiate a link id over it as two docking modules would (docs/link-layer.md),
 and the image crosses the bus on that link, paced as a module's share of the bus. The cable
 is a connector of the profile (``--cable-connector``, default ``back``: CONRO's male
-connectors dock to a free front). The flasher (:class:`drivers.flash_cable.FlashCable`, the
+connectors dock to a free front). The flasher (:class:`firmware.flash.cable.FlashCable`, the
 rollout's :class:`dh2rt.rollout.Flasher`) is ticked at the robot's cycle period
 (``--cycle-ms``): it offers the image through the cable, the modules pass it on over their
 own links, stage it, report back along their paths, and switch at the instant the flasher's
@@ -64,7 +64,7 @@ from dh2rt.transport.registry import open_transport
 from dh2rt.transport.serial_link import SerialTransport
 from dh2rt.wire.transfer import Outcome
 from drivers.connector_channel import ConnectorChannels, ContactPin, UartGpioConnectorChannel
-from drivers.flash_cable import BusCable, FlashCable, FlashResult, hello_codec
+from firmware.flash.cable import BusCable, FlashCable, FlashResult, hello_codec
 
 #: The cable is connector 1 of the flasher's own transport.
 CABLE = 1

@@ -111,7 +111,7 @@ MEDIA = {"serial": SERIAL, "can": CAN}
 
 
 class FakeFlash:
-    """A module's A/B flash in memory: what ``drivers.flash_slots.Flash`` decides, with the
+    """A module's A/B flash in memory: what ``firmware.flash.slots.Flash`` decides, with the
     real signature checks (trust store, rollback below the confirmed version)."""
 
     def __init__(self, trust: list[bytes], confirmed: bytes) -> None:

@@ -349,7 +349,7 @@ def test_a_module_verifies_images_without_importing_cryptography(caterpillar: Co
     code = (
         "import sys\n"
         "from pathlib import Path\n"
-        "import drivers.flash_slots\n"
+        "import firmware.flash.slots\n"
         "from dh2rt.signed_image import examine, parse, verify\n"
         f"d = Path({str(tmp_path)!r})\n"
         "image, tampered = (d / 'image').read_bytes(), (d / 'tampered').read_bytes()\n"

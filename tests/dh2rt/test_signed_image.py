@@ -229,7 +229,7 @@ def test_pack_refuses_what_is_no_signed_program(caterpillar: CompiledProgram, ke
 def test_cryptography_is_not_imported_by_importing_these() -> None:
     """Only signing and key generation import it (verifying is dh2rt.ed25519: test_ed25519)."""
     code = (
-        "import sys\nimport dh2rt.cli, dh2rt.signed_image, drivers.flash_slots\nprint('cryptography' in sys.modules)\n"
+        "import sys\nimport dh2rt.cli, dh2rt.signed_image, firmware.flash.slots\nprint('cryptography' in sys.modules)\n"
     )
     root = Path(__file__).resolve().parents[2]
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=60)

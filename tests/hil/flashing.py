@@ -21,7 +21,7 @@ from dh2rt.program import CompiledProgram
 from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
+from firmware.flash.cable import FlashCable, FlashResult, hello_codec
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -27,7 +27,7 @@ from dh2rt.compiler import compile_file
 from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
 from dh2rt.wire.transfer import Outcome
-from drivers.flash_cable import FlashResult
+from firmware.flash.cable import FlashResult
 from hil.world import World, module_pids
 from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
 from tests.hil.processes import alive

@@ -3,7 +3,7 @@
 legs_to_snake on the dragon with the PyBullet stand-in; left_leg0 is killed, let go of the
 body and laid behind the tail's back, front to it, where a foot killed as its dock began
 lies. When the next winner's round begins, the robot's body crawls (the caterpillar's wave
-through the modules' own servos, hil.control.Hold) until nothing lies on the spot, the
+through the modules' own servos, firmware.control.Hold) until nothing lies on the spot, the
 world pushing the tail ``docking`` = 1 meanwhile, and only then does the foot let go and set
 off. The same staging in one process: tests/sim/test_clearing.py.
 """

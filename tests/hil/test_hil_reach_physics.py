@@ -2,7 +2,7 @@
 
 Each module drives its servos with dynamixel-sdk over a pty to an emulator whose joints are
 PyBullet joints; a ``reach_dock`` starts sim.reach's motion on the stand-in's world, stepped
-once per world cycle, the chain's modules holding its joint targets (hil.control.Hold), and
+once per world cycle, the chain's modules holding its joint targets (firmware.control.Hold), and
 the link is docked only once the faces latched in physics within the runner's tolerance.
 The cycle period is the physics runner's (50 ms: sim.runner.STEPS_PER_CYCLE at 240 Hz), for
 which the motion's rates are set.

@@ -2,7 +2,7 @@
 
 Module processes drive their servos with dynamixel-sdk over ptys to emulators whose joints are
 PyBullet joints; every docking motion is stepped once per world cycle by the world and
-actuated by the modules themselves (hil.control.Hold), and a link is docked only once the
+actuated by the modules themselves (firmware.control.Hold), and a link is docked only once the
 faces latched in physics within the physics runner's tolerance. 50 ms cycles: the physics
 runner's period, for which the motions' and the gaits' rates are set.
 

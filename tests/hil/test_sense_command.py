@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from dh2rt.errors import ControlProtocolError
-from hil.control import Sense, command_from_json, command_to_json
+from firmware.control import Sense, command_from_json, command_to_json
 
 
 def test_sense_round_trips_through_json() -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from dh2rt.compiler import compile_file
 from dh2rt.topology import parse_spec
-from hil.control import Exited
+from firmware.control import Exited
 from hil.world import World
 from tests.hil.flashing import PERIOD, PROGRAM
 

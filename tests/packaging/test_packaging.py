@@ -1,4 +1,4 @@
-"""The five packages come from this checkout, and the core imports nothing heavy."""
+"""The six packages come from this checkout, and the core imports nothing heavy."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.mark.parametrize("package", ["dh2rt", "drivers", "sim", "tools", "hil"])
+@pytest.mark.parametrize("package", ["dh2rt", "drivers", "firmware", "sim", "tools", "hil"])
 def test_packages_import_from_the_checkout(package: str) -> None:
     mod = importlib.import_module(package)
     assert mod.__file__ is not None

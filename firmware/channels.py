@@ -1,5 +1,5 @@
-"""The connector-local channels a module's config names (hil.config.ChannelSpec), opened for
-:class:`drivers.negotiated_links.NegotiatedLinks`: the HIL world's emulation, or a UART and a
+"""The connector-local channels a module's config names (firmware.config.ChannelSpec), opened for
+:class:`firmware.negotiated_links.NegotiatedLinks`: the HIL world's emulation, or a UART and a
 GPIO contact pin per connector."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from drivers.connector_channel import ConnectorChannel, ConnectorChannels
-from hil.config import ChannelSpec
+from firmware.config import ChannelSpec
 
 
 def open_channels(specs: Mapping[int, ChannelSpec]) -> ConnectorChannels:

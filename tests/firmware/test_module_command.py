@@ -173,7 +173,7 @@ def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
 #: Run in a module process before ``main``: SIGTERM after its 30th cycle, however slow the machine
 #: (its signal handlers are in place by then).
 STOP_AFTER_30_CYCLES = (
-    "import hil.module_process as mp\n"
+    "import firmware.main_loop as mp\n"
     "on_cycle = mp.ModuleHost._on_cycle\n"
     "def counted(host, rt):\n"
     "    on_cycle(host, rt)\n"
@@ -221,12 +221,12 @@ def test_a_module_on_a_bus_loads_no_openssl(tmp_path: Path) -> None:
 def test_a_module_loads_neither_the_rollout_nor_argparse_until_it_needs_them(tmp_path: Path) -> None:
     """Booted from its flash with nothing to roll out, a module started as systemd starts it
     carries no rollout machinery, no argparse and no event parser (docs/firmware.md,
-    "Footprint"); tests/hil/test_rollout_host.py opens the rollout when an image comes."""
+    "Footprint"); tests/firmware/test_flash_module_host.py opens the rollout when an image comes."""
     bus = '[transport]\nkind = "virtual"\nchannel = "door"\n[transport.links]\nback = { link_id = 3, side = 0 }\n'
-    heavy = ("argparse", "gettext", "dh2rt.rollout", "hil.rollout_host", "dh2rt.wire.transfer", "dh2rt.events",
-             "hil.rollout_door")
+    heavy = ("argparse", "gettext", "dh2rt.rollout", "firmware.flash.module_host", "dh2rt.wire.transfer",
+             "dh2rt.events", "firmware.flash.door")
     loaded, final = run_probed(module_dir(tmp_path, "m", bus), heavy)
-    assert loaded == ["hil.rollout_door"]
+    assert loaded == ["firmware.flash.door"]
     assert final["program"]["version"] == 1  # booted from the flash, so it takes part in rollouts
 
 
@@ -259,7 +259,7 @@ OTHER_ARGS = [
 
 @pytest.mark.parametrize("argv", VALID_ARGS, ids=" ".join)
 def test_a_module_reads_its_usual_arguments_as_argparse_does(argv: list[str]) -> None:
-    from hil.module_process import build_parser, plain_arguments
+    from firmware.main_loop import build_parser, plain_arguments
 
     plain = plain_arguments(argv)
     assert plain is not None
@@ -269,7 +269,7 @@ def test_a_module_reads_its_usual_arguments_as_argparse_does(argv: list[str]) ->
 
 @pytest.mark.parametrize("argv", OTHER_ARGS, ids=lambda a: " ".join(a) or "nothing")
 def test_anything_else_goes_to_argparse(argv: list[str]) -> None:
-    from hil.module_process import plain_arguments
+    from firmware.main_loop import plain_arguments
 
     assert plain_arguments(argv) is None
 
@@ -373,7 +373,7 @@ def test_the_documented_module_toml_is_valid(tmp_path: Path) -> None:
     import re
     import tomllib
 
-    from hil.module_toml import parse_toml
+    from firmware.module_toml import parse_toml
 
     doc = (ROOT / "docs" / "firmware.md").read_text()
     text = re.findall(r"```toml\n(.*?)```", doc, re.S)[0]

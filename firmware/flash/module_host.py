@@ -1,8 +1,8 @@
 """A module's rollout in its running loop: the I/O around :class:`dh2rt.rollout.Rollout`.
 
 :class:`RolloutHost` is what ``docs/flashing.md`` ("Driving the state machines") asks of a
-host, for :class:`hil.module_process.ModuleHost`, which opens it through
-:class:`hil.rollout_door.RolloutDoor` once a rollout concerns the module:
+host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
+:class:`firmware.flash.door.RolloutDoor` once a rollout concerns the module:
 
 * transfer frames reach it as the transport polls them (``Transport.on_transfer``: a
   *prompt* host, between cycles as they arrive), Hellos, silent links, attaches and detaches
@@ -51,8 +51,8 @@ from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.wire.frame import Hello
 from dh2rt.wire.transfer import image_id
-from drivers.flash_slots import Boot, Flash, replace_file
-from hil.rollout_door import PARTIAL_IMAGE, PARTIAL_INFO, OnSwitch
+from firmware.flash.door import PARTIAL_IMAGE, PARTIAL_INFO, OnSwitch
+from firmware.flash.slots import Boot, Flash, replace_file
 
 
 class RolloutHost:

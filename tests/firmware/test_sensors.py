@@ -1,4 +1,4 @@
-"""A module process's sensors (hil.module_sensors through ModuleHost): the servos' present
+"""A module process's sensors (firmware.sensors through ModuleHost): the servos' present
 position and load read through the real dynamixel-sdk from the servo emulator on a pty, the
 ``[sensors]`` stand-in, readings and ``sense`` commands from the world, and ``[sensors]`` in
 module.toml checked key by key."""
@@ -17,10 +17,10 @@ from dh2rt.compiler import compile_source
 from dh2rt.errors import ModuleConfigError
 from dh2rt.profile import CONRO
 from drivers import dxl_table as dxt
-from hil.config import EMULATED_SERVO_LATENCY_MS, ModuleConfig
-from hil.control import Command, Go, Readings, Sense, command_from_json, command_to_json, report_to_json
-from hil.module_process import ModuleHost
-from hil.module_toml import dump_toml, parse_toml
+from firmware.config import EMULATED_SERVO_LATENCY_MS, ModuleConfig
+from firmware.control import Command, Go, Readings, Sense, command_from_json, command_to_json, report_to_json
+from firmware.main_loop import ModuleHost
+from firmware.module_toml import dump_toml, parse_toml
 from hil.servo_emulator import ServoEmulator
 from hil.servo_joints import KinematicJoint
 

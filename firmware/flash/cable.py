@@ -22,7 +22,7 @@ from dh2rt.transport.base import Transport
 from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR
 from drivers.connector_channel import ConnectorChannels
-from drivers.negotiated_links import NegotiatedLinks
+from firmware.negotiated_links import NegotiatedLinks
 
 #: A codec that reads every connector's Hellos and no hormone (the cable runs no program).
 HELLO_CODEC_CONNECTORS = MAX_CONNECTOR
@@ -146,7 +146,7 @@ class FlashCable:
 class BusCable(Closing):
     """The flasher's end of a programming cable on a robot whose modules share a bus: its
     connector-local channel touches one module's free connector, the two negotiate a link id
-    over it as two modules would (:class:`drivers.negotiated_links.NegotiatedLinks`), and the
+    over it as two modules would (:class:`firmware.negotiated_links.NegotiatedLinks`), and the
     rollout runs over the bus on that link. ``connector`` is the cable's own connector (one
     that may dock to the module's: CONRO's front for a free male connector, back for a free
     front); pass :meth:`step` as the FlashCable's ``on_step``."""

@@ -1,7 +1,7 @@
 """A module's part in rollouts, loaded when a rollout concerns it: :class:`RolloutDoor`.
 
 Most of a module's life no image moves. The rollout's state machines and their I/O
-(:mod:`dh2rt.rollout`, :class:`hil.rollout_host.RolloutHost`) cost a module about 0.5 MB
+(:mod:`dh2rt.rollout`, :class:`firmware.flash.module_host.RolloutHost`) cost a module about 0.5 MB
 of resident memory, a sixth of what dh2rt adds to python-can on a bus module
 (``benchmarks/bench_footprint.py``), so a module booted from its flash starts with this
 door instead and opens the host at the first thing that needs it:
@@ -35,10 +35,10 @@ from dh2rt.program import CompiledProgram
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import PortEnd
 from dh2rt.wire.frame import Hello
-from drivers.flash_slots import Boot, Flash
+from firmware.flash.slots import Boot, Flash
 
 if TYPE_CHECKING:
-    from hil.rollout_host import RolloutHost
+    from firmware.flash.module_host import RolloutHost
 
 #: Files beside the slots: the image being received, and what it is.
 PARTIAL_IMAGE = "partial.img"
@@ -119,7 +119,7 @@ class RolloutDoor:
     def _open(self, why: str) -> RolloutHost:
         if self.host is not None:
             return self.host
-        from hil.rollout_host import RolloutHost
+        from firmware.flash.module_host import RolloutHost
 
         pacing, segment, latency = self.pacing
         connectors = range(1, self.rt.program.profile.connector_count + 1)

@@ -12,9 +12,8 @@ from dh2rt.errors import ControlProtocolError, ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import BusEnd, PortEnd
-from hil import launcher
-from hil.config import DEFAULT_STAND_IN, DEFAULTS, ModuleConfig
-from hil.control import (
+from firmware.config import DEFAULT_STAND_IN, DEFAULTS, ModuleConfig
+from firmware.control import (
     Attach,
     Command,
     Detach,
@@ -36,6 +35,7 @@ from hil.control import (
     report_from_json,
     report_to_json,
 )
+from hil import launcher
 from hil.world import World
 
 COMMANDS: list[Command] = [

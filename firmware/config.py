@@ -116,7 +116,7 @@ class ModuleConfig:
     bus_options: Mapping[str, Any] = field(default_factory=dict)
     #: connector -> its connector-local channel: on a bus, links are negotiated over these
     connector_channels: Mapping[int, ChannelSpec] = field(default_factory=dict)
-    #: the module's flash (drivers.flash_slots): it boots from there rather than from ``image``
+    #: the module's flash (firmware.flash.slots): it boots from there rather than from ``image``
     flash: str | None = None
     #: raw Ed25519 public keys whose images the flash accepts; unsigned ones only if allowed
     trust: tuple[bytes, ...] = ()

@@ -10,8 +10,8 @@
 * sensors with no device on the module (an IMU, infrared): ``[sensors] stand_in`` holds fixed
   readings, written once before the first cycle.
 * in the loop, the world pushes what its physics measures (IMU, infrared, ground contact):
-  :class:`hil.control.Readings`, handled by the module host;
-* ``sense`` events (:class:`hil.control.Sense`) force a value from then on.
+  :class:`firmware.control.Readings`, handled by the module host;
+* ``sense`` events (:class:`firmware.control.Sense`) force a value from then on.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dh2rt.errors import ModuleConfigError, TopologyError
 from dh2rt.runtime import ModuleRuntime
 from drivers.base import SERVO_SENSORS, ModuleDriver, SensorSource, ServoSensors
-from hil.config import ModuleConfig
+from firmware.config import ModuleConfig
 
 
 class CurrentServoSensors(SensorSource):

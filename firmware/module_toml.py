@@ -1,5 +1,5 @@
 """``module.toml``: the configuration a physical module boots with (``dh2rt module --config``),
-read into the same typed :class:`~hil.config.ModuleConfig` the HIL world gives its modules.
+read into the same typed :class:`~firmware.config.ModuleConfig` the HIL world gives its modules.
 
 Every key is checked before anything starts; an error names the file and the key
 (``module.toml: [servos] dof1_id: expected an integer 0..252, got 'one'``), and a file that
@@ -81,10 +81,10 @@ from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from drivers.dxl_table import MODEL_NAMES
-from hil.config import DEFAULTS, MAX_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
+from firmware.config import DEFAULTS, MAX_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
 
 IMAGE_NAME = "program.img"
-#: What a flash directory that holds a program has (drivers.flash_slots): the state record,
+#: What a flash directory that holds a program has (firmware.flash.slots): the state record,
 #: or a single image to install at the first boot.
 FLASH_FILES = ("state.json", IMAGE_NAME)
 TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")

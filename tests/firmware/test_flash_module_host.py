@@ -21,11 +21,11 @@ from dh2rt.signed_image import new_private_key, pack, public_key
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocTransport
 from dh2rt.wire.transfer import Outcome, serial_cost
-from drivers.flash_cable import FlashCable, FlashResult, hello_codec
-from hil.config import ModuleConfig
-from hil.control import Command, Report, TraceRecord
-from hil.module_process import ModuleHost
-from hil.rollout_door import RolloutDoor
+from firmware.config import ModuleConfig
+from firmware.control import Command, Report, TraceRecord
+from firmware.flash.cable import FlashCable, FlashResult, hello_codec
+from firmware.flash.door import RolloutDoor
+from firmware.main_loop import ModuleHost
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -209,7 +209,7 @@ def test_every_module_switches_at_one_cycle_and_the_wave_carries_on(
         assert host.runtime.stats.foreign_hormones <= 1
 
 
-# -- the rollout's machinery is loaded when an image concerns the module (hil/rollout_door.py)
+# -- the rollout's machinery is loaded when an image concerns the module (firmware/flash/door.py)
 
 
 @pytest.mark.parametrize("seed", [0, 3])

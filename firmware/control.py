@@ -19,7 +19,7 @@ from typing import Any
 
 from dh2rt.errors import ControlProtocolError, ModuleConfigError
 from dh2rt.transport.base import LinkEnd
-from hil.config import end_from_json, end_to_json
+from firmware.config import end_from_json, end_to_json
 
 # ---------------------------------------------------------------- commands
 

@@ -15,8 +15,8 @@ from dh2rt import signed_image as si
 from dh2rt.compiler import compile_file
 from dh2rt.errors import FlashError
 from dh2rt.signed_image import Verdict
-from drivers import flash_slots
-from drivers.flash_slots import Boot, DirectoryFiles, Flash, FlashFiles
+from firmware.flash import slots as flash_slots
+from firmware.flash.slots import Boot, DirectoryFiles, Flash, FlashFiles
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

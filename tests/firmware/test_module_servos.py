@@ -11,9 +11,9 @@ from typing import Any
 from dh2rt.compiler import compile_file
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from drivers.recording import RecordingDriver
-from hil.config import ModuleConfig
-from hil.control import Command, Go, report_to_json
-from hil.module_process import ModuleHost
+from firmware.config import ModuleConfig
+from firmware.control import Command, Go, report_to_json
+from firmware.main_loop import ModuleHost
 from hil.servo_emulator import ServoEmulator
 
 ROOT = Path(__file__).resolve().parents[2]

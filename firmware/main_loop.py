@@ -2,7 +2,7 @@
 
 A physical module boots it (``docs/firmware.md``: a systemd unit on a Raspberry Pi-class
 processor), and the HIL world starts the very same program for each of its modules, with a
-config file of the same form plus a ``[hil]`` table (:mod:`hil.module_toml`); for the
+config file of the same form plus a ``[hil]`` table (:mod:`firmware.module_toml`); for the
 in-process transports the world runs :class:`ModuleHost` in a thread. The config is checked
 before anything starts (every error names the key; ``--check-config`` checks and exits).
 
@@ -20,11 +20,11 @@ Actuators: with ``servo_port`` the module drives its DOF1/DOF2 Dynamixel servos 
 opened (missing, wrong model, a bad bus) are reported as an actuator fault, and the module
 runs its program without actuators rather than not at all.
 
-Sensors (``S.name``; :mod:`hil.module_sensors`): the servos' present position and load when
+Sensors (``S.name``; :mod:`firmware.sensors`): the servos' present position and load when
 the program reads them, fixed stand-in readings for sensors with no device (``[sensors]``),
 readings the world pushes, and values ``sense`` commands force.
 
-Control channel: the typed commands of :mod:`hil.control` arrive as JSON lines on stdin
+Control channel: the typed commands of :mod:`firmware.control` arrive as JSON lines on stdin
 (``go``: start cycling, at a CLOCK_MONOTONIC instant after exchanging Hellos until then, for
 a number of cycles; ``attach``, ``detach``, ``inject``, ``sense`` (a sensor forced from then on),
 ``readings`` (what the world's physics measured for the module), ``hold`` (joint targets a
@@ -65,16 +65,16 @@ from dh2rt.transport.registry import open_transport
 from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
-from hil.config import ModuleConfig
-from hil.module_sensors import attach_sensors
+from firmware.config import ModuleConfig
+from firmware.sensors import attach_sensors
 
 if TYPE_CHECKING:
     import argparse
 
-    from drivers.flash_slots import Boot, Flash
-    from drivers.negotiated_links import NegotiatedLinks
-    from hil.rollout_door import RolloutDoor
-from hil.control import (
+    from firmware.flash.door import RolloutDoor
+    from firmware.flash.slots import Boot, Flash
+    from firmware.negotiated_links import NegotiatedLinks
+from firmware.control import (
     Attach,
     Command,
     Detach,
@@ -159,8 +159,8 @@ class ModuleHost:
         #: links negotiated over the connectors' local channels (on a bus), or None
         self.links: NegotiatedLinks | None = None
         if config.connector_channels:
-            from drivers.negotiated_links import NegotiatedLinks
-            from hil.negotiated_links import open_channels
+            from firmware.channels import open_channels
+            from firmware.negotiated_links import NegotiatedLinks
 
             rt = self.runtime
             try:
@@ -257,7 +257,7 @@ class ModuleHost:
         rejected at once and the confirmed one runs."""
         if not config.flash:
             return load_image(config.image)
-        from drivers.flash_slots import Flash
+        from firmware.flash.slots import Flash
 
         self.flash = Flash(
             Path(config.flash), config.trust, allow_unsigned=config.allow_unsigned, trial_cycles=config.trial_cycles
@@ -273,10 +273,10 @@ class ModuleHost:
 
     def _start_rollout(self) -> RolloutDoor | None:
         """Take part in rollouts (docs/flashing.md) when booted from a flash; the rollout's
-        machinery loads when one concerns this module (:mod:`hil.rollout_door`)."""
+        machinery loads when one concerns this module (:mod:`firmware.flash.door`)."""
         if self.flash is None or self.boot is None:
             return None
-        from hil.rollout_door import RolloutDoor
+        from firmware.flash.door import RolloutDoor
 
         bitrate = int(self.config.bus_options.get("bitrate", 1_000_000))
         try:
@@ -589,7 +589,7 @@ def plain_arguments(argv: Sequence[str]) -> Arguments | None:
 
 def load_config(text: str) -> ModuleConfig:
     """The config named on the command line: a TOML file, a JSON object, or @FILE.json."""
-    from hil.module_toml import load_toml
+    from firmware.module_toml import load_toml
 
     if text.startswith("{"):
         return ModuleConfig.from_json(json.loads(text))
@@ -603,7 +603,7 @@ def describe(config: ModuleConfig) -> str:
     source = "image"
     image = config.image
     if config.flash:
-        from drivers.flash_slots import Flash
+        from firmware.flash.slots import Flash
 
         peeked, program_image = Flash(Path(config.flash), config.trust, allow_unsigned=config.allow_unsigned).peek()
         source = f"flash {config.flash}: {peeked}; trusts {len(config.trust)} key(s)"
