@@ -6,7 +6,7 @@ worlds in the same run, and the snake (caterpillar receptors of the same program
 For each robot and seed: centimetres per gait cycle (the centroid's travel along the
 direction module 0's front faced at the start, one gait cycle to settle, then the measured
 ones), and the heading drift: the largest angle between module 0's front connector's
-horizontal direction at the end of a gait cycle and at the start (sim.gaits.measure_walk).
+horizontal direction at the end of a gait cycle and at the start (sim.walk.measure_walk).
 
     python -m benchmarks.bench_legged [--quick] [--gait-cycles N] [--seeds 0,1,2] [--no-before]
 """
@@ -23,7 +23,7 @@ from typing import Any
 from benchmarks import seeds_arg, strict_json
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.program import CompiledProgram
-from sim.gaits import measure_walk
+from sim.walk import measure_walk
 
 HERE = Path(__file__).resolve().parent
 EXAMPLES = HERE.parent / "examples"

@@ -37,12 +37,15 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from dh2rt import docking
-from dh2rt.docking import End
+from dh2rt.docking import DockingWorld, End
+from dh2rt.profile import Profile
+from dh2rt.program import CompiledProgram
+from dh2rt.topology import Topology
 from firmware.control import Readings
 from hil.physics_stand_in import PhysicsStandIn
 from sim.clearing import Clearing, spot_taken
@@ -51,8 +54,25 @@ from sim.reach import Chain, Contact, Reach
 from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from sim.sensors import PhysicsSensors
 
-if TYPE_CHECKING:
-    from hil.world import World
+
+class LoopWorld(DockingWorld, Protocol):
+    """What the docking motions need of the loop's world (:class:`hil.world.World` offers it;
+    the world imports this module, not the other way round)."""
+
+    program: CompiledProgram
+    topology: Topology
+    profile: Profile
+    #: the sensor values ``sense`` events forced on each module
+    sensed: dict[int, dict[str, int]]
+
+    @property
+    def cycle(self) -> int: ...
+
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool: ...
+
+    def hold(self, module: int, targets: Mapping[int, float]) -> None: ...
+
+    def send_readings(self, module: int, readings: Readings) -> None: ...
 
 
 @dataclass
@@ -138,7 +158,7 @@ class Outcome:
 class LoopReaches:
     """The docking motions of a loop world whose body is the PyBullet stand-in."""
 
-    def __init__(self, world: World, physics: PhysicsStandIn) -> None:
+    def __init__(self, world: LoopWorld, physics: PhysicsStandIn) -> None:
         self.world = world
         self.physics = physics
         model = physics.world.model

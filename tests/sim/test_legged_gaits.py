@@ -23,12 +23,12 @@ from dh2rt.errors import GaitError
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
-from sim.gaits import Walk, measure_walk
+from sim.walk import Walk, measure_walk
 
 LEGGED = ("tripod", "quadruped", "hexapod", "octopod")
 
 #: cm per gait cycle of the locomotion program before this gait (commit 580ed1d), by
-#: ``sim.gaits.measure_walk(program, topology, 0, gait_cycles=20)`` (seed 0, one gait cycle
+#: ``sim.walk.measure_walk(program, topology, 0, gait_cycles=20)`` (seed 0, one gait cycle
 #: to settle, 20 measured): the figures issue 13 quotes as "0.9 to 1.7 cm per gait cycle".
 BEFORE_CM = {"tripod": 1.57, "quadruped": 1.06, "hexapod": 1.60, "octopod": 1.71}
 MAX_DRIFT_DEG = 15.0
