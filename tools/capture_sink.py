@@ -7,7 +7,7 @@
   python-can's own writers.
 
 Formats other than pcapng get the program images in a sidecar file beside the capture
-(:func:`tools.capture_files.write_sidecar`), so every capture decodes with nothing else.
+(:func:`tools.capture_reader.write_sidecar`), so every capture decodes with nothing else.
 
 :func:`open_sink` is what the launcher's ``--capture`` finds through the entry-point group
 ``dh2rt.capture_sinks``: the launcher lives in ``hil/`` and does not import ``tools/``. The
@@ -26,7 +26,7 @@ from typing import Any
 from dh2rt.errors import DecodeError, OptionError
 from dh2rt.wire.serial_framing import decode_serial
 from tools import serial_records
-from tools.capture_files import PYTHON_CAN_SUFFIXES, write_sidecar
+from tools.capture_reader import PYTHON_CAN_SUFFIXES, write_sidecar
 from tools.pcap import CapturedFrame, PcapWriter, socketcan_packet
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
 from tools.serial_records import SerialRecord

@@ -20,7 +20,7 @@ from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
 from dh2rt.wire.serial_framing import decode_serial
-from tools.capture_files import CanRecord, Record
+from tools.capture_reader import CanRecord, Record
 from tools.serial_records import SerialRecord
 
 KINDS = ("hormone", "routed", "keepalive", "hello", "link")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
-from tools.capture_files import read_records
+from tools.capture_reader import read_records
 from tools.decode import KINDS, Decoder
 from tools.reading import PROGRAM_HELP, options_and_capture
 

@@ -14,7 +14,7 @@ from dh2rt.cmdline import EXIT_USAGE, err, load_program
 from dh2rt.compiler import load_image
 from dh2rt.errors import CaptureError, DH2Error, ProgramError
 from dh2rt.program import CompiledProgram
-from tools.capture_files import capture_programs, read_records
+from tools.capture_reader import capture_programs, read_records
 from tools.decode import Hop, decode
 
 PROGRAM_HELP = "the .dh2 program the robot ran (default: the program images the capture carries)"

@@ -20,7 +20,7 @@ import numpy as np
 
 from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
-from tools.capture_files import CanRecord, Record, read_records
+from tools.capture_reader import CanRecord, Record, read_records
 from tools.decode import decode
 from tools.reading import PROGRAM_HELP, options_and_capture
 

@@ -19,7 +19,7 @@ import can
 from dh2rt.bundled import compile_bundled
 from dh2rt.signed_image import pack, public_key_path, read_private_key, write_key_pair
 from hil.contact_emulator import ContactEmulator
-from tools.capture_files import CanRecord
+from tools.capture_reader import CanRecord
 from tools.decode import Decoder
 
 MODULES = 8

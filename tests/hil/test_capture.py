@@ -26,7 +26,7 @@ from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import socketcan_problem
 from dh2rt.wire.frame import program_digest
 from hil.pace import PACE
-from tools.capture_files import capture_programs
+from tools.capture_reader import capture_programs
 from tools.reading import open_capture
 
 ROOT = Path(__file__).resolve().parents[2]

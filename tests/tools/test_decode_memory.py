@@ -28,7 +28,7 @@ from dh2rt.wire.can_frames import MIDDLE, SINGLE, CanFrame, make_arbitration_id,
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
 from dh2rt.wire.serial_framing import encode_serial
 from tools import decode, serial_records
-from tools.capture_files import CanRecord, Record
+from tools.capture_reader import CanRecord, Record
 from tools.pcap import CAN_EFF_FLAG
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
 from tools.serial_records import SerialRecord

@@ -21,7 +21,7 @@ from dh2rt.transport.base import BusEnd
 from dh2rt.transport.registry import open_transport
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
 from dh2rt.wire.frame import FrameCodec
-from tools.capture_files import read_can
+from tools.capture_reader import read_can
 from tools.capture_sink import FileSink
 from tools.dump import main
 from tools.pcap import CapturedFrame, write_pcap
