@@ -28,6 +28,12 @@ lockstep run every hormone crosses one link per cycle whatever order modules are
 Presence sensing (:meth:`link_up`, :meth:`link_down`) lets whatever plays the physical layer
 report a docked or lost neighbour directly, as CONRO's infrared connectors sense each other;
 liveness over real links is built on it by the module runtime.
+
+Three layers make up a module's main loop; each names the others: :meth:`dh2rt.engine.Engine.step`
+is one cycle of the paper's Fig. 3 over the module's state (no I/O); :class:`dh2rt.runtime.ModuleRuntime`
+runs those cycles on a real transport at the module's period, with liveness, sensors and servos;
+``firmware/main_loop.py`` is the program a module boots (``dh2rt module --config module.toml``):
+config, links, flash, control channel, then the runtime's cycles until power-off or a signal.
 """
 
 from __future__ import annotations

@@ -39,6 +39,12 @@ consecutive cycle without a frame from it, and the engine runs that cycle with t
 connector at 0; in wall time, at most (SILENCE_CYCLES + 1) cycle periods plus the link's
 latency after its last frame. The rules (Hello, refusal, re-verification) are the liveness
 machine's; this module only does the I/O they call for.
+
+Three layers make up a module's main loop; each names the others: :meth:`dh2rt.engine.Engine.step`
+is one cycle of the paper's Fig. 3 over the module's state (no I/O); :class:`dh2rt.runtime.ModuleRuntime`
+runs those cycles on a real transport at the module's period, with liveness, sensors and servos;
+``firmware/main_loop.py`` is the program a module boots (``dh2rt module --config module.toml``):
+config, links, flash, control channel, then the runtime's cycles until power-off or a signal.
 """
 
 from __future__ import annotations

@@ -1,5 +1,11 @@
 """The program a module runs, from power-up to power-off: ``dh2rt module --config module.toml``.
 
+Three layers make up a module's main loop; each names the others: :meth:`dh2rt.engine.Engine.step`
+is one cycle of the paper's Fig. 3 over the module's state (no I/O); :class:`dh2rt.runtime.ModuleRuntime`
+runs those cycles on a real transport at the module's period, with liveness, sensors and servos;
+``firmware/main_loop.py`` is the program a module boots (``dh2rt module --config module.toml``):
+config, links, flash, control channel, then the runtime's cycles until power-off or a signal.
+
 A physical module boots it (``docs/firmware.md``: a systemd unit on a Raspberry Pi-class
 processor), and the HIL world starts the very same program for each of its modules, with a
 config file of the same form plus a ``[hil]`` table (:mod:`firmware.module_toml`); for the
