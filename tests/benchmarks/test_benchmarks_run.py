@@ -1,4 +1,4 @@
-"""Every benchmark runs (quick mode) and ends with one JSON object, as the README promises."""
+"""Every benchmark runs (quick mode) and ends with one JSON object, as docs/figures.md promises."""
 
 from __future__ import annotations
 
