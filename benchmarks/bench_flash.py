@@ -68,8 +68,8 @@ from typing import Any
 from benchmarks import strict_json
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error
-from dh2rt.pacing import link_pacing
-from dh2rt.rollout import Progress
+from dh2rt.flash.flasher import Progress
+from dh2rt.flash.pacing import link_pacing
 from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd

@@ -88,7 +88,7 @@ class Liveness:
         #: the program version this module's Hellos state (None: 7-byte Hellos without one)
         self.version: int | None = None
         #: other program digests accepted from a neighbour for now (a rollout's switch window,
-        #: ``dh2rt.rollout.Rollout.tolerated``); its frames are heard but not its hormones
+        #: ``dh2rt.flash.rollout.Rollout.tolerated``); its frames are heard but not its hormones
         self.tolerated: frozenset[bytes] = frozenset()
         self.silence_cycles = silence_cycles
         self.counters = LivenessCounters()

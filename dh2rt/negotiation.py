@@ -6,7 +6,8 @@ docked pair agree on one themselves, over the *connector-local channel* (CLC) ea
 has (CONRO's infrared pair: it senses contact and carries a few bytes, ≤ 8 per message, to
 the connector it touches, and may lose or garble them), then claim it on the bus, where every
 module hears every claim. ``docs/link-layer.md`` ("Link negotiation") has the message
-formats, the message sequences and the failure cases.
+formats, the message sequences and the failure cases; the messages' codec is
+:mod:`dh2rt.wire.negotiation`, beside the other codecs.
 
 In short, per connector: on contact each side draws a 32-bit *nonce* and sends ``OFFER``; the
 higher nonce is the *leader* (side 0), and ``tag = leader nonce ^ follower nonce`` names the
@@ -58,173 +59,27 @@ from __future__ import annotations
 
 import enum
 import random
-import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-from dh2rt.errors import DecodeError, EncodeError, FrameCorrupted
+from dh2rt.errors import DecodeError
 from dh2rt.transport.base import BusEnd
-from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, CanFrame, make_arbitration_id
-
-#: The frame kind management frames use (kind 3, "hello": they lose arbitration to hormones).
-MANAGEMENT_KIND = 3
-#: The arbitration id of every management frame: link id MAX_LINK_ID, side 0, single segment.
-#: No negotiated link ever uses MAX_LINK_ID, so no link's listen filter matches it.
-MANAGEMENT_ID = make_arbitration_id(MANAGEMENT_KIND, SINGLE, 0, MAX_LINK_ID, 0)
-#: The ids links may be given: 0 is left out (the HIL world's numbering starts there) and
-#: MAX_LINK_ID is the management channel's.
-FIRST_LINK_ID = 1
-LAST_LINK_ID = MAX_LINK_ID - 1
-#: The most a CLC message may carry.
-LOCAL_MAX = 8
-
-_U32 = 0xFFFFFFFF
-_U24 = 0xFFFFFF
-
-
-def management_filter() -> dict[str, int | bool]:
-    """A python-can filter accepting the management frames (and nothing else)."""
-    return {"can_id": MANAGEMENT_ID, "can_mask": (1 << 29) - 1, "extended": True}
-
-
-# ---------------------------------------------------------------------------------------------
-# Connector-local channel messages
-
-
-class LocalType(enum.IntEnum):
-    """Byte 0 of a CLC message."""
-
-    OFFER = 1  # nonce u32, check u24
-    PROPOSE = 2  # link id u24, seal u32 (leader -> follower)
-    ACCEPT = 3  # link id u24, seal u32 (follower -> leader)
-    CONFIRM = 4  # link id u24, seal u32 (leader -> follower)
-    REJECT = 5  # link id u24, seal u32 (follower -> leader: that id is taken)
-
-
-@dataclass(frozen=True, slots=True)
-class Offer:
-    """``OFFER``: the sender's nonce for this negotiation."""
-
-    nonce: int
-
-
-@dataclass(frozen=True, slots=True)
-class Sealed:
-    """``PROPOSE``/``ACCEPT``/``CONFIRM``/``REJECT``: a link id and a seal binding it to a tag.
-
-    ``seal = tag ^ crc32(type byte ‖ link id)``: only a receiver holding the same tag (the same
-    two nonces) accepts it, and a garbled type or id (any error in those 4 bytes) or seal never
-    passes. A message from an older negotiation fails the same way.
-    """
-
-    kind: LocalType
-    link_id: int
-    seal: int
-
-    def opens(self, tag: int) -> bool:
-        """Whether this message belongs to the negotiation whose tag is ``tag``."""
-        return self.seal == _seal(self.kind, self.link_id, tag)
-
-
-LocalMessage = Offer | Sealed
-
-
-def _offer_check(head: bytes) -> int:
-    return zlib.crc32(head) & _U24
-
-
-def _seal(kind: LocalType, link_id: int, tag: int) -> int:
-    return (tag ^ zlib.crc32(bytes((kind,)) + link_id.to_bytes(3, "big"))) & _U32
-
-
-def _check_link_id(link_id: int) -> None:
-    if isinstance(link_id, bool) or not isinstance(link_id, int) or not FIRST_LINK_ID <= link_id <= LAST_LINK_ID:
-        raise EncodeError(f"link id {link_id!r} is outside {FIRST_LINK_ID}..{LAST_LINK_ID}")
-
-
-def _check_u32(name: str, value: int, *, nonzero: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or not (1 if nonzero else 0) <= value <= _U32:
-        raise EncodeError(f"{name} {value!r} is not a{' non-zero' if nonzero else ''} 32-bit value")
-
-
-def encode_offer(nonce: int) -> bytes:
-    """``OFFER``: type, nonce (4 bytes BE), low 24 bits of the CRC-32 of those 5 bytes."""
-    _check_u32("nonce", nonce)
-    head = bytes((LocalType.OFFER,)) + nonce.to_bytes(4, "big")
-    return head + _offer_check(head).to_bytes(3, "big")
-
-
-def encode_sealed(kind: LocalType, link_id: int, tag: int) -> bytes:
-    """A sealed message: type, link id (3 bytes BE), seal (4 bytes BE); 8 bytes."""
-    if kind is LocalType.OFFER:
-        raise EncodeError("an OFFER carries a nonce, not a link id: use encode_offer")
-    _check_link_id(link_id)
-    _check_u32("tag", tag, nonzero=True)
-    return bytes((kind,)) + link_id.to_bytes(3, "big") + _seal(kind, link_id, tag).to_bytes(4, "big")
-
-
-def decode_local(data: bytes) -> LocalMessage:
-    """One CLC message; raises DecodeError (FrameCorrupted for a failed check) on garbage."""
-    if len(data) != LOCAL_MAX:
-        raise DecodeError(f"CLC message of {len(data)} bytes; every message is {LOCAL_MAX}")
-    try:
-        kind = LocalType(data[0])
-    except ValueError:
-        raise DecodeError(f"CLC message type {data[0]} is unknown") from None
-    if kind is LocalType.OFFER:
-        if int.from_bytes(data[5:8], "big") != _offer_check(bytes(data[:5])):
-            raise FrameCorrupted("OFFER check does not match")
-        return Offer(int.from_bytes(data[1:5], "big"))
-    link_id = int.from_bytes(data[1:4], "big")
-    if not FIRST_LINK_ID <= link_id <= LAST_LINK_ID:
-        raise DecodeError(f"CLC {kind.name} names link id {link_id}, outside {FIRST_LINK_ID}..{LAST_LINK_ID}")
-    return Sealed(kind, link_id, int.from_bytes(data[4:8], "big"))
-
-
-# ---------------------------------------------------------------------------------------------
-# Bus management frames
-
-
-class BusOp(enum.IntEnum):
-    """Byte 0 of a management frame."""
-
-    CLAIM = 1  # a pair wants this id (sent every cycle of its claim window)
-    RELEASE = 2  # a pair let go of this id
-    HOLD = 3  # an established pair owns this id (re-announced; also its defence)
-
-
-@dataclass(frozen=True, slots=True)
-class BusMessage:
-    """A management frame's data: op, link id, the claiming pair's tag."""
-
-    op: BusOp
-    link_id: int
-    tag: int
-
-
-def encode_bus(msg: BusMessage) -> bytes:
-    """op (1 byte), link id (3 bytes BE), tag (4 bytes BE): one classic CAN frame's 8 bytes."""
-    _check_link_id(msg.link_id)
-    _check_u32("tag", msg.tag, nonzero=True)
-    return bytes((BusOp(msg.op),)) + msg.link_id.to_bytes(3, "big") + msg.tag.to_bytes(4, "big")
-
-
-def decode_bus(data: bytes) -> BusMessage:
-    """A management frame's data; raises DecodeError on garbage (CAN's CRC caught the noise)."""
-    if len(data) != 8:
-        raise DecodeError(f"management frame of {len(data)} bytes; it must be 8")
-    try:
-        op = BusOp(data[0])
-    except ValueError:
-        raise DecodeError(f"management op {data[0]} is unknown") from None
-    link_id = int.from_bytes(data[1:4], "big")
-    tag = int.from_bytes(data[4:8], "big")
-    if not FIRST_LINK_ID <= link_id <= LAST_LINK_ID:
-        raise DecodeError(f"management frame names link id {link_id}, outside {FIRST_LINK_ID}..{LAST_LINK_ID}")
-    if tag == 0:
-        raise DecodeError("management frame with tag 0 (no pair has it)")
-    return BusMessage(op, link_id, tag)
-
+from dh2rt.wire.can_frames import CanFrame
+from dh2rt.wire.negotiation import (
+    FIRST_LINK_ID,
+    LAST_LINK_ID,
+    MANAGEMENT_ID,
+    BusMessage,
+    BusOp,
+    LocalType,
+    Offer,
+    Sealed,
+    decode_bus,
+    decode_local,
+    encode_bus,
+    encode_offer,
+    encode_sealed,
+)
 
 # ---------------------------------------------------------------------------------------------
 # Actions

@@ -17,8 +17,9 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from dh2rt.closing import Closing
-from dh2rt.negotiation import MANAGEMENT_ID, Attach, Detach, LinkNegotiator, SendBus, SendLocal
+from dh2rt.negotiation import Attach, Detach, LinkNegotiator, SendBus, SendLocal
 from dh2rt.transport.base import LinkEnd
+from dh2rt.wire.negotiation import MANAGEMENT_ID
 from drivers.connector_channel import CONTACT, LOST, ConnectorChannels
 
 

@@ -17,8 +17,9 @@ from pathlib import Path
 from typing import IO
 
 from dh2rt.errors import EventError, SignedImageError, TopologyError
-from dh2rt.pacing import link_pacing
-from dh2rt.rollout import ModuleReport, Progress, describe_path
+from dh2rt.flash.flasher import Progress
+from dh2rt.flash.pacing import link_pacing
+from dh2rt.flash.reports import ModuleReport, describe_path
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd, Transport

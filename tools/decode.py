@@ -14,11 +14,11 @@ from typing import Any, NamedTuple
 
 from dh2rt.errors import DecodeError
 from dh2rt.hormone import Hormone
-from dh2rt.negotiation import MANAGEMENT_ID, decode_bus
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
+from dh2rt.wire.negotiation import MANAGEMENT_ID, decode_bus
 from dh2rt.wire.serial_framing import decode_serial
 from tools.capture_reader import CanRecord, Record
 from tools.serial_records import SerialRecord

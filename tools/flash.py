@@ -13,7 +13,7 @@ connector: the two negotiate a link id over it as two docking modules would (doc
 and the image crosses the bus on that link, paced as a module's share of the bus. The cable
 is a connector of the profile (``--cable-connector``, default ``back``: CONRO's male
 connectors dock to a free front). The flasher (:class:`firmware.flash.cable.FlashCable`, the
-rollout's :class:`dh2rt.rollout.Flasher`) is ticked at the robot's cycle period
+rollout's :class:`dh2rt.flash.flasher.Flasher`) is ticked at the robot's cycle period
 (``--cycle-ms``): it offers the image through the cable, the modules pass it on over their
 own links, stage it, report back along their paths, and switch at the instant the flasher's
 COMMIT names (docs/flashing.md, "Delivery over the links").
@@ -54,9 +54,10 @@ from typing import Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import SignedImageError, TransportError
-from dh2rt.pacing import Pacing, link_pacing
+from dh2rt.flash.flasher import Progress
+from dh2rt.flash.pacing import Pacing, link_pacing
+from dh2rt.flash.reports import COMMITTED, ModuleReport, describe_path
 from dh2rt.profile import CONRO
-from dh2rt.rollout import COMMITTED, ModuleReport, Progress, describe_path
 from dh2rt.signed_image import SignedImage, describe_key_id
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.transport.base import PortEnd, Transport

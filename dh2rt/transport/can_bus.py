@@ -134,7 +134,7 @@ class CanTransport(Transport):
             filters = [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
         self._bus.set_filters(filters)
 
-    # -- link negotiation's management frames (dh2rt.negotiation) ------------------------
+    # -- link negotiation's management frames (dh2rt.wire.negotiation) -------------------
 
     def enable_management(self, arbitration_id: int) -> None:
         """Receive the frames with ``arbitration_id`` apart (:meth:`take_management`)."""

@@ -1,6 +1,6 @@
 """Sizes of the transfer family that every module needs without its messages: the wire
 limits a rollout's frames keep to, and what a frame of n bytes costs a serial line or a CAN
-bus (:mod:`dh2rt.pacing` budgets a rollout with them at boot). :mod:`dh2rt.wire.transfer`
+bus (:mod:`dh2rt.flash.pacing` budgets a rollout with them at boot). :mod:`dh2rt.wire.transfer`
 re-exports them.
 """
 

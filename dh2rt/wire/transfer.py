@@ -37,7 +37,7 @@ Messages (``id`` is an image id: the first 8 bytes of blake2b of the signed imag
 
 A *hop* is one byte, ``sent_through << 4 | received_at`` (connectors 1..15), as a hormone's
 path records hops. ``docs/flashing.md`` ("Delivery over the links") has the tables, the
-sequence and the rules; :mod:`dh2rt.rollout` is the state machine that speaks this.
+sequence and the rules; :mod:`dh2rt.flash` holds the state machines that speak this.
 
 The Hello that states the program version is a link frame (:func:`dh2rt.wire.frame.encode_hello`),
 and the wire limits and link costs every module needs are in :mod:`dh2rt.wire.sizes`; both

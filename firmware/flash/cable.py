@@ -1,4 +1,4 @@
-"""The entry point of a rollout, with its I/O: :class:`dh2rt.rollout.Flasher` on a transport.
+"""The entry point of a rollout, with its I/O: :class:`dh2rt.flash.flasher.Flasher` on a transport.
 
 A programming cable into one module's free connector is a serial port (``dh2rt flash
 --port``, or the launcher's ``--event CYCLE:flash:M:IMAGE``, a pty of the link emulator); a
@@ -15,9 +15,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from dh2rt.closing import Closing
+from dh2rt.flash.flasher import Flasher, Progress
+from dh2rt.flash.pacing import Pacing
+from dh2rt.flash.reports import ModuleReport
+from dh2rt.flash.values import Action, Send
 from dh2rt.hormone import Vocabulary
-from dh2rt.pacing import Pacing
-from dh2rt.rollout import Action, Flasher, ModuleReport, Progress, Send
 from dh2rt.transport.base import Transport
 from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR

@@ -1,7 +1,7 @@
 """A module's part in rollouts, loaded when a rollout concerns it: :class:`RolloutDoor`.
 
 Most of a module's life no image moves. The rollout's state machines and their I/O
-(:mod:`dh2rt.rollout`, :class:`firmware.flash.module_host.RolloutHost`) cost a module about 0.5 MB
+(:mod:`dh2rt.flash`, :class:`firmware.flash.module_host.RolloutHost`) cost a module about 0.5 MB
 of resident memory, a sixth of what dh2rt adds to python-can on a bus module
 (``benchmarks/bench_footprint.py``), so a module booted from its flash starts with this
 door instead and opens the host at the first thing that needs it:
@@ -10,7 +10,7 @@ door instead and opens the host at the first thing that needs it:
   switch (``Flash.held``), or one received in part (``partial.json``);
 * a transfer frame on any link (an OFFER, a probing REQUEST, ...);
 * a neighbour's Hello stating a lower version than the running program's (this module
-  offers it its image, as :meth:`dh2rt.rollout.Rollout.hello` does).
+  offers it its image, as :meth:`dh2rt.flash.rollout.Rollout.hello` does).
 
 Until then the door keeps what the host would have been told: the latest Hello on every
 linked connector. When it opens, the new host attaches the transport's links as it always
@@ -20,31 +20,24 @@ the host is the runtime's observer and the transport's transfer handler, and the
 forwards the module host's calls.
 
 Before any of this the door checks that the module's lines can carry a rollout at all
-(:func:`dh2rt.pacing.link_pacing`) and raises its ValueError if not, so a module on too
+(:func:`dh2rt.flash.pacing.link_pacing`) and raises its ValueError if not, so a module on too
 slow a line says so at boot, not at the first offer.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from dh2rt.pacing import link_pacing
-from dh2rt.program import CompiledProgram
+from dh2rt.flash.pacing import link_pacing
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import PortEnd
 from dh2rt.wire.frame import Hello
-from firmware.flash.slots import Boot, Flash
+from firmware.flash.slots import PARTIAL_INFO, Boot, Flash
 
 if TYPE_CHECKING:
-    from firmware.flash.module_host import RolloutHost
+    from firmware.flash.module_host import OnSwitch, RolloutHost
 
-#: Files beside the slots: the image being received, and what it is.
-PARTIAL_IMAGE = "partial.img"
-PARTIAL_INFO = "partial.json"
-#: What the module host does at the switch: run this program (booted from the flash).
-OnSwitch = Callable[[CompiledProgram, Boot], None]
 
 
 class RolloutDoor:

@@ -1,4 +1,4 @@
-"""A module's rollout in its running loop: the I/O around :class:`dh2rt.rollout.Rollout`.
+"""A module's rollout in its running loop: the I/O around :class:`dh2rt.flash.rollout.Rollout`.
 
 :class:`RolloutHost` is what ``docs/flashing.md`` ("Driving the state machines") asks of a
 host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
@@ -28,31 +28,22 @@ import contextlib
 import json
 import os
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import DH2Error, FlashError, SignedImageError
-from dh2rt.pacing import Pacing
+from dh2rt.flash.pacing import Pacing
+from dh2rt.flash.rollout import Rollout
+from dh2rt.flash.values import Action, Declined, DropPartial, ImageInfo, Partial, Persist, Program, Send, Stage, Switch
 from dh2rt.program import CompiledProgram
-from dh2rt.rollout import (
-    Action,
-    Declined,
-    DropPartial,
-    ImageInfo,
-    Partial,
-    Persist,
-    Program,
-    Rollout,
-    Send,
-    Stage,
-    Switch,
-)
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.wire.frame import Hello
 from dh2rt.wire.transfer import image_id
-from firmware.flash.door import PARTIAL_IMAGE, PARTIAL_INFO, OnSwitch
-from firmware.flash.slots import Boot, Flash, replace_file
+from firmware.flash.slots import PARTIAL_IMAGE, PARTIAL_INFO, Boot, Flash, replace_file
+
+#: What the module host does at the switch: run this program (booted from the flash).
+OnSwitch = Callable[[CompiledProgram, Boot], None]
 
 
 class RolloutHost:

@@ -6,6 +6,8 @@ The flash is a directory (``[program] flash`` in ``module.toml``)::
     a.img, b.img    signed images (dh2rt.signed_image); one holds the confirmed program
     state.json      which slot is confirmed (its version and digest), and the trial, if any
     program.img     today's single image: read once to fill an empty flash, then ignored
+    partial.img     an image being received over the links, and what it is (partial.json),
+    partial.json    written by the rollout's host (firmware.flash.module_host)
 
 Every file is replaced whole: written to ``NAME.tmp``, flushed and fsynced, renamed over
 ``NAME``, and the directory fsynced. A rename is atomic, so after a power cut each file is
@@ -46,6 +48,9 @@ SLOTS = ("a", "b")
 STATE_FILE = "state.json"
 #: The single image a flash held before it had slots (``dh2rt image PROGRAM -o program.img``).
 LEGACY_IMAGE = "program.img"
+#: Files beside the slots: the image being received over the links, and what it is.
+PARTIAL_IMAGE = "partial.img"
+PARTIAL_INFO = "partial.json"
 STATE_FORMAT = 1
 #: Clean cycles a trial program runs before it is confirmed, unless the stage says otherwise.
 DEFAULT_TRIAL_CYCLES = 100

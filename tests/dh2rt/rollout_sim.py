@@ -1,4 +1,4 @@
-"""The simulated robot the rollout tests and bench_flash run :mod:`dh2rt.rollout` in (see
+"""The simulated robot the rollout tests and bench_flash run :mod:`dh2rt.flash` in (see
 tests/dh2rt/test_rollout.py's docs for what it models)."""
 
 from __future__ import annotations
@@ -13,21 +13,10 @@ from dataclasses import dataclass, field
 
 from dh2rt import signed_image as si
 from dh2rt.compiler import compile_source
-from dh2rt.pacing import Pacing
-from dh2rt.rollout import (
-    Action,
-    DropPartial,
-    Flasher,
-    ImageInfo,
-    Partial,
-    Persist,
-    Program,
-    Rollout,
-    Send,
-    Stage,
-    Switch,
-    Timing,
-)
+from dh2rt.flash.flasher import Flasher
+from dh2rt.flash.pacing import Pacing
+from dh2rt.flash.rollout import Rollout
+from dh2rt.flash.values import Action, DropPartial, ImageInfo, Partial, Persist, Program, Send, Stage, Switch, Timing
 from dh2rt.topology import Topology, parse_spec
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.can_frames import CLASSIC_DATA
@@ -530,11 +519,11 @@ class World:
             m.hello_due = set(self.connectors(m.index))
             for connector in self.connectors(m.index):
                 m.run(m.machine.attach(connector, m.local(0.0)))
-            self._schedule_ticks(m)
+            self.schedule_ticks(m)
         self.entry: Entry | None = None
         if image is not None:  # the entry point keeps time of its own, whatever the modules do
             self.entry = Entry(self, n, self.rng.uniform(PERIOD, 2 * PERIOD), image, settle_ticks, confirm=confirm)
-            self._schedule_ticks(self.entry)
+            self.schedule_ticks(self.entry)
 
     # -- topology ------------------------------------------------------------------------------
 
@@ -562,7 +551,8 @@ class World:
     def schedule(self, at: float, fn: Callable[[], None]) -> None:
         heapq.heappush(self.events, (at, next(self.seq), fn))
 
-    def _schedule_ticks(self, node: Node) -> None:
+    def schedule_ticks(self, node: Node) -> None:
+        """Tick ``node`` every period from now on, while this life of it lasts (a new entry point too)."""
         generation = node.generation
 
         def tick() -> None:
@@ -660,7 +650,7 @@ class World:
                 node = self.node(m)
                 if isinstance(node, Module):
                     node.hello_due.add(d)
-        self._schedule_ticks(self.modules[index])
+        self.schedule_ticks(self.modules[index])
 
     # -- results -------------------------------------------------------------------------------
 

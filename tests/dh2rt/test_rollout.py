@@ -1,10 +1,10 @@
-"""The rollout (dh2rt.rollout) in a simulated robot: a signed image spreading over the
+"""The rollout (dh2rt.flash) in a simulated robot: a signed image spreading over the
 modules' own links, staged, committed and switched to together.
 
 The harness is an in-process, event-driven world with a continuous clock. Each module is a
-:class:`~dh2rt.rollout.Rollout` with a fake flash that checks images with the real
+:class:`~dh2rt.flash.rollout.Rollout` with a fake flash that checks images with the real
 :mod:`dh2rt.signed_image` and real Ed25519 keys; the entry point is a
-:class:`~dh2rt.rollout.Flasher` on a cable to a module's free connector. Modules tick every
+:class:`~dh2rt.flash.flasher.Flasher` on a cable to a module's free connector. Modules tick every
 ``PERIOD`` at phases of their own (or all in step: ``aligned``), and each keeps its own
 clock (a random offset): nothing compares clocks across modules. Every cycle a module ticks
 its Rollout (a switch takes effect at once), sends one link frame through each linked
@@ -38,27 +38,13 @@ from typing import Any
 import pytest
 
 from dh2rt import signed_image as si
-from dh2rt.pacing import LARGEST_CONTROL, Pacing, link_pacing
-from dh2rt.rollout import (
-    COMMITTED,
-    Action,
-    Flasher,
-    FlasherPhase,
-    ImageInfo,
-    Partial,
-    Persist,
-    Program,
-    Role,
-    Rollout,
-    Send,
-    SenderState,
-    Stage,
-    Switch,
-    Timing,
-    _Sender,
-    _Store,
-    describe_path,
-)
+from dh2rt.flash.flasher import Flasher, FlasherPhase
+from dh2rt.flash.pacing import LARGEST_CONTROL, Pacing, link_pacing
+from dh2rt.flash.reports import COMMITTED, describe_path
+from dh2rt.flash.rollout import Role, Rollout
+from dh2rt.flash.sender import Sender, SenderState
+from dh2rt.flash.store import Store
+from dh2rt.flash.values import Action, ImageInfo, Partial, Persist, Program, Send, Stage, Switch, Timing
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.transfer import Outcome
 from tests.dh2rt.rollout_sim import (
@@ -344,7 +330,7 @@ def test_flashing_again_after_fixing_the_trust_store(images: Images) -> None:
     world.run_until(world.t + 10 * PERIOD)
     second = Entry(world, world.entry_index, world.rng.uniform(0, PERIOD), images.v2, 250)
     world.entry = second
-    world._schedule_ticks(second)
+    world.schedule_ticks(second)
     world.run()
     assert world.flasher.succeeded, world.summary()
     assert world.versions() == [2] * 8
@@ -550,14 +536,14 @@ def _info(length: int = 343, size: int = 80) -> ImageInfo:
 def test_a_store_holds_whole_segments_and_resumes_from_a_prefix() -> None:
     info = _info()
     data = bytes(range(256)) + bytes(87)
-    store = _Store(info, data[:160])
+    store = Store(info, data[:160])
     assert (store.contiguous, store.complete, store.available(True)) == (2, False, 2)
     assert store.add(3, data[240:320]) and not store.add(3, data[240:320])
     assert store.sack() == 0b1  # segment 3 held: bit 0 stands for contiguous + 1
     with pytest.raises(ValueError, match="expected 80"):
         store.add(2, data[160:200])
     with pytest.raises(ValueError, match="no run of whole segments"):
-        _Store(info, data[:100])
+        Store(info, data[:100])
     store.add(2, data[160:240])
     store.add(4, data[320:])
     assert store.complete and store.assemble() == data
@@ -588,7 +574,7 @@ def test_a_partial_image_is_cut_again_for_a_source_that_segments_otherwise(image
 def test_a_sender_windows_retransmits_and_fast_retransmits() -> None:
     info = _info(800, 80)  # 10 segments
     offer = tw.Offer(2, info.image, 800, 80, 10)
-    s = _Sender(info, offer, 1, 4, tick=0)
+    s = Sender(info, offer, 1, 4, tick=0)
     pushed = []
     while (pick := s.next_index(0, 10, 3)) is not None:
         pushed.append(pick)
@@ -612,7 +598,7 @@ def test_a_sender_windows_retransmits_and_fast_retransmits() -> None:
     assert s.next_index(6, 10, 3) == (4, True)  # timed out after rto ticks
     s.on_ack(10, 0, tick=7)
     assert s.state is SenderState.DONE
-    quiet = _Sender(info, offer, 1, 4, tick=0)
+    quiet = Sender(info, offer, 1, 4, tick=0)
     assert not quiet.check_stall(24, 25) and quiet.check_stall(25, 25)
 
 

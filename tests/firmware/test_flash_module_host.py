@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from dh2rt.compiler import compile_file, compile_source
-from dh2rt.pacing import Pacing
+from dh2rt.flash.pacing import Pacing
 from dh2rt.signed_image import new_private_key, pack, public_key
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocTransport

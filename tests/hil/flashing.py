@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from dh2rt.compiler import compile_file, compile_source
-from dh2rt.pacing import link_pacing
+from dh2rt.flash.pacing import link_pacing
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd

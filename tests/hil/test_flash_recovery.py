@@ -19,7 +19,7 @@ import pytest
 from dh2rt.compiler import compile_file
 from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
-from firmware.flash.door import PARTIAL_IMAGE
+from firmware.flash.slots import PARTIAL_IMAGE
 from hil.world import World
 from tests.hil.flashing import (
     PERIOD,

@@ -22,8 +22,8 @@ import can
 import pytest
 
 from dh2rt.bundled import compile_bundled
-from dh2rt.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.topology import parse_spec
+from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from hil.pace import PACE
 from hil.world import World
 

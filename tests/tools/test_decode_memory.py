@@ -22,10 +22,10 @@ import pytest
 
 from dh2rt.compiler import compile_file
 from dh2rt.hormone import Hormone
-from dh2rt.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MIDDLE, SINGLE, CanFrame, make_arbitration_id, segment
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
+from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.wire.serial_framing import encode_serial
 from tools import decode, serial_records
 from tools.capture_reader import CanRecord, Record

@@ -1,8 +1,9 @@
 """How much of a module's links a rollout may take each cycle (:func:`link_pacing`).
 
-Split from :mod:`dh2rt.rollout` so that a module can check, when it boots, that its lines
-can carry a rollout at all (and say why not) without loading the rollout's state machines,
-which it loads only once an image concerns it (:mod:`firmware.flash.door`).
+A file of its own so that a module can check, when it boots, that its lines can carry a
+rollout at all (and say why not) without loading the rollout's state machines
+(:mod:`dh2rt.flash.rollout`), which it loads only once an image concerns it
+(:mod:`firmware.flash.door`).
 """
 
 from __future__ import annotations
