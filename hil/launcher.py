@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import shutil
 import signal
@@ -41,7 +40,6 @@ from dh2rt.cmdline import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
-    PLOT_SUFFIXES,
     add_run_options,
     output_path,
 )
@@ -59,6 +57,7 @@ from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.supervisor import reap_exited_children
 from hil.visuals import RunVisuals
 from hil.world import NEGOTIATED, World
+from sim.command import PYBULLET
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Set in the environment of a launcher re-executed inside its private network namespace.
@@ -135,20 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="push each module its IMU, infrared and contact readings from physics every N world cycles "
         "(default: 1; only the sensors the program declares are measured)",
     )
-    view.add_argument("--record", type=Path, metavar="GIF", help="write an animation of the robot (.gif)")
-    view.add_argument(
-        "--camera",
-        choices=("fixed", "follow"),
-        default="fixed",
-        help="with --record: a fixed camera over a checkered floor (default) or one that follows the robot",
-    )
-    view.add_argument(
-        "--record-speed", type=float, default=1.0, metavar="X", help="with --record: play back X times faster"
-    )
-    view.add_argument(
-        "--plot", type=Path, metavar="FILE", help="plot the path, heading and joint angles (.png .svg .pdf)"
-    )
-    view.add_argument("--gui", action="store_true", help="open PyBullet's window (needs a display)")
+    PYBULLET.add_arguments(view)  # --record, --camera, --record-speed, --plot, --gui
     p.add_argument(
         "--capture",
         type=Path,
@@ -416,12 +402,7 @@ def check_views(ns: argparse.Namespace) -> None:
     wanted = [o for o, v in (("--record", ns.record), ("--plot", ns.plot), ("--gui", ns.gui or None)) if v is not None]
     if wanted and ns.stand_in != "pybullet":
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
-    if ns.record is not None:
-        ns.record = output_path(ns.record, "--record", (".gif",))
-    if not (math.isfinite(ns.record_speed) and 0.1 <= ns.record_speed <= 100.0):
-        raise OptionError(f"--record-speed {ns.record_speed:g}: must be between 0.1 and 100")
-    if ns.plot is not None:
-        ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
+    PYBULLET.check(ns)
     if ns.gui and not os.environ.get("DISPLAY"):
         raise OptionError("--gui opens PyBullet's window and needs a display (DISPLAY is not set)")
 
