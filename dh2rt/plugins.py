@@ -11,10 +11,10 @@ registered is imported until it is chosen.
 
 from __future__ import annotations
 
-import argparse
 from typing import TYPE_CHECKING, Any, Protocol
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the command's front door imports this module: it stays light
+    import argparse
     from importlib.metadata import EntryPoint
 
     from dh2rt.events import Event
