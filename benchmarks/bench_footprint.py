@@ -11,8 +11,8 @@ Eight ``dh2rt module --config module.toml`` processes run the caterpillar at 50 
   (this script re-executes itself under ``unshare -rn``; udp_multicast never runs in the
   host's namespace).
 
-Baseline, same run, same topology and rate: eight bare loops (:data:`BARE_LOOP`, run with
-``python -c``) that open the same kind of ports with pyserial or python-can alone and, every
+Baseline, same run, same topology and rate: eight bare loops (``benchmarks/bare_loop.py``, run as
+a script) that open the same kind of ports with pyserial or python-can alone and, every
 20 ms, write the frames a caterpillar module writes (the same bytes: a Hello per link in the
 first cycle, then per link and cycle a keep-alive, or the hormone every 10 cycles through
 back), read whatever arrived, keep their own lateness, and write the same kind of status
@@ -50,7 +50,6 @@ import contextlib
 import json
 import math
 import os
-import shutil
 import signal
 import socket
 import statistics
@@ -66,6 +65,7 @@ from typing import IO, Any
 
 from benchmarks import strict_json
 from dh2rt.runtime import LATENESS_EDGES_MS
+from hil.netns import in_namespace, namespace_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = 8
@@ -73,7 +73,6 @@ PERIOD_MS = 20
 #: Hormones the caterpillar's head starts each ClockCycle (40): one through back every 10 cycles.
 HORMONE_EVERY = 10
 RESTARTED = MODULES // 2
-NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
 UDP_GROUP = "239.74.163.2"
 #: Where the modules' folders go: tmpfs, as a module's status file goes to /run (docs/firmware.md);
 #: on a disk, renaming a status file over the last one now and then takes tens of ms.
@@ -91,118 +90,8 @@ FIGURES = (
     ("first_cycle_s", "first cycle s (restart)", "{:.2f}"),
 )
 
-#: The baseline: a bare loop with pyserial or python-can alone. argv[1] is a JSON object:
-#: kind ("serial" or "udp"), period, status (file), status_every, ports (each: serial
-#: "path"; udp "filter" [can_id, mask]; and "hello", "keepalive", "hormone" (or null): hex
-#: of the serial bytes, or lists of [arbitration_id, hex data] CAN frames).
-BARE_LOOP = r"""
-import bisect, json, math, os, signal, sys, time
-from collections import deque
-
-spec = json.loads(sys.argv[1])
-period = spec["period"]
-stop = []
-signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-signal.signal(signal.SIGINT, lambda *_: stop.append(1))
-ports = spec["ports"]
-if spec["kind"] == "serial":
-    import serial
-
-    def frames(value):
-        return None if value is None else bytes.fromhex(value)
-
-    links = [serial.Serial(p["path"], baudrate=115200, timeout=0, write_timeout=0.5) for p in ports]
-
-    refused = (serial.SerialException, OSError)
-
-    def send(i, frame):
-        links[i].write(frame)
-
-    def receive():
-        got = 0
-        for s in links:
-            data = s.read(4096)
-            got += data.count(0)
-        return got
-
-    close = lambda: [s.close() for s in links]
-else:
-    import can
-
-    def frames(value):
-        if value is None:
-            return None
-        return [can.Message(arbitration_id=a, data=bytes.fromhex(d), is_extended_id=True) for a, d in value]
-
-    bus = can.Bus(interface="udp_multicast", channel=spec["group"], fd=False)
-    # no set_filters: with them, recv(timeout=0) returns None at the first frame they drop
-    wanted = [tuple(p["filter"]) for p in ports]
-
-    refused = (can.CanError, OSError)
-
-    def send(i, frame):
-        for msg in frame:
-            bus.send(msg, timeout=0.2)
-
-    def receive():
-        got = 0
-        while (msg := bus.recv(timeout=0.0)) is not None:
-            got += any(msg.arbitration_id & mask == can_id for can_id, mask in wanted)
-        return got
-
-    close = bus.shutdown
-plan = [(frames(p["hello"]), frames(p["keepalive"]), frames(p["hormone"])) for p in ports]
-lateness = deque(maxlen=4096)
-edges_ms = spec["edges_ms"]
-edges = [e / 1000 for e in edges_ms]
-counts = [0] * (len(edges) + 1)
-cycle = received = send_failed = 0
-first = None
-
-
-def status(final=False):
-    ordered = sorted(lateness)
-    n = len(ordered)
-    rank = lambda q: round(ordered[min(n - 1, max(0, math.ceil(q * n) - 1))] * 1000, 3)
-    body = {"cycle": cycle, "first_cycle_at": first, "final": final, "received": received, "send_failed": send_failed,
-            "lateness_ms": {"p50": rank(0.5), "p99": rank(0.99), "max": round(ordered[-1] * 1000, 3)} if n else None,
-            "lateness_hist": {"edges_ms": edges_ms, "counts": counts}}
-    tmp = spec["status"] + ".tmp"
-    with open(tmp, "w") as f:
-        f.write(json.dumps(body))
-    os.replace(tmp, spec["status"])
-
-
-deadline = time.monotonic()
-while not stop:
-    now = time.monotonic()
-    lateness.append(now - deadline)
-    counts[bisect.bisect_left(edges, now - deadline)] += 1
-    if first is None:
-        first = now
-    if now - deadline > period / 2:
-        deadline = now
-    received += receive()
-    for i, (hello, keepalive, hormone) in enumerate(plan):
-        try:  # a refused write is counted, as dh2rt counts it (a relay starved of CPU fills up)
-            if cycle == 0:
-                send(i, hello)
-            elif hormone is not None and cycle % 10 == 0:
-                send(i, hormone)
-            else:
-                send(i, keepalive)
-        except refused:
-            send_failed += 1
-    cycle += 1
-    if cycle % spec["status_every"] == 0:
-        status()
-    deadline += period
-    left = deadline - time.monotonic()
-    if left > 0:
-        time.sleep(left)
-status(final=True)
-close()
-"""
+#: The baseline: a bare loop with pyserial or python-can alone (its spec: its docstring).
+BARE_LOOP = Path(__file__).with_name("bare_loop.py")
 
 
 # ---------------------------------------------------------------- processes
@@ -491,7 +380,7 @@ def bare_children(tmp: Path, setup: Setup, status_every: int) -> list[Child]:
         spec = {"kind": kind, "period": PERIOD_MS / 1000, "status": str(folder / "status.json"),
                 "status_every": status_every, "group": UDP_GROUP, "ports": ports,
                 "edges_ms": list(LATENESS_EDGES_MS)}  # fmt: skip
-        cmd = [sys.executable, "-c", BARE_LOOP, json.dumps(spec)]
+        cmd = [sys.executable, str(BARE_LOOP), json.dumps(spec)]
         children.append(Child(f"b{m}", cmd, folder / "status.json", folder / "log.txt"))
     return children
 
@@ -644,10 +533,9 @@ def compare(transport: str, dh2rt: dict[str, Any], baseline: dict[str, Any]) -> 
 
 def bus_in_namespace(argv: list[str]) -> dict[str, Any]:
     """The bus measurement in a child under ``unshare -rn``: its result or why not."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return {"transport": "bus", "skipped": "unshare or ip is not installed"}
-    cmd = ["unshare", "-rn", "sh", "-c", NETNS + ' && exec "$@"', "sh", sys.executable, "-m",
-           "benchmarks.bench_footprint", "--bus-inner", *argv]  # fmt: skip
+    if (problem := namespace_problem()) is not None:
+        return {"transport": "bus", "skipped": problem}
+    cmd = in_namespace([sys.executable, "-m", "benchmarks.bench_footprint", "--bus-inner", *argv])
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         out, err = proc.communicate(timeout=300)

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import subprocess
 import sys
 import time
@@ -38,13 +37,13 @@ from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from dh2rt.wire.frame import FrameCodec, KeepAlive
+from hil.netns import in_namespace, namespace_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
 MODULES = 8
 #: Fraction of cycles allowed to start late at a sustained rate.
 LATE_BUDGET = 0.02
-NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
 CAN_BITRATE = 1_000_000
 
 
@@ -178,10 +177,9 @@ def sweep(program: CompiledProgram, transport: str, periods_ms: list[float], cyc
 
 def udp_in_namespace(argv: list[str]) -> dict[str, Any]:
     """Run the udp sweep in a child under ``unshare -rn``; its result or the reason it could not."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return {"transport": "udp", "skipped": "unshare or ip is not installed"}
-    cmd = ["unshare", "-rn", "sh", "-c", NETNS + ' && exec "$@"', "sh", sys.executable, "-m", "benchmarks.bench_hil",
-           "--udp-inner", *argv]  # fmt: skip
+    if (problem := namespace_problem()) is not None:
+        return {"transport": "udp", "skipped": problem}
+    cmd = in_namespace([sys.executable, "-m", "benchmarks.bench_hil", "--udp-inner", *argv])
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600)
     if proc.returncode != 0:
         return {"transport": "udp", "skipped": f"private network namespace failed: {proc.stderr.strip()[-300:]}"}

@@ -16,7 +16,8 @@
 Upper layers register through entry points in ``pyproject.toml``, so the core never imports
 them (python-can finds its interfaces the same way): the group ``dh2rt.commands`` maps a
 command name to ``module:main`` (``main(argv) -> exit code``), and ``dh2rt.simulators`` maps
-a ``run --sim`` name to ``module:function(robot, options, events) -> exit code``.
+a ``run --sim`` name to a :class:`~dh2rt.plugins.Simulator`, which declares its own ``run``
+options and runs the robot (:mod:`dh2rt.plugins`).
 
 Exit codes: 0 success, 1 a run failed, 2 bad input (program, topology, event, option),
 130 interrupted (Ctrl-C; the summary so far is still printed).
@@ -27,11 +28,10 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
-import math
 import re
 import sys
-from collections.abc import Callable, Sequence
-from importlib.metadata import EntryPoint, entry_points
+from collections.abc import Sequence
+from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import IO, Any
 
@@ -41,7 +41,6 @@ from dh2rt.cmdline import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
-    PLOT_SUFFIXES,
     STDOUT,
     TRACE_SUFFIXES,
     Progress,
@@ -55,10 +54,10 @@ from dh2rt.cmdline import (
     timed_run,
 )
 from dh2rt.compiler import load_image
-from dh2rt.entry import COMMAND_GROUP, CORE_COMMANDS
 from dh2rt.errors import DH2Error, ImageError, KeyFileError, OptionError, OutputError, ProgramError
 from dh2rt.lint import lint
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.plugins import COMMAND_GROUP, CORE_COMMANDS, SIMULATOR_GROUP, Simulator, registered
 from dh2rt.profile import CONRO
 from dh2rt.signed_image import (
     SignedImage,
@@ -76,14 +75,8 @@ from dh2rt.signed_image import (
 )
 from dh2rt.trace import TraceWriter
 
-SIMULATOR_GROUP = "dh2rt.simulators"
 #: What ``dh2rt`` runs when its first argument is an option (``dh2rt --transport vcan0``).
 DEFAULT_COMMAND = "launch"
-
-
-def registered(group: str) -> dict[str, EntryPoint]:
-    """The entry points of ``group`` by name (nothing is imported until one is chosen)."""
-    return {ep.name: ep for ep in entry_points(group=group)}
 
 
 def _summary_line(ep: EntryPoint) -> str:
@@ -122,30 +115,10 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
 
     run = sub.add_parser("run", help="run a robot in one process and print a per-module summary")
     add_run_options(run)
-    run.add_argument("--sim", choices=sorted(registered(SIMULATOR_GROUP)), help="run the modules' joints in physics")
-    run.add_argument("--record", type=Path, metavar="GIF", help="with --sim: write an animation (.gif)")
-    run.add_argument(
-        "--camera",
-        choices=("fixed", "follow"),
-        default="fixed",
-        help="with --record: the camera stays put over a checkered floor and jumps when the robot leaves "
-        "the middle of the picture (fixed, the default), or follows the robot",
-    )
-    run.add_argument(
-        "--record-speed",
-        type=float,
-        default=1.0,
-        metavar="X",
-        help="with --record: play back X times faster than simulated time (fewer frames; default 1)",
-    )
-    run.add_argument(
-        "--plot",
-        type=Path,
-        metavar="PNG",
-        help="with --sim: plot the path, heading and joint angles (.png, .svg, .pdf)",
-    )
-    run.add_argument("--gui", action="store_true", help="with --sim: open PyBullet's window (needs a display)")
+    simulators = registered(SIMULATOR_GROUP)
+    run.add_argument("--sim", choices=sorted(simulators), help="run the modules' joints in physics")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_simulator_options(run, simulators)
 
     image = sub.add_parser(
         "image",
@@ -215,13 +188,54 @@ def main(argv: Sequence[str] | None = None) -> int:
     return EXIT_USAGE
 
 
-def _load(ep: EntryPoint, what: str) -> Callable[..., Any] | None:
+def _load(ep: EntryPoint, what: str) -> Any:
+    """The object ``ep`` names, or None (said on stderr) when it does not load."""
     try:
-        fn: Callable[..., Any] = ep.load()
+        return ep.load()
     except ImportError as exc:
         err(f"{what} is installed but cannot be loaded ({exc})")
         return None
-    return fn
+
+
+def add_simulator_options(run: argparse.ArgumentParser, simulators: dict[str, EntryPoint]) -> None:
+    """Each installed simulator declares its own ``run`` options, in a group of its own; the
+    run parser's default ``simulator_options`` keeps them by simulator, so that
+    :func:`options_without_their_simulator` can refuse them without their ``--sim``. A
+    simulator that does not load adds nothing (``--sim NAME`` then says why)."""
+    declared: dict[str, list[argparse.Action]] = {}
+    for name, ep in sorted(simulators.items()):
+        try:
+            simulator: Simulator = ep.load()
+        except ImportError:
+            continue
+        group = _RecordedGroup(run.add_argument_group(f"with --sim {name}"))
+        simulator.add_arguments(group)
+        declared[name] = group.actions
+    run.set_defaults(simulator_options=declared)
+
+
+class _RecordedGroup:
+    """An argument group that remembers the options added to it."""
+
+    def __init__(self, group: argparse._ArgumentGroup) -> None:
+        self.group = group
+        self.actions: list[argparse.Action] = []
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        action = self.group.add_argument(*args, **kwargs)
+        self.actions.append(action)
+        return action
+
+
+def options_without_their_simulator(ns: argparse.Namespace) -> None:
+    """Raise OptionError when a simulator's option is given but that simulator is not chosen."""
+    declared: dict[str, list[argparse.Action]] = getattr(ns, "simulator_options", {})
+    for name, actions in declared.items():
+        if name == ns.sim:
+            continue
+        given = [max(a.option_strings, key=len) for a in actions if getattr(ns, a.dest) != a.default]
+        if given:
+            raise OptionError(f"{', '.join(given)}: these options need --sim {name}")
 
 
 def _registered_command(commands: dict[str, EntryPoint], name: str, argv: list[str]) -> int:
@@ -396,21 +410,18 @@ def cmd_types(out: IO[str]) -> int:
     return EXIT_OK
 
 
-def check_outputs(ns: argparse.Namespace) -> None:
-    """Apply the output rule to ``run``'s output options before anything runs."""
-    if ns.trace is not None:
-        ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES, stdout=True)
-    if ns.record is not None:
-        ns.record = output_path(ns.record, "--record", (".gif",))
-    if not (math.isfinite(ns.record_speed) and 0.1 <= ns.record_speed <= 100.0):
-        raise OptionError(f"--record-speed {ns.record_speed:g}: must be between 0.1 and 100")
-    if ns.plot is not None:
-        ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
-
-
 def cmd_run(ns: argparse.Namespace) -> int:
+    simulator: Simulator | None = None
+    if ns.sim:
+        simulator = _load(registered(SIMULATOR_GROUP)[ns.sim], f"the simulator {ns.sim!r}")
+        if simulator is None:
+            return EXIT_USAGE
     try:
-        check_outputs(ns)
+        if ns.trace is not None:
+            ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES, stdout=True)
+        options_without_their_simulator(ns)
+        if simulator is not None:
+            simulator.check(ns)
         _cp, robot, events = prepare_run(ns)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
@@ -418,15 +429,8 @@ def cmd_run(ns: argparse.Namespace) -> int:
     except (DH2Error, OSError) as exc:
         err(str(exc))
         return EXIT_USAGE
-    if ns.sim:
-        runner = _load(registered(SIMULATOR_GROUP)[ns.sim], f"the simulator {ns.sim!r}")
-        if runner is None:
-            return EXIT_USAGE
-        code: int = runner(robot, ns, events)
-        return code
-    if ns.record or ns.plot or ns.gui:
-        err("--record, --plot and --gui need --sim pybullet")
-        return EXIT_USAGE
+    if simulator is not None:
+        return simulator.run(robot, ns, events)
     trace = TraceWriter.open(ns.trace, robot) if ns.trace else None
     robot.record = trace is not None
     # Everything built so far lives as long as the run: keep it out of the collector's

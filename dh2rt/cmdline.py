@@ -1,5 +1,6 @@
-"""What every dh2rt command shares: exit codes, error output, the run options, progress,
-Ctrl-C handling and the run summary (as python-can's ``can/cli.py`` serves its tools).
+"""What every dh2rt command shares: exit codes, error output, the run options, the bus and
+cycle options, progress, Ctrl-C handling and the run summary (as python-can's ``can/cli.py``
+serves its tools).
 
 The umbrella command (:mod:`dh2rt.cli`) and the commands that live in upper layers (the
 launcher in ``hil``, the physics runner in ``sim``, the tools in ``tools``) all build on this
@@ -22,6 +23,7 @@ from dh2rt.errors import OptionError, OutputError
 from dh2rt.events import Event, check_events, parse_event
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
+from dh2rt.runtime import CYCLE_PERIOD_S, s_to_ms
 from dh2rt.topology import BUILTIN_NAMES, parse_spec
 from dh2rt.trace import TraceWriter
 
@@ -60,6 +62,49 @@ def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -
         metavar="FILE",
         help="write a JSON Lines trace (.jsonl; - for standard output), one object per module per cycle",
     )
+
+
+#: The robot's CAN bus bit rate: every command's ``--bitrate`` default (module.toml's too).
+CAN_BITRATE = 1_000_000
+
+
+def add_bus_arguments(
+    parser: argparse.ArgumentParser, *, group_title: str | None = None, required: bool = False
+) -> argparse._ArgumentGroup:
+    """``-i/--interface``, ``-c/--channel`` and ``-b/--bitrate`` of a python-can bus, named as
+    python-can's own tools name them (its ``can/cli.py`` ``add_bus_arguments``), with one
+    default bit rate for every dh2rt command. Returns their argument group, for a command's
+    own bus options (``--fd``, ``--contact``)."""
+    group = parser.add_argument_group(group_title or "the CAN bus, as python-can's own tools name it")
+    group.add_argument(
+        "-i",
+        "--interface",
+        required=required,
+        help="python-can interface: socketcan, slcan, pcan, kvaser, gs_usb, virtual, udp_multicast, ...",
+    )
+    group.add_argument(
+        "-c", "--channel", required=required, help="its channel: can0, vcan0, /dev/ttyACM0, PCAN_USBBUS1, ..."
+    )
+    group.add_argument(
+        "-b",
+        "--bitrate",
+        type=int,
+        default=CAN_BITRATE,
+        help=f"the bus's bit rate in bit/s, where the interface sets one (default: {CAN_BITRATE})",
+    )
+    return group
+
+
+def bus_options(ns: argparse.Namespace) -> dict[str, Any]:
+    """The python-can ``Bus`` arguments of :func:`add_bus_arguments`' options."""
+    return {"interface": ns.interface, "channel": ns.channel, "bitrate": ns.bitrate}
+
+
+def add_cycle_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: str) -> None:
+    """``--cycle-ms``: the robot's cycle period in milliseconds (``ns.cycle_ms``; in seconds:
+    :func:`dh2rt.runtime.ms_to_s`), whose default is the core's one (CYCLE_PERIOD_S)."""
+    default = s_to_ms(CYCLE_PERIOD_S)
+    parser.add_argument("--cycle-ms", type=float, default=default, help=f"{what} (default: {default:g})")
 
 
 def load_program(path: Path) -> CompiledProgram:

@@ -18,10 +18,7 @@ import sys
 from collections.abc import Callable, Sequence
 from types import FrameType
 
-#: The entry-point group upper layers register their commands in (``pyproject.toml``).
-COMMAND_GROUP = "dh2rt.commands"
-#: The core's own subcommands: never looked up among the registered ones.
-CORE_COMMANDS = ("check", "run", "image", "keys", "types", "demo")
+from dh2rt.plugins import COMMAND_GROUP, CORE_COMMANDS
 
 
 def registered_command(name: str) -> Callable[[list[str]], int] | None:

@@ -59,6 +59,20 @@ class CycleRecord:
     faults: list[str]  # "receptor NAME: message" for each fault of this cycle
 
 
+class PhaseDraw:
+    """Where LocalTimer phases come from when none is given: the one rule of the in-process
+    robot and of the HIL world (hil.world), so that a seed gives the same phases in both.
+    Phases are drawn from ``Random(seed)`` in boot order: every module at the start, in
+    module order, then each restart as it happens."""
+
+    def __init__(self, seed: int) -> None:
+        self._rng = random.Random(seed)
+
+    def next(self, clock_cycle: int) -> int:
+        """The next module's phase: 0 .. ``clock_cycle`` - 1."""
+        return self._rng.randrange(clock_cycle)
+
+
 class Robot:
     """Modules of ``topology`` running ``program``; call :meth:`step` or :meth:`run`."""
 
@@ -77,7 +91,7 @@ class Robot:
         self.topology = topology
         self.profile = topology.profile
         self.seed = seed
-        self.rng = random.Random(seed)
+        self.phase_draw = PhaseDraw(seed)
         self.natives = dict(STANDARD_NATIVES)
         self.natives.update(natives or {})
         used = {n: self.natives[n] for n in program.natives if n in self.natives}
@@ -131,7 +145,7 @@ class Robot:
 
     def _boot(self, phase: int | None = None) -> Engine:
         if phase is None:
-            phase = self.rng.randrange(self.program.clock_cycle)
+            phase = self.phase_draw.next(self.program.clock_cycle)
         return Engine(self.program, timer_phase=phase, natives=self._natives_used)
 
     # ------------------------------------------------------------ the physical world

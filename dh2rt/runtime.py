@@ -70,7 +70,34 @@ from dh2rt.sensing import SensorFeed, Source
 from dh2rt.transport.base import LinkEnd, Received, Transport
 from dh2rt.wire.frame import FrameCodec, Hello, program_digest
 
-__all__ = ["SILENCE_CYCLES", "Driver", "LinkObserver", "ModuleRuntime", "RuntimeCounters"]
+__all__ = [
+    "CYCLE_PERIOD_S",
+    "SILENCE_CYCLES",
+    "Driver",
+    "LinkObserver",
+    "ModuleRuntime",
+    "RuntimeCounters",
+    "ms_to_s",
+    "s_to_ms",
+]
+#: A module's cycle period (s): 50 Hz. The one default of the module runtime, the HIL world,
+#: a module's configuration (firmware.config) and module.toml, and every command's
+#: ``--cycle-ms`` (dh2rt.cmdline.add_cycle_argument). Code keeps periods in seconds (``_s``);
+#: people type them in milliseconds (``--cycle-ms``, ``period_ms``): the two functions below
+#: are the one conversion between them.
+CYCLE_PERIOD_S = 0.02
+
+
+def ms_to_s(ms: float) -> float:
+    """A period typed in milliseconds (``--cycle-ms``, module.toml's ``period_ms``) in seconds."""
+    return ms / 1000.0
+
+
+def s_to_ms(seconds: float) -> float:
+    """A period in seconds as people type and read it: in milliseconds."""
+    return seconds * 1000.0
+
+
 #: A cycle that starts later than this fraction of a period after its deadline is late.
 LATE_TOLERANCE = 0.5
 #: Cycles between two reads of the driver's health (servo faults show on reads).
@@ -144,7 +171,7 @@ class ModuleRuntime:
         timer_phase: int = 0,
         natives: Mapping[str, Native] | None = None,
         driver: Driver | None = None,
-        cycle_period: float = 0.02,
+        cycle_period: float = CYCLE_PERIOD_S,
         silence_cycles: int = SILENCE_CYCLES,
         clock: Callable[[], float] = time.monotonic,
         record: bool = False,

@@ -16,11 +16,10 @@ from typing import Any
 
 from dh2rt.errors import ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
+from dh2rt.runtime import CYCLE_PERIOD_S as CYCLE_PERIOD_S  # the core's one default, re-exported
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from drivers.dxl_table import MODEL_XM430_W350
 
-#: Cycle period of a module (seconds): 50 Hz.
-CYCLE_PERIOD_S = 0.02
 #: Seconds a module exchanges Hellos before cycle 0 when it is not told when to start.
 HANDSHAKE_S = 1.0
 #: Cycles between two status reports of a module to its world.
@@ -100,6 +99,7 @@ class ModuleConfig:
     transport: str = "inproc"
     attach: Mapping[int, LinkEnd] = field(default_factory=dict)
     timer_phase: int = 0
+    #: seconds (dh2rt.runtime.CYCLE_PERIOD_S unless given)
     cycle_period: float = CYCLE_PERIOD_S
     cycles: int | None = None
     silence_cycles: int = SILENCE_CYCLES

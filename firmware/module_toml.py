@@ -77,6 +77,7 @@ from typing import Any
 
 from dh2rt.errors import DH2Error, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
+from dh2rt.runtime import ms_to_s, s_to_ms
 from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
@@ -240,7 +241,7 @@ def _program(t: _Table, base: Path) -> dict[str, Any]:
 def _cycle(t: _Table) -> dict[str, Any]:
     t.only("period_ms", "silence_cycles", "handshake_s", "timer_phase")
     out: dict[str, Any] = {
-        "cycle_period": t.get_number("period_ms", DEFAULTS.cycle_period * 1000) / 1000.0,
+        "cycle_period": ms_to_s(t.get_number("period_ms", s_to_ms(DEFAULTS.cycle_period))),
         "silence_cycles": t.get_int("silence_cycles", DEFAULTS.silence_cycles, 1),
         "handshake": t.get_number("handshake_s", DEFAULTS.handshake, positive=False),
     }
@@ -451,7 +452,7 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image
     lines += [f"trial_cycles = {config.trial_cycles}", ""]
     lines += [
         "[cycle]",
-        f"period_ms = {config.cycle_period * 1000!r}",
+        f"period_ms = {s_to_ms(config.cycle_period)!r}",
         f"silence_cycles = {config.silence_cycles}",
         f"handshake_s = {config.handshake!r}",
         f"timer_phase = {config.timer_phase}",

@@ -20,11 +20,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
-import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -37,17 +34,20 @@ from typing import IO, Any
 
 from dh2rt.bundled import compile_bundled
 from dh2rt.cmdline import (
+    CAN_BITRATE,
     EXIT_FAIL,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
-    PLOT_SUFFIXES,
+    add_bus_arguments,
+    add_cycle_argument,
     add_run_options,
     output_path,
 )
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
 from dh2rt.events import Event, check_events, parse_event
+from dh2rt.runtime import ms_to_s, s_to_ms
 from dh2rt.signed_image import read_private_key
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
@@ -56,14 +56,13 @@ from firmware.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
 from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash_event
 from hil.hardware_map import HardwareMap, load_hardware_map
+from hil.netns import NETNS_ENV, in_namespace, namespace_problem, only_loopback
 from hil.supervisor import reap_exited_children
 from hil.visuals import RunVisuals
 from hil.world import NEGOTIATED, World
+from sim.command import PYBULLET
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Set in the environment of a launcher re-executed inside its private network namespace.
-NETNS_ENV = "DH2RT_HIL_NETNS"
-NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
 #: What --capture writes (tools.capture_sink.SUFFIXES: this layer does not import tools/).
 CAPTURE_SUFFIXES = (".pcapng", ".pcap", ".log", ".asc", ".blf", ".csv", ".trc")
 
@@ -90,10 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="vcan0, can0 (any SocketCAN name), can (any python-can interface: see --interface), udp, serial, "
         "virtual, inproc (default: serial)",
     )
-    can = p.add_argument_group("--transport can: any python-can bus, named as python-can's own tools name it")
-    can.add_argument("-i", "--interface", help="python-can interface: socketcan, slcan, pcan, kvaser, gs_usb, ...")
-    can.add_argument("-c", "--channel", help="its channel: can0, /dev/ttyACM0, PCAN_USBBUS1, ...")
-    can.add_argument("-b", "--bitrate", type=int, help="bitrate in bit/s, where the interface sets one")
+    can = add_bus_arguments(p, group_title="--transport can: any python-can bus")
     can.add_argument("--fd", action="store_true", help="CAN FD frames (up to 64 data bytes)")
     can.add_argument("--data-bitrate", type=int, help="CAN FD's data phase bitrate")
     p.add_argument(
@@ -104,12 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         "see docs/firmware.md",
     )
     p.add_argument("--module-count", type=int, default=8, help="modules of the default snake:N (default: 8)")
-    p.add_argument(
-        "--cycle-ms",
-        type=float,
-        default=DEFAULTS.cycle_period * 1000,
-        help=f"cycle period in ms (default: {DEFAULTS.cycle_period * 1000:g})",
-    )
+    add_cycle_argument(p, "cycle period in ms")
     p.add_argument(
         "--silence-cycles",
         type=int,
@@ -135,20 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="push each module its IMU, infrared and contact readings from physics every N world cycles "
         "(default: 1; only the sensors the program declares are measured)",
     )
-    view.add_argument("--record", type=Path, metavar="GIF", help="write an animation of the robot (.gif)")
-    view.add_argument(
-        "--camera",
-        choices=("fixed", "follow"),
-        default="fixed",
-        help="with --record: a fixed camera over a checkered floor (default) or one that follows the robot",
-    )
-    view.add_argument(
-        "--record-speed", type=float, default=1.0, metavar="X", help="with --record: play back X times faster"
-    )
-    view.add_argument(
-        "--plot", type=Path, metavar="FILE", help="plot the path, heading and joint angles (.png .svg .pdf)"
-    )
-    view.add_argument("--gui", action="store_true", help="open PyBullet's window (needs a display)")
+    PYBULLET.add_arguments(view)  # --record, --camera, --record-speed, --plot, --gui
     p.add_argument(
         "--capture",
         type=Path,
@@ -178,36 +156,19 @@ def _err(message: str) -> None:
     print(f"dh2rt: {message}", file=sys.stderr)
 
 
-def _namespace_only_loopback() -> bool:
-    try:
-        names = [n for _i, n in socket.if_nameindex()]
-    except OSError:
-        return False
-    return names == ["lo"]
-
-
 def _reexec_in_namespace(argv: list[str]) -> int:
     """Run this launcher again inside ``unshare -rn`` (loopback only); its exit code."""
-    missing = [tool for tool in ("unshare", "ip") if shutil.which(tool) is None]
-    if missing:
-        _err(
-            f"--transport udp runs python-can udp_multicast only inside a private network namespace, "
-            f"and {', '.join(missing)} is not installed; use --transport serial or virtual"
-        )
-        return EXIT_USAGE
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, text=True, timeout=30)
-    if probe.returncode != 0:
+    problem = namespace_problem()
+    if problem is not None:
         _err(
             "--transport udp runs python-can udp_multicast only inside a private network namespace, "
-            f"and this machine cannot create one ({probe.stderr.strip() or 'unshare -rn failed'}); "
-            "use --transport serial or virtual"
+            f"and {problem}; use --transport serial or virtual"
         )
         return EXIT_USAGE
     env = dict(os.environ)
     env[NETNS_ENV] = "1"
     env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    inner = [sys.executable, "-m", "hil.launcher", *argv]
-    cmd = ["unshare", "-rn", "sh", "-c", NETNS_SETUP + ' && exec "$@"', "sh", *inner]
+    cmd = in_namespace([sys.executable, "-m", "hil.launcher", *argv])
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the child gets Ctrl-C itself
     try:
         return subprocess.run(cmd, env=env, check=False).returncode
@@ -329,7 +290,7 @@ def _main(argv: list[str] | None) -> int:
         return EXIT_USAGE
     if kind == "udp" and os.environ.get(NETNS_ENV) != "1":
         return _reexec_in_namespace(args)
-    if kind == "udp" and not _namespace_only_loopback():
+    if kind == "udp" and not only_loopback():
         _err("--transport udp: refusing to send multicast outside a loopback-only network namespace")
         return EXIT_USAGE
     return _run(ns, program, topology, events, hardware)
@@ -344,7 +305,8 @@ def stand_in_for(chosen: str | None, hardware: HardwareMap | None) -> str:
 def bus_options(ns: argparse.Namespace, kind: str, hardware: HardwareMap | None, modules: int) -> dict[str, Any]:
     """python-can options of ``--transport can`` (and refuse them with any other)."""
     given = {
-        "--interface": ns.interface, "--channel": ns.channel, "--bitrate": ns.bitrate,
+        "--interface": ns.interface, "--channel": ns.channel,
+        "--bitrate": None if ns.bitrate == CAN_BITRATE else ns.bitrate,
         "--fd": ns.fd or None, "--data-bitrate": ns.data_bitrate,
     }  # fmt: skip
     if kind != "can":
@@ -416,12 +378,7 @@ def check_views(ns: argparse.Namespace) -> None:
     wanted = [o for o, v in (("--record", ns.record), ("--plot", ns.plot), ("--gui", ns.gui or None)) if v is not None]
     if wanted and ns.stand_in != "pybullet":
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
-    if ns.record is not None:
-        ns.record = output_path(ns.record, "--record", (".gif",))
-    if not (math.isfinite(ns.record_speed) and 0.1 <= ns.record_speed <= 100.0):
-        raise OptionError(f"--record-speed {ns.record_speed:g}: must be between 0.1 and 100")
-    if ns.plot is not None:
-        ns.plot = output_path(ns.plot, "--plot", PLOT_SUFFIXES)
+    PYBULLET.check(ns)
     if ns.gui and not os.environ.get("DISPLAY"):
         raise OptionError("--gui opens PyBullet's window and needs a display (DISPLAY is not set)")
 
@@ -446,7 +403,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             topology,
             ns.transport,
             seed=ns.seed,
-            cycle_period=ns.cycle_ms / 1000.0,
+            cycle_period=ms_to_s(ns.cycle_ms),
             cycles=ns.cycles,
             trace=ns.trace is not None,
             silence_cycles=ns.silence_cycles,
@@ -575,7 +532,7 @@ TOO_SLOW = "this machine cannot keep"
 
 
 def _suggest_period(world: World) -> str:
-    ms = world.cycle_period * 1000
+    ms = s_to_ms(world.cycle_period)
     return f"{TOO_SLOW} {ms:g} ms cycles with {world.topology.size} modules; try --cycle-ms {ms * 2:g}"
 
 
@@ -699,7 +656,7 @@ def _summary(
         return
     out.write(
         f"{world.program.name} on {world.topology.spec} over {world.spec}: {world.topology.size} modules, "
-        f"{elapsed:.2f} s, cycle {world.cycle_period * 1000:.0f} ms, seed {world.seed}\n"
+        f"{elapsed:.2f} s, cycle {s_to_ms(world.cycle_period):.0f} ms, seed {world.seed}\n"
     )
     out.write("\n".join(_table(world)) + "\n")
     totals: dict[str, int] = {}

@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import os
 import queue
-import random
 import shutil
 import tempfile
 import time
@@ -64,6 +63,8 @@ from dh2rt.errors import HilWorldError, TopologyError
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
+from dh2rt.robot import PhaseDraw
+from dh2rt.runtime import CYCLE_PERIOD_S
 from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
@@ -133,7 +134,7 @@ class World:
         transport: str,
         *,
         seed: int = 0,
-        cycle_period: float = 0.02,
+        cycle_period: float = CYCLE_PERIOD_S,
         cycles: int | None = None,
         trace: bool = False,
         silence_cycles: int = DEFAULTS.silence_cycles,
@@ -161,9 +162,9 @@ class World:
         self.spec = transport
         self.kind, options = parse_transport_spec(transport)
         self.seed = seed
-        self.rng = random.Random(seed)
         # the same LocalTimer phases as the in-process Robot with this seed
-        self.phases = [self.rng.randrange(program.clock_cycle) for _ in range(topology.size)]
+        self.phase_draw = PhaseDraw(seed)
+        self.phases = [self.phase_draw.next(program.clock_cycle) for _ in range(topology.size)]
         self.cycle_period = cycle_period
         self.cycles = cycles
         self.trace = trace
@@ -683,7 +684,7 @@ class World:
         if self.reaches is not None:  # a new life holds nothing: what a motion wants is sent again
             self.reaches.holding.pop(module, None)
             self.reaches.docking_sent.pop(module, None)
-        self._spawn(module, self.cycles, self.rng.randrange(self.program.clock_cycle))
+        self._spawn(module, self.cycles, self.phase_draw.next(self.program.clock_cycle))
         deadline = time.monotonic() + 30
         while not self.views[module].ready and time.monotonic() < deadline:
             self.poll(0.02)

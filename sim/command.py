@@ -1,21 +1,79 @@
 """``dh2rt run PROGRAM --sim pybullet [--record run.gif [--camera fixed|follow] [--record-speed X]]
-[--plot run.png] [--trace t.jsonl]``:
-the command body of a physics run (registered as the ``pybullet`` simulator in the
-``dh2rt.simulators`` entry-point group)."""
+[--plot run.png] [--gui] [--trace t.jsonl]``:
+the options and the command body of a physics run (:data:`PYBULLET`, registered as the
+``pybullet`` simulator in the ``dh2rt.simulators`` entry-point group).
+
+``dh2rt run --help`` imports this module to list the options, so PyBullet, numpy and the
+recorder are imported only when a physics run starts."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, STDOUT, err, print_summary, timed_run
-from dh2rt.errors import DH2Error
+from dh2rt.cmdline import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    PLOT_SUFFIXES,
+    STDOUT,
+    err,
+    output_path,
+    print_summary,
+    timed_run,
+)
+from dh2rt.errors import DH2Error, OptionError
 from dh2rt.events import Event
+from dh2rt.plugins import OptionAdder
 from dh2rt.robot import Robot
 from dh2rt.trace import TraceWriter
-from sim.record import Recorder, plot_run, sample_world
-from sim.runner import STEPS_PER_CYCLE, PhysicsRun
+
+if TYPE_CHECKING:
+    from sim.runner import PhysicsRun
+
+
+class PybulletSimulator:
+    """``--sim pybullet``: the modules' joints in PyBullet (a :class:`dh2rt.plugins.Simulator`)."""
+
+    def add_arguments(self, parser: OptionAdder) -> None:
+        parser.add_argument("--record", type=Path, metavar="GIF", help="write an animation (.gif)")
+        parser.add_argument(
+            "--camera",
+            choices=("fixed", "follow"),
+            default="fixed",
+            help="with --record: the camera stays put over a checkered floor and jumps when the robot leaves "
+            "the middle of the picture (fixed, the default), or follows the robot",
+        )
+        parser.add_argument(
+            "--record-speed",
+            type=float,
+            default=1.0,
+            metavar="X",
+            help="with --record: play back X times faster than simulated time (fewer frames; default 1)",
+        )
+        parser.add_argument(
+            "--plot", type=Path, metavar="PNG", help="plot the path, heading and joint angles (.png, .svg, .pdf)"
+        )
+        parser.add_argument("--gui", action="store_true", help="open PyBullet's window (needs a display)")
+
+    def check(self, options: argparse.Namespace) -> None:
+        """Apply the output rule to the output options before anything runs."""
+        if options.record is not None:
+            options.record = output_path(options.record, "--record", (".gif",))
+        if not (math.isfinite(options.record_speed) and 0.1 <= options.record_speed <= 100.0):
+            raise OptionError(f"--record-speed {options.record_speed:g}: must be between 0.1 and 100")
+        if options.plot is not None:
+            options.plot = output_path(options.plot, "--plot", PLOT_SUFFIXES)
+
+    def run(self, robot: Robot, options: argparse.Namespace, events: list[Event]) -> int:
+        return run_physics(robot, options, events)
+
+
+#: What the ``pybullet`` entry point of ``dh2rt.simulators`` names.
+PYBULLET = PybulletSimulator()
 
 
 def traced(run: PhysicsRun, module: int, pos: list[float]) -> dict[str, object]:
@@ -30,6 +88,9 @@ def traced(run: PhysicsRun, module: int, pos: list[float]) -> dict[str, object]:
 
 def run_physics(robot: Robot, ns: argparse.Namespace, events: list[Event]) -> int:
     """``dh2rt run ... --sim pybullet``: run, record, plot, trace, summarise."""
+    from sim.record import Recorder, plot_run, sample_world
+    from sim.runner import STEPS_PER_CYCLE, PhysicsRun
+
     steps = STEPS_PER_CYCLE
     run = PhysicsRun(robot, gui=bool(getattr(ns, "gui", False)), steps_per_cycle=steps)
     trace = None

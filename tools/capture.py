@@ -20,9 +20,8 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
-from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err, load_program, output_path
+from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, add_bus_arguments, bus_options, err, load_program, output_path
 from dh2rt.errors import OptionError, ProgramError
 from tools.capture_sink import SUFFIXES, FileSink
 
@@ -34,11 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Example: dh2rt capture -o robot.pcapng -i socketcan -c vcan0 --program caterpillar.dh2 --duration 10",
     )
     p.add_argument("-o", "--output", type=Path, required=True, help=f"the capture file ({', '.join(SUFFIXES)})")
-    p.add_argument(
-        "-i", "--interface", required=True, help="python-can interface: socketcan, virtual, udp_multicast, ..."
-    )
-    p.add_argument("-c", "--channel", required=True, help="python-can channel: vcan0, a virtual channel name, ...")
-    p.add_argument("-b", "--bitrate", type=int, help="bitrate, where the interface takes one")
+    add_bus_arguments(p, required=True)
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--count", type=int, help="stop after this many frames")
     p.add_argument("--program", type=Path, help="the .dh2 program the robot runs: its image goes with the capture")
@@ -66,11 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     import can
 
-    options: dict[str, Any] = {"interface": ns.interface, "channel": ns.channel}
-    if ns.bitrate:
-        options["bitrate"] = ns.bitrate
     try:
-        bus = can.Bus(**options)
+        bus = can.Bus(**bus_options(ns))
     except Exception as exc:  # python-can raises what each interface raises: name the bus
         err(f"cannot open python-can {ns.interface} bus on channel {ns.channel!r}: {exc}")
         return EXIT_USAGE

@@ -57,9 +57,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, TRACE_SUFFIXES, err
+from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, TRACE_SUFFIXES, add_cycle_argument, err
 from dh2rt.errors import CaptureError, IncomparableInputs, ProgramError, TraceError
 from dh2rt.profile import Profile
+from dh2rt.runtime import ms_to_s
 from tools.decode import Hop
 from tools.reading import PROGRAM_HELP, open_capture
 from tools.trace_reading import TraceRecord, read_trace
@@ -452,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CYCLES",
         help=f"cycles of leeway for tails cut by the end of a run (default: {DEFAULT_SLACK})",
     )
-    p.add_argument("--cycle-ms", type=float, default=20.0, help="captures: the cycle period (default: 20)")
+    add_cycle_argument(p, "captures: the cycle period")
     p.add_argument("--program", type=Path, help="captures: " + PROGRAM_HELP)
     p.add_argument("--all", action="store_true", help="every stream's first divergence, not only the first")
     p.add_argument("--json", action="store_true", help="the result as one JSON object")
@@ -481,7 +482,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         a, b = read_run(ns.a, ns.program), read_run(ns.b, ns.program)
-        slack = ns.slack if a.unit == "cycles" else ns.slack * ns.cycle_ms / 1000
+        slack = ns.slack if a.unit == "cycles" else ns.slack * ms_to_s(ns.cycle_ms)
         results, divergences = compare(a, b, slack)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)

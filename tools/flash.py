@@ -52,12 +52,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
+from dh2rt.cmdline import (
+    EXIT_FAIL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    add_bus_arguments,
+    add_cycle_argument,
+    bus_options,
+    err,
+)
 from dh2rt.errors import SignedImageError, TransportError
 from dh2rt.flash.flasher import Progress
 from dh2rt.flash.pacing import Pacing, link_pacing
 from dh2rt.flash.reports import COMMITTED, ModuleReport, describe_path
 from dh2rt.profile import CONRO
+from dh2rt.runtime import ms_to_s
 from dh2rt.signed_image import SignedImage, describe_key_id
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.transport.base import PortEnd, Transport
@@ -96,10 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image", type=Path, help="a signed image (dh2rt image PROGRAM --sign KEY --version N -o IMAGE)")
     p.add_argument("--port", help="the cable's serial port: a device path or a pyserial URL (serial links)")
     p.add_argument("--baudrate", type=int, default=115200, help="the cable's line speed (default: 115200)")
-    bus = p.add_argument_group("on a robot whose modules share a CAN bus (instead of --port)")
-    bus.add_argument("-i", "--interface", help="python-can interface: socketcan, slcan, pcan, virtual, ...")
-    bus.add_argument("-c", "--channel", help="its channel: can0, /dev/ttyACM0, PCAN_USBBUS1, ...")
-    bus.add_argument("-b", "--bitrate", type=int, default=1_000_000, help="the bus's bit rate (default: 1000000)")
+    bus = add_bus_arguments(p, group_title="on a robot whose modules share a CAN bus (instead of --port)")
     bus.add_argument("--contact", help="the cable's connector-local channel: a UART device (or a pty)")
     bus.add_argument("--contact-pin", help="the contact switch's GPIO value file (active low, as on the modules)")
     bus.add_argument(
@@ -108,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=CONRO.connectors,
         help="which connector of the profile the cable is (default: back, which docks to a free front)",
     )
-    p.add_argument("--cycle-ms", type=float, default=20.0, help="the robot's cycle period (default: 20)")
+    add_cycle_argument(p, "the robot's cycle period")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds before the flasher gives up (default: 120)")
     p.add_argument("--confirm", action="store_true", help="wait until every module confirmed the image (trial over)")
     p.add_argument("--json", action="store_true", help="the rollout report as one JSON object")
@@ -221,9 +228,8 @@ def open_cable(port: str, baudrate: int) -> SerialTransport:
 def open_bus_cable(ns: argparse.Namespace) -> tuple[Transport, BusCable]:
     """The flasher's node on the bus and its cable's connector-local channel; TransportError
     naming the option when either cannot be opened."""
-    options = {"interface": ns.interface, "channel": ns.channel, "bitrate": ns.bitrate}
     try:
-        transport = open_transport("can", hello_codec(), **options)
+        transport = open_transport("can", hello_codec(), **bus_options(ns))
     except TransportError as exc:
         what = f"--interface {ns.interface} --channel {ns.channel}"
         raise TransportError(f"{what}: cannot open the bus ({exc})") from None
@@ -275,9 +281,9 @@ def cable_pacing(ns: argparse.Namespace, image: Image) -> tuple[Pacing, int]:
     frame does not fit a cycle's share."""
     try:
         if ns.interface is not None:
-            pacing, segment, _ = link_pacing("can", ns.cycle_ms / 1000, 0, ns.bitrate)
+            pacing, segment, _ = link_pacing("can", ms_to_s(ns.cycle_ms), 0, ns.bitrate)
         else:
-            pacing, segment, _ = link_pacing("serial", ns.cycle_ms / 1000, ns.baudrate, 0)
+            pacing, segment, _ = link_pacing("serial", ms_to_s(ns.cycle_ms), ns.baudrate, 0)
     except ValueError as exc:
         line = f"--bitrate {ns.bitrate}" if ns.interface is not None else f"--baudrate {ns.baudrate}"
         raise ValueError(f"{line} --cycle-ms {ns.cycle_ms:g}: {exc}") from None
@@ -290,7 +296,7 @@ def _flash(
     """Run the flasher until it is done, times out or Ctrl-C; (its result, interrupted)."""
     connector = CABLE if bus is None else CONRO.connectors.index(ns.cable_connector) + 1
     cable = FlashCable(
-        image.data, transport, period=ns.cycle_ms / 1000, pacing=pacing, segment_size=segment, connector=connector,
+        image.data, transport, period=ms_to_s(ns.cycle_ms), pacing=pacing, segment_size=segment, connector=connector,
         confirm=ns.confirm, on_step=None if bus is None else bus.step,
     )  # fmt: skip
     show = None if ns.quiet else ProgressLines()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import os
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from dh2rt.cli import main
+from dh2rt.plugins import OptionAdder
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -217,11 +219,10 @@ def test_second_ctrl_c_stops_at_once() -> None:
 
 def test_registered_commands_are_listed_and_dispatched(capsys: pytest.CaptureFixture[str]) -> None:
     """Upper layers' commands come through the entry-point groups, not imports in the core."""
-    from dh2rt import cli
-    from dh2rt.entry import COMMAND_GROUP
+    from dh2rt.plugins import COMMAND_GROUP, SIMULATOR_GROUP, registered
 
-    assert "launch" in cli.registered(COMMAND_GROUP)
-    assert "pybullet" in cli.registered(cli.SIMULATOR_GROUP)
+    assert "launch" in registered(COMMAND_GROUP)
+    assert "pybullet" in registered(SIMULATOR_GROUP)
     with pytest.raises(SystemExit) as exc:
         main(["--help"])
     assert exc.value.code == 0
@@ -240,3 +241,59 @@ def test_missing_registered_command_is_a_usage_error(
     assert main(["--transport", "serial"]) == 2
     assert "no command 'launch' is installed" in capsys.readouterr().err
     assert main(["run", "examples/caterpillar.dh2", "--cycles", "1"]) == 0  # the core still runs
+
+
+class _FakeSimulator:
+    """A simulator as a ``dh2rt.simulators`` entry point names one: its own options, its run."""
+
+    def __init__(self) -> None:
+        self.ran_with: list[object] = []
+
+    def add_arguments(self, parser: OptionAdder) -> None:
+        parser.add_argument("--wind", type=float, default=0.0, help="the fake's own option")
+
+    def check(self, options: argparse.Namespace) -> None:
+        pass
+
+    def run(self, robot: object, options: argparse.Namespace, events: object) -> int:
+        self.ran_with.append(options.wind)
+        return 0
+
+
+class _FakeEntryPoint:
+    def __init__(self, obj: object) -> None:
+        self.obj = obj
+
+    def load(self) -> object:
+        return self.obj
+
+
+def test_simulators_bring_their_own_run_options(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The core declares no simulator option: each registered simulator adds its own, they are
+    listed by ``run --help``, refused without their ``--sim`` and handed to the simulator."""
+    from dh2rt import cli
+    from dh2rt.plugins import COMMAND_GROUP, SIMULATOR_GROUP
+
+    core = (ROOT / "dh2rt" / "cli.py").read_text()
+    assert "pybullet" not in core and "--record" not in core and "--gui" not in core
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    out = capsys.readouterr().out
+    assert "with --sim pybullet" in out
+    for option in ("--record", "--camera", "--record-speed", "--plot", "--gui"):
+        assert option in out
+
+    fake = _FakeSimulator()
+    groups = {COMMAND_GROUP: {}, SIMULATOR_GROUP: {"fake": _FakeEntryPoint(fake)}}
+    monkeypatch.setattr(cli, "registered", lambda group: groups[group])
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    out = capsys.readouterr().out
+    assert "with --sim fake" in out and "--wind" in out and "--record" not in out
+    program = str(ROOT / "examples" / "caterpillar.dh2")
+    assert main(["run", program, "--cycles", "1", "--wind", "3"]) == 2
+    assert "--wind: these options need --sim fake" in capsys.readouterr().err
+    assert main(["run", program, "--cycles", "1", "--sim", "fake", "--wind", "3"]) == 0
+    assert fake.ran_with == [3.0]

@@ -6,8 +6,6 @@ private network namespace udp_multicast needs."""
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -108,20 +106,6 @@ def running_snake(transport: str, n: int, *, seed: int = 0, wait: float = 60.0, 
         yield world
     finally:
         world.stop()
-
-
-#: A private network namespace with only loopback up and a multicast route on it.
-NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
-
-
-def namespace_problem() -> str | None:
-    """Why python-can's udp_multicast cannot run in a private network namespace here, or None."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip (util-linux, iproute2) is not installed"
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS], capture_output=True, text=True, timeout=20)
-    if probe.returncode != 0:
-        return f"cannot create a private network namespace: {probe.stderr.strip()}"
-    return None
 
 
 def beside(world: World, work: Callable[[], T], seconds: float) -> T:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import itertools
 import json
 import re
-import shutil
 import subprocess
 import sys
 from collections import Counter
@@ -25,6 +24,7 @@ from dh2rt.bundled import compile_bundled
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import socketcan_problem
 from dh2rt.wire.frame import program_digest
+from hil.netns import namespace_problem
 from hil.pace import PACE
 from tools.capture_reader import capture_programs
 from tools.reading import open_capture
@@ -68,16 +68,9 @@ def link_ends(summary: dict[str, Any]) -> dict[tuple[int, str], tuple[int, int]]
     return ends
 
 
-def udp_possible() -> str | None:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip is not installed"
-    probe = subprocess.run(["unshare", "-rn", "true"], capture_output=True, timeout=30)
-    return None if probe.returncode == 0 else "this machine cannot create a private network namespace"
-
-
 @pytest.mark.parametrize("transport", ["serial", "virtual", "udp", "vcan0"])
 def test_capture_of_a_loop_run_holds_every_frame(transport: str, tmp_path: Path) -> None:
-    if transport == "udp" and (why := udp_possible()):
+    if transport == "udp" and (why := namespace_problem()):
         pytest.skip(why)
     if transport == "vcan0" and (why := socketcan_problem("vcan0")):
         pytest.skip(f"SocketCAN vcan0: {why} (the same capture runs on virtual and udp above)")

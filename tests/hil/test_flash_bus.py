@@ -23,8 +23,9 @@ from typing import Any
 import pytest
 
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
+from hil.netns import namespace_problem
 from hil.pace import PACE
-from tests.hil.flashing import PERIOD, caterpillar, namespace_problem, switches
+from tests.hil.flashing import PERIOD, caterpillar, switches
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 8

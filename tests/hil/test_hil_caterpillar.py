@@ -23,9 +23,9 @@ from dh2rt.events import parse_event
 from dh2rt.robot import Robot
 from dh2rt.runtime import SILENCE_CYCLES
 from dh2rt.topology import parse_spec
+from hil.netns import namespace_problem
 from hil.pace import PACE
 from hil.world import World, module_pids
-from tests.hil.flashing import namespace_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"

@@ -16,6 +16,7 @@ import pytest
 from dh2rt import cli
 from dh2rt.transport.can_bus import socketcan_problem
 from hil import launcher
+from hil.netns import NETNS_ENV
 from hil.pace import PACE
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -170,11 +171,11 @@ def test_udp_refuses_outside_a_loopback_only_namespace(capsys: pytest.CaptureFix
     names = [n for _i, n in socket.if_nameindex()]
     if names == ["lo"]:
         pytest.skip("this namespace has only loopback: the refusal cannot be exercised safely")
-    os.environ[launcher.NETNS_ENV] = "1"  # pretend the re-exec happened; the check must still refuse
+    os.environ[NETNS_ENV] = "1"  # pretend the re-exec happened; the check must still refuse
     try:
         assert launcher.main(["--transport", "udp", "--module-count", "2", "--cycles", "5"]) == 2
     finally:
-        del os.environ[launcher.NETNS_ENV]
+        del os.environ[NETNS_ENV]
     assert "refusing" in capsys.readouterr().err
 
 

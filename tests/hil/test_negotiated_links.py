@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
@@ -24,6 +23,7 @@ import pytest
 from dh2rt.bundled import compile_bundled
 from dh2rt.topology import parse_spec
 from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
+from hil.netns import in_namespace, namespace_problem
 from hil.pace import PACE
 from hil.world import World
 
@@ -135,26 +135,15 @@ def test_an_injected_id_collision_is_resolved() -> None:
     assert [v.status.get("type") for v in world.views] == ["head", "body", "tail"]
 
 
-NETNS_SETUP = "ip link set lo up && ip route add 224.0.0.0/4 dev lo"
-
-
-def _netns_problem() -> str | None:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip is not installed"
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, timeout=30)
-    return None if probe.returncode == 0 else "this machine cannot create a private network namespace"
-
-
 @pytest.mark.realtime
 def test_eight_modules_alone_on_a_shared_bus(tmp_path: Path) -> None:
     """Eight `dh2rt module` processes on python-can udp_multicast (inside a private network
     namespace), each with only its module.toml; the contact emulator plays the infrared pairs.
     No world: nobody assigns links, says when to start, or tells a module its type."""
-    if why := _netns_problem():
+    if why := namespace_problem():
         pytest.skip(why)
     script = ROOT / "tests" / "hil" / "alone_on_a_bus.py"
-    inner = [sys.executable, str(script), str(tmp_path)]
-    cmd = ["unshare", "-rn", "sh", "-c", NETNS_SETUP + ' && exec "$@"', "sh", *inner]
+    cmd = in_namespace([sys.executable, str(script), str(tmp_path)])
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]

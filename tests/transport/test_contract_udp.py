@@ -8,7 +8,6 @@ up and a multicast route on it.
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from dh2rt.testing import CONTRACT_CHECKS
+from hil.netns import in_namespace, namespace_problem
 
 ROOT = Path(__file__).resolve().parents[2]
-NETNS = "ip link set lo up && ip route add 224.0.0.0/4 dev lo && "
 SCRIPT = (
     "import json, sys\n"
     "from dh2rt.testing import CanHarness, run_contract\n"
@@ -26,32 +25,18 @@ SCRIPT = (
 )
 
 
-def _namespace_problem() -> str | None:
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip (util-linux, iproute2) is not installed"
-    probe = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS + "true"], capture_output=True, text=True, timeout=20)
-    if probe.returncode != 0:
-        return f"cannot create a private network namespace: {probe.stderr.strip()}"
-    return None
-
-
 @pytest.fixture(scope="module")
 def udp_results() -> dict[str, str]:
-    problem = _namespace_problem()
+    problem = namespace_problem()
     if problem is not None:
         pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
-    cmd = NETNS + f'exec {sys.executable} -c "$DH2RT_SCRIPT"'
     proc = subprocess.run(
-        ["unshare", "-rn", "sh", "-c", cmd],
+        in_namespace([sys.executable, "-c", SCRIPT]),
         capture_output=True,
         text=True,
         timeout=120,
         cwd=ROOT,
-        env={
-            "DH2RT_SCRIPT": SCRIPT,
-            "PYTHONPATH": str(ROOT),
-            "PATH": "/usr/sbin:/usr/bin:/sbin:/bin",
-        },
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/sbin:/usr/bin:/sbin:/bin"},
     )
     assert proc.returncode == 0, proc.stderr
     results: dict[str, str] = json.loads(proc.stdout.strip().splitlines()[-1])
