@@ -64,13 +64,9 @@ from dataclasses import dataclass
 
 from dh2rt.errors import DecodeError, EncodeError, FrameCorrupted
 from dh2rt.transport.base import BusEnd
-from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, CanFrame, make_arbitration_id
+from dh2rt.wire.can_frames import MANAGEMENT_ID as MANAGEMENT_ID  # the channel is CAN framing's
+from dh2rt.wire.can_frames import MAX_LINK_ID, CanFrame
 
-#: The frame kind management frames use (kind 3, "hello": they lose arbitration to hormones).
-MANAGEMENT_KIND = 3
-#: The arbitration id of every management frame: link id MAX_LINK_ID, side 0, single segment.
-#: No negotiated link ever uses MAX_LINK_ID, so no link's listen filter matches it.
-MANAGEMENT_ID = make_arbitration_id(MANAGEMENT_KIND, SINGLE, 0, MAX_LINK_ID, 0)
 #: The ids links may be given: 0 is left out (the HIL world's numbering starts there) and
 #: MAX_LINK_ID is the management channel's.
 FIRST_LINK_ID = 1
