@@ -3,8 +3,8 @@ clock, chains of module runtimes on the in-process bus, and a watch on receptor 
 
 Every transport must pass the same behaviours (:data:`CONTRACT_CHECKS`). A
 :class:`TransportHarness` knows how to make endpoints (one per module), dock two of them by
-connectors, and put raw garbage on the medium; the checks only use that and the public
-:class:`~dh2rt.transport.base.Transport` API. Use it from pytest::
+connectors, and put raw garbage (and a CAN bus's management frames) on the medium; the
+checks only use that and the public :class:`~dh2rt.transport.base.Transport` API. Use it from pytest::
 
     class TestMyTransport(TransportContract):
         def make_harness(self) -> TransportHarness:
@@ -187,21 +187,21 @@ class CanHarness(TransportHarness):
     def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
         import can
 
-        self._raw_bus()
+        raw = self._raw_bus()
         sender = 1 - to_side
         for u in units:
             for i in range(0, len(u), 8):  # units longer than 8 bytes go out as raw singles
                 can_id = make_arbitration_id(0, SINGLE, 0, link_id, sender)
-                self._raw.send(can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True))
+                raw.send(can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True))
         # A segment train that never completes, and a stray middle segment.
-        self._raw.send(
+        raw.send(
             can.Message(
                 arbitration_id=make_arbitration_id(0, 1, 0, link_id, sender),
                 data=b"\x40\x00\x00\x00\x00\x00\x00\x00",
                 is_extended_id=True,
             )
         )
-        self._raw.send(
+        raw.send(
             can.Message(
                 arbitration_id=make_arbitration_id(0, 2, 5, link_id, sender),
                 data=b"\x01",
