@@ -630,6 +630,7 @@ class ModuleRuntime:
             "frames_dropped": link.dropped,
             "frames_corrupted": link.corrupted,
             "frames_send_failed": link.send_failed,
+            "frames_unhandled": link.unhandled,
             "keepalives_sent": s.keepalives_sent,
             "hellos_sent": s.hellos_sent,
             "refused": lv.refused,

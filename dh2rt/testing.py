@@ -3,8 +3,8 @@ clock, chains of module runtimes on the in-process bus, and a watch on receptor 
 
 Every transport must pass the same behaviours (:data:`CONTRACT_CHECKS`). A
 :class:`TransportHarness` knows how to make endpoints (one per module), dock two of them by
-connectors, and put raw garbage on the medium; the checks only use that and the public
-:class:`~dh2rt.transport.base.Transport` API. Use it from pytest::
+connectors, and put raw garbage (and a CAN bus's management frames) on the medium; the
+checks only use that and the public :class:`~dh2rt.transport.base.Transport` API. Use it from pytest::
 
     class TestMyTransport(TransportContract):
         def make_harness(self) -> TransportHarness:
@@ -32,13 +32,15 @@ from types import TracebackType
 from typing import Any
 
 from dh2rt.engine import Engine
+from dh2rt.errors import TransportError
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.runtime import Driver, ModuleRuntime
-from dh2rt.transport.base import BusEnd, Received, Transport
+from dh2rt.transport.base import OFF_LINK, BusEnd, FrameFamily, Inbound, Received, Transport
 from dh2rt.transport.inproc import InprocBus, InprocTransport
-from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
+from dh2rt.wire import transfer
+from dh2rt.wire.can_frames import MANAGEMENT_ID, SINGLE, make_arbitration_id
 from dh2rt.wire.frame import Frame, FrameCodec, Hello, KeepAlive, program_digest
 
 FRONT, BACK, LEFT, RIGHT = 1, 2, 3, 4
@@ -101,6 +103,11 @@ class TransportHarness(ABC):
     def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
         """Put each unit on the medium as one would-be frame towards ``to_side``."""
 
+    def inject_management(self, data: bytes) -> None:
+        """Put a frame of the medium's own (``FrameFamily.MANAGEMENT``) on it, for every
+        endpoint; only a medium whose transports carry that family has one."""
+        raise NotImplementedError(f"{type(self).__name__}: this medium has no management frames")
+
     def close(self) -> None:
         for t in self.endpoints:
             t.close()
@@ -161,28 +168,40 @@ class CanHarness(TransportHarness):
         a.attach(a_conn, BusEnd(link_id, 0))
         b.attach(b_conn, BusEnd(link_id, 1))
 
-    def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
-        import can
-
+    def _raw_bus(self) -> Any:
+        """A bus of its own on the same channel, to put raw frames on it."""
         if self._raw is None:
+            import can
+
             from dh2rt.transport.can_bus import CanTransport
 
             cls = self.cls if issubclass(self.cls, CanTransport) else CanTransport
             self._raw = can.Bus(interface=cls.interface, channel=self.channel or cls.default_channel)
+        return self._raw
+
+    def inject_management(self, data: bytes) -> None:
+        import can
+
+        self._raw_bus().send(can.Message(arbitration_id=MANAGEMENT_ID, data=data, is_extended_id=True))
+
+    def inject_garbage(self, link_id: int, to_side: int, units: tuple[bytes, ...]) -> None:
+        import can
+
+        raw = self._raw_bus()
         sender = 1 - to_side
         for u in units:
             for i in range(0, len(u), 8):  # units longer than 8 bytes go out as raw singles
                 can_id = make_arbitration_id(0, SINGLE, 0, link_id, sender)
-                self._raw.send(can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True))
+                raw.send(can.Message(arbitration_id=can_id, data=u[i : i + 8], is_extended_id=True))
         # A segment train that never completes, and a stray middle segment.
-        self._raw.send(
+        raw.send(
             can.Message(
                 arbitration_id=make_arbitration_id(0, 1, 0, link_id, sender),
                 data=b"\x40\x00\x00\x00\x00\x00\x00\x00",
                 is_extended_id=True,
             )
         )
-        self._raw.send(
+        raw.send(
             can.Message(
                 arbitration_id=make_arbitration_id(0, 2, 5, link_id, sender),
                 data=b"\x01",
@@ -380,6 +399,109 @@ def check_garbage_counted_never_delivered(h: TransportHarness) -> None:
     assert b.counters.received == 1
 
 
+#: Flashing's frames as a rollout sends them through BACK: one fits a classic CAN frame, one
+#: needs segments. A transport reads no further than their first byte's family bits.
+TRANSFER_FRAMES = (
+    transfer.encode(BACK, transfer.Ack(tag=7, next=3)),
+    transfer.encode(BACK, transfer.Segment(tag=7, index=0, data=bytes(range(60)))),
+)
+#: The 8 data bytes of a management frame (a transport hands them on without reading them).
+MANAGEMENT_DATA = bytes((1, 0, 0, 5, 0, 0, 0, 9))
+
+
+def _send_every_family(h: TransportHarness, a: Transport) -> None:
+    """Through ``a``'s BACK, each transfer frame then a hormone; then a management frame on
+    the medium, if it has them."""
+    for payload in TRANSFER_FRAMES:
+        assert a.send_raw(BACK, payload)
+        assert a.send(BACK, CAT)
+    if FrameFamily.MANAGEMENT in a.families:
+        h.inject_management(MANAGEMENT_DATA)
+
+
+def _poll_until(t: Transport, done: Callable[[list[Received]], bool], timeout: float) -> list[Received]:
+    """Poll ``t`` until ``done(what poll returned so far)`` or ``timeout`` passed."""
+    got: list[Received] = []
+    deadline = time.monotonic() + timeout
+    while not done(got):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        got += t.poll(min(left, 0.05))
+    return got
+
+
+def check_dispatches_each_family(h: TransportHarness) -> None:
+    """Hormone-family frames are what poll returns; every other family the medium carries
+    goes to its handler as an Inbound (family, my connector or OFF_LINK, bytes, arrival)."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    taken: dict[FrameFamily, list[Inbound]] = {f: [] for f in b.families if f is not FrameFamily.HORMONE}
+    assert FrameFamily.TRANSFER in taken, b.families
+    for family, frames in taken.items():
+        b.listen(family, frames.append)
+        assert b.listens(family)
+    sent_at = b.clock()
+    _send_every_family(h, a)
+    expected = {
+        FrameFamily.TRANSFER: [(FrameFamily.TRANSFER, FRONT, p) for p in TRANSFER_FRAMES],
+        FrameFamily.MANAGEMENT: [(FrameFamily.MANAGEMENT, OFF_LINK, MANAGEMENT_DATA)],
+    }
+
+    def all_in(got: list[Received]) -> bool:
+        return len(got) == len(TRANSFER_FRAMES) and all(len(taken[f]) == len(expected[f]) for f in taken)
+
+    got = _poll_until(b, all_in, h.timeout)
+    got += quiet(b, h.settle)
+    assert got == [Received(FRONT, BACK, CAT)] * len(TRANSFER_FRAMES), got
+    for family, frames in taken.items():
+        assert [(f.family, f.connector, f.payload) for f in frames] == expected[family], frames
+        assert all(sent_at - 1.0 <= f.arrived <= b.clock() for f in frames), (sent_at, frames)
+    # frames on links are counted received, whichever family; the medium's own are not
+    assert b.counters.received == 2 * len(TRANSFER_FRAMES), b.counters
+    assert b.counters.unhandled == 0 and b.counters.corrupted == 0, b.counters
+
+
+def check_one_handler_a_family(h: TransportHarness) -> None:
+    """A second handler for a family is refused until the first is closed; the hormone
+    family and a family the medium does not carry take no handler at all."""
+    t = h.endpoint()
+    first = t.listen(FrameFamily.TRANSFER, lambda f: None)
+    for family in FrameFamily:
+        free = family in t.families and family not in (FrameFamily.HORMONE, FrameFamily.TRANSFER)
+        try:
+            t.listen(family, lambda f: None).close()
+        except TransportError:
+            assert not free, f"no handler for {family} was taken"
+        else:
+            assert free, f"a handler for {family} was taken ({t.families}, one for transfer already)"
+    first.close()
+    assert not t.listens(FrameFamily.TRANSFER)
+    with t.listen(FrameFamily.TRANSFER, lambda f: None) as second:
+        first.close()  # closing it again unregisters nothing
+        assert t.listens(FrameFamily.TRANSFER) and second.family is FrameFamily.TRANSFER
+    assert not t.listens(FrameFamily.TRANSFER)
+
+
+def check_unhandled_counted(h: TransportHarness) -> None:
+    """A frame of a family nobody listens for (any more) is counted in ``unhandled``, by
+    family, and never returned by poll nor counted corrupted."""
+    a, b = h.endpoint(), h.endpoint()
+    h.link(a, BACK, b, FRONT)
+    taken: list[Inbound] = []
+    b.listen(FrameFamily.TRANSFER, taken.append).close()
+    _send_every_family(h, a)
+    expected = {FrameFamily.TRANSFER: len(TRANSFER_FRAMES)}
+    if FrameFamily.MANAGEMENT in b.families:
+        expected[FrameFamily.MANAGEMENT] = 1
+    got = _poll_until(b, lambda got: len(got) == len(TRANSFER_FRAMES) and b.unhandled == expected, h.timeout)
+    got += quiet(b, h.settle)
+    assert [r.frame for r in got] == [CAT] * len(TRANSFER_FRAMES), got
+    assert b.unhandled == expected and taken == []
+    assert b.counters.unhandled == sum(expected.values()), b.counters
+    assert b.counters.corrupted == 0 and b.counters.received == len(TRANSFER_FRAMES), b.counters
+
+
 #: Every behaviour a transport must have, by name.
 CONTRACT_CHECKS: dict[str, Callable[[TransportHarness], None]] = {
     "delivers_to_linked_peer": check_delivers_to_linked_peer,
@@ -391,6 +513,9 @@ CONTRACT_CHECKS: dict[str, Callable[[TransportHarness], None]] = {
     "counters": check_counters,
     "close_idempotent": check_close_idempotent,
     "garbage_counted_never_delivered": check_garbage_counted_never_delivered,
+    "dispatches_each_family": check_dispatches_each_family,
+    "one_handler_a_family": check_one_handler_a_family,
+    "unhandled_counted": check_unhandled_counted,
 }
 
 
@@ -448,6 +573,15 @@ class TransportContract:
 
     def test_garbage_counted_never_delivered(self) -> None:
         run_check(self.make_harness, "garbage_counted_never_delivered")
+
+    def test_dispatches_each_family(self) -> None:
+        run_check(self.make_harness, "dispatches_each_family")
+
+    def test_one_handler_a_family(self) -> None:
+        run_check(self.make_harness, "one_handler_a_family")
+
+    def test_unhandled_counted(self) -> None:
+        run_check(self.make_harness, "unhandled_counted")
 
 
 # ---------------------------------------------------------------- clocks, runtimes, faults

@@ -18,17 +18,18 @@ from typing import Any
 
 from dh2rt.closing import Closing
 from dh2rt.negotiation import Attach, Detach, LinkNegotiator, SendBus, SendLocal
-from dh2rt.transport.base import LinkEnd
-from dh2rt.wire.negotiation import MANAGEMENT_ID
+from dh2rt.transport.base import FrameFamily, Inbound, LinkEnd
 from drivers.connector_channel import CONTACT, LOST, ConnectorChannels
 
 
 class NegotiatedLinks(Closing):
     """Drives one module's link negotiation (see the module docs).
 
-    ``transport`` is the module's CAN transport (it keeps management frames apart);
-    ``attach`` and ``detach`` are the runtime's, so links come and go as Hellos and liveness
-    expect. ``log`` takes one line per link made or given up."""
+    ``transport`` is the module's CAN transport: this is its management frames' handler,
+    and keeps what the transport's polls hand it until the next :meth:`step` (the negotiator
+    takes them after the channels' events, in the order they came); ``attach`` and ``detach``
+    are the runtime's, so links come and go as Hellos and liveness expect. ``log`` takes one
+    line per link made or given up."""
 
     def __init__(
         self,
@@ -44,7 +45,11 @@ class NegotiatedLinks(Closing):
         self.transport = transport
         self.negotiator = LinkNegotiator(tuple(connectors), random.Random(), now=now)
         self._attach, self._detach, self._log = attach, detach, log
-        transport.enable_management(MANAGEMENT_ID)
+        self._bus_frames: list[bytes] = []
+        self._listening = transport.listen(FrameFamily.MANAGEMENT, self._bus_received)
+
+    def _bus_received(self, frame: Inbound) -> None:
+        self._bus_frames.append(frame.payload)
 
     @property
     def settled(self) -> bool:
@@ -61,7 +66,8 @@ class NegotiatedLinks(Closing):
                 self._do(neg.contact(connector, False))
             elif isinstance(event, bytes):
                 self._do(neg.local_received(connector, event))
-        for data in self.transport.take_management():
+        frames, self._bus_frames = self._bus_frames, []
+        for data in frames:
             self._do(neg.bus_received(data))
         self._do(neg.tick(now))
 
@@ -81,8 +87,10 @@ class NegotiatedLinks(Closing):
                 self._detach(action.connector)
 
     def close(self) -> None:
-        """Release every link on the bus (a clean stop), then close the channels."""
+        """Release every link on the bus (a clean stop), then close the channels and stop
+        taking the bus's management frames."""
         try:
             self._do(self.negotiator.shutdown())
         finally:
+            self._listening.close()
             self.channels.close()

@@ -6,8 +6,11 @@ through :func:`~dh2rt.transport.registry.open_transport` and imported only when 
 
 from dh2rt.transport.base import (
     BusEnd,
+    FrameFamily,
+    Inbound,
     LinkCounters,
     LinkEnd,
+    Listening,
     PortEnd,
     Received,
     Transport,
@@ -17,8 +20,11 @@ from dh2rt.transport.registry import TRANSPORTS, open_transport, parse_spec, tra
 __all__ = [
     "TRANSPORTS",
     "BusEnd",
+    "FrameFamily",
+    "Inbound",
     "LinkCounters",
     "LinkEnd",
+    "Listening",
     "PortEnd",
     "Received",
     "Transport",

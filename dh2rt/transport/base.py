@@ -30,6 +30,11 @@ The contract (``dh2rt.testing`` checks it on every backend):
 * Bytes that do not decode are counted in ``corrupted`` and never delivered; frames lost
   inside the transport (broken segment trains, oversize, arriving at a detached connector)
   are counted in ``dropped``.
+* Frames of the other families are not returned: each goes, as it is polled, to the one
+  handler registered for its family with ``listen(family, handler)`` (see :class:`FrameFamily`);
+  a second registration for a family raises TransportError, and a frame of a family nobody
+  listens for is counted in ``unhandled``. ``listen`` returns a :class:`Listening`: closing it
+  unregisters the handler.
 * ``detach(connector)`` stops both directions at once; sending through it then fails.
 * ``close()`` detaches everything and is idempotent; every transport is a context manager.
   After close, send returns False and poll returns nothing.
@@ -39,16 +44,19 @@ internally, but the public methods are not meant to be called concurrently.
 
 Writing a backend: subclass :class:`Transport`, set ``name``, and override the small hooks
 ``_attach``, ``_detach``, ``_transmit``, ``_receive`` and ``_close`` (and ``_medium_counts``
-if the medium counts bad frames itself). The base class owns validation, counting, decoding
-and the open/closed state; register the class in :mod:`dh2rt.transport.registry`.
+if the medium counts bad frames itself, and ``families`` if it carries frames of its own, as
+CAN's management channel). The base class owns validation, counting, decoding, dispatch by
+family and the open/closed state; register the class in :mod:`dh2rt.transport.registry`.
 """
 
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from enum import Enum
 from typing import ClassVar, NamedTuple
 
 from dh2rt.closing import Closing
@@ -93,6 +101,81 @@ class Received(NamedTuple):
     frame: Frame
 
 
+class FrameFamily(Enum):
+    """The families one inbound stream splits into, each with its own consumer.
+
+    :meth:`Transport.poll` splits the stream as python-can's ``Notifier`` hands messages to
+    its listeners, but synchronously: a handler runs inside ``poll``, on the module's loop,
+    so it needs no lock and sees its frames in the order they came. One handler a family,
+    registered once (:meth:`Transport.listen`).
+
+    * ``HORMONE``: the link frames (byte 0's top bits are the wire version: hormones, routed
+      hormones, keep-alives, hellos). They stay what :meth:`Transport.poll` returns rather
+      than a handler's: the module's cycle loop is their one consumer, it reads them when its
+      cycle wants them, and a returned list keeps that pull (and its order with the cycle) in
+      the loop's own code instead of a handler that would only append to a list.
+    * ``TRANSFER``: flashing's frames (:mod:`dh2rt.wire.transfer`, top bits 2), for the rollout
+      host or the cable's flasher, as they arrive.
+    * ``MANAGEMENT``: frames of the medium itself, on no link: CAN link negotiation's
+      (:data:`dh2rt.wire.can_frames.MANAGEMENT_ID`), which only a CAN transport carries.
+    """
+
+    HORMONE = "hormone"
+    TRANSFER = "transfer"
+    MANAGEMENT = "management"
+
+    @classmethod
+    def of_link_payload(cls, payload: bytes) -> FrameFamily:
+        """The family of a payload that came in on a link, from byte 0's top two bits
+        (anything not a transfer frame is read as a link frame, and counted corrupted if it
+        does not decode as one)."""
+        return cls.TRANSFER if payload and payload[0] >> 6 == TRANSFER_FAMILY else cls.HORMONE
+
+
+#: The connector of an :class:`Inbound` frame on no link (a management frame).
+OFF_LINK = 0
+
+
+class Inbound(NamedTuple):
+    """A whole frame as it came off the medium, before decoding: its family, my connector it
+    came in at (:data:`OFF_LINK` for a frame of the medium itself), its bytes, and when the
+    medium had it whole, on :attr:`Transport.clock` (which may be well before it was polled:
+    a loop that sleeps between cycles reads a frame at its next cycle)."""
+
+    family: FrameFamily
+    connector: int
+    payload: bytes
+    arrived: float
+
+    @classmethod
+    def on_link(cls, connector: int, payload: bytes, arrived: float) -> Inbound:
+        """A frame that came in at ``connector``; its family read from its first byte."""
+        return cls(FrameFamily.of_link_payload(payload), connector, payload, arrived)
+
+    @property
+    def on_a_link(self) -> bool:
+        return self.connector != OFF_LINK
+
+#: What takes the frames of one family, as they are polled.
+Handler = Callable[[Inbound], None]
+
+
+class Listening(Closing):
+    """One handler's registration for one family (:meth:`Transport.listen`); closing it
+    unregisters the handler, and closing it again does nothing."""
+
+    def __init__(self, transport: Transport, family: FrameFamily, handler: Handler) -> None:
+        self.transport = transport
+        self.family = family
+        self.handler = handler
+
+    def close(self) -> None:
+        self.transport._unlisten(self)
+
+    def __repr__(self) -> str:
+        return f"<Listening {self.family.value} -> {self.handler!r}>"
+
+
 @dataclass(frozen=True, slots=True)
 class LinkCounters:
     """Totals since the transport opened."""
@@ -102,6 +185,8 @@ class LinkCounters:
     dropped: int = 0
     corrupted: int = 0
     send_failed: int = 0
+    #: frames of a family no handler listens for (:meth:`Transport.listen`), every family
+    unhandled: int = 0
 
 
 class Transport(Closing, ABC):
@@ -115,6 +200,8 @@ class Transport(Closing, ABC):
     #: links (a module's own few frames a cycle) and dear on a shared bus with no filter in
     #: the kernel, where every module's frames wake every module.
     read_between_cycles: ClassVar[bool] = True
+    #: The frame families the medium carries (:meth:`listen` refuses any other).
+    families: ClassVar[frozenset[FrameFamily]] = frozenset({FrameFamily.HORMONE, FrameFamily.TRANSFER})
 
     def __init__(self, codec: FrameCodec) -> None:
         self.codec = codec
@@ -125,13 +212,10 @@ class Transport(Closing, ABC):
         self._dropped = 0
         self._corrupted = 0
         self._send_failed = 0
-        #: Where transfer frames (:mod:`dh2rt.wire.transfer`, a second frame family: byte 0's
-        #: top bits 2) go as they are polled: ``(connector, payload)``, before any link-frame
-        #: decoding (None: they are counted corrupted, as any frame this codec cannot read).
-        self.on_transfer: Callable[[int, bytes, float], None] | None = None
-        #: The clock arrivals are stamped on (the module runtime sets its own): a transfer
-        #: frame goes to ``on_transfer`` with the instant it arrived, which may be well before
-        #: it was polled (a loop that sleeps between cycles, a frame read at the next cycle).
+        self._listening: dict[FrameFamily, Listening] = {}
+        self._unhandled: Counter[FrameFamily] = Counter()
+        #: The clock arrivals are stamped on (the module runtime sets its own): a handler is
+        #: given the instant a frame arrived (:attr:`Inbound.arrived`).
         self.clock: Callable[[], float] = time.monotonic
 
     # -- public API -------------------------------------------------------------------------
@@ -197,26 +281,63 @@ class Transport(Closing, ABC):
         self._send_failed += 1
         return False
 
+    def listen(self, family: FrameFamily, handler: Handler) -> Listening:
+        """From now on hand every frame of ``family`` to ``handler`` as it is polled (see
+        :class:`FrameFamily`); close the returned :class:`Listening` to stop.
+
+        Raises TransportError for a second handler of the same family (close the first one
+        before), for the hormone family (:meth:`poll` returns those), and for a family this
+        medium does not carry.
+        """
+        if family is FrameFamily.HORMONE:
+            raise TransportError("hormone-family frames are what poll() returns; no handler takes them")
+        if family not in self.families:
+            raise TransportError(f"the {self.name} transport carries no {family.value} frames")
+        holder = self._listening.get(family)
+        if holder is not None:
+            raise TransportError(f"{family.value} frames already go to {holder.handler!r}; close its Listening first")
+        self._listening[family] = listening = Listening(self, family, handler)
+        return listening
+
+    def listens(self, family: FrameFamily) -> bool:
+        """Whether a handler takes ``family``'s frames now."""
+        return family in self._listening
+
+    @property
+    def unhandled(self) -> Mapping[FrameFamily, int]:
+        """Frames of each family that came in while no handler listened for it."""
+        return dict(self._unhandled)
+
+    def _unlisten(self, listening: Listening) -> None:
+        if self._listening.get(listening.family) is listening:
+            del self._listening[listening.family]
+
     def poll(self, timeout: float = 0.0) -> list[Received]:
-        """Frames received since the last call; waits up to ``timeout`` s for the first one."""
+        """Link frames received since the last call; waits up to ``timeout`` s for the first
+        frame. Frames of the other families go to their handlers meanwhile, in order."""
         if self._closed:
             return []
         out: list[Received] = []
-        for connector, payload, arrived in self._receive(max(0.0, timeout)):
-            if connector not in self._links:
+        for inbound in self._receive(max(0.0, timeout)):
+            if inbound.on_a_link and inbound.connector not in self._links:
                 self._dropped += 1  # raced with a detach
                 continue
-            if payload and payload[0] >> 6 == TRANSFER_FAMILY and self.on_transfer is not None:
+            if inbound.family is FrameFamily.HORMONE:
+                try:
+                    sender, frame = self.codec.decode(inbound.payload)
+                except CodecError:
+                    self._corrupted += 1
+                    continue
                 self._received += 1
-                self.on_transfer(connector, payload, arrived)
+                out.append(Received(inbound.connector, sender, frame))
                 continue
-            try:
-                sender, frame = self.codec.decode(payload)
-            except CodecError:
-                self._corrupted += 1
+            listening = self._listening.get(inbound.family)
+            if listening is None:
+                self._unhandled[inbound.family] += 1
                 continue
-            self._received += 1
-            out.append(Received(connector, sender, frame))
+            if inbound.on_a_link:  # the medium's own frames are no link's traffic
+                self._received += 1
+            listening.handler(inbound)
         return out
 
     @property
@@ -229,6 +350,7 @@ class Transport(Closing, ABC):
             dropped=self._dropped + dropped,
             corrupted=self._corrupted + corrupted,
             send_failed=self._send_failed,
+            unhandled=self._unhandled.total(),
         )
 
     def close(self) -> None:
@@ -263,9 +385,9 @@ class Transport(Closing, ABC):
         """Put one encoded frame on the medium; False if the medium refused it."""
 
     @abstractmethod
-    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
-        """Whole payloads received, as ``(connector, payload, arrived)``; wait up to
-        ``timeout`` s. ``arrived``: when the medium had it whole, on :attr:`clock`."""
+    def _receive(self, timeout: float) -> list[Inbound]:
+        """Whole frames received (:meth:`Inbound.on_link` for a link's); wait up to
+        ``timeout`` s."""
 
     @abstractmethod
     def _close(self) -> None:

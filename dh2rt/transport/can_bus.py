@@ -3,7 +3,10 @@
 One python-can bus per module; link ends are :class:`~dh2rt.transport.base.BusEnd`. The
 arbitration id carries kind, segment marker, link id and the sending side
 (:mod:`dh2rt.wire.can_frames`); the module listens only for the far side of its own links,
-which also discards the module's own frames that ``udp_multicast`` echoes back.
+which also discards the module's own frames that ``udp_multicast`` echoes back. The frames
+on the management channel (:data:`~dh2rt.wire.can_frames.MANAGEMENT_ID`, link negotiation's)
+are on no link: they go to the transport's :attr:`~dh2rt.transport.base.FrameFamily.MANAGEMENT`
+handler (``listen``), or are counted unhandled.
 
 python-can is imported lazily, when a bus opens. Every ``can.Message`` is built with
 ``is_extended_id=True`` explicitly (python-can's default is not a contract to lean on).
@@ -16,11 +19,12 @@ import time
 from typing import Any, ClassVar
 
 from dh2rt.errors import TransportError, TransportUnavailable
-from dh2rt.transport.base import BusEnd, LinkEnd, Transport
+from dh2rt.transport.base import OFF_LINK, BusEnd, FrameFamily, Inbound, LinkEnd, Transport
 from dh2rt.wire.can_frames import (
     CLASSIC_DATA,
     FD_DATA,
     LINK_END_MASK,
+    MANAGEMENT_ID,
     Reassembler,
     listen_filter,
     make_arbitration_id,
@@ -68,6 +72,7 @@ class CanTransport(Transport):
     #: Without kernel filters every module's frames would wake every module between cycles.
     read_between_cycles: ClassVar[bool] = False
     default_channel: ClassVar[str] = "dh2rt"
+    families = frozenset(FrameFamily)
 
     def __init__(
         self,
@@ -90,10 +95,6 @@ class CanTransport(Transport):
         self.max_data = FD_DATA if fd else CLASSIC_DATA
         self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
-        #: link negotiation's management frames (see enable_management), kept apart from the
-        #: link frames: not hormones, not counted in the frame accounting
-        self.management_id: int | None = None
-        self._management: list[bytes] = []
         self._bus: Any = self._open_bus(bus_options)
         import can  # already imported by _open_bus; kept for exception and Message types
 
@@ -128,23 +129,11 @@ class CanTransport(Transport):
             return
         ends = [(k >> 1, k & 1) for k in self._listen]
         filters: list[dict[str, Any]] = [listen_filter(link, 1 - far_side) for link, far_side in ends]
-        if self.management_id is not None:
-            filters.append({"can_id": self.management_id, "can_mask": 0x1FFFFFFF, "extended": True})
-        if not filters:  # accept nothing useful; the software check below drops the rest anyway
-            filters = [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
+        # the management channel always (its frames are rare): nobody listening, they are counted
+        filters.append({"can_id": MANAGEMENT_ID, "can_mask": 0x1FFFFFFF, "extended": True})
         self._bus.set_filters(filters)
 
     # -- link negotiation's management frames (dh2rt.wire.negotiation) -------------------
-
-    def enable_management(self, arbitration_id: int) -> None:
-        """Receive the frames with ``arbitration_id`` apart (:meth:`take_management`)."""
-        self.management_id = arbitration_id
-        self._apply_filters()
-
-    def take_management(self) -> list[bytes]:
-        """The management frames' data received since the last call, in order."""
-        out, self._management = self._management, []
-        return out
 
     def send_management(self, arbitration_id: int, data: bytes) -> bool:
         """Send one management frame; False when the bus refused it."""
@@ -192,17 +181,18 @@ class CanTransport(Transport):
                 return False
         return True
 
-    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
+    def _receive(self, timeout: float) -> list[Inbound]:
         can = self._can
-        out: list[tuple[int, bytes, float]] = []
+        out: list[Inbound] = []
         wait: float = timeout
         deadline = time.monotonic() + timeout if timeout > 0 else 0.0
         first = True
+        on_links = False  # a frame of ours on a link came in (management frames are everyone's)
         while True:
             if not first:
                 # after a frame of ours, take what else is there; after only other modules'
                 # frames (on a shared bus, most of them), wait on for the rest of the timeout
-                wait = 0.0 if out or timeout <= 0 else max(0.0, deadline - time.monotonic())
+                wait = 0.0 if on_links or timeout <= 0 else max(0.0, deadline - time.monotonic())
             first = False
             try:
                 msg = self._bus.recv(timeout=wait)
@@ -215,15 +205,16 @@ class CanTransport(Transport):
                 return out
             if not msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
                 continue  # not dh2rt traffic
-            if msg.arbitration_id == self.management_id:
-                self._management.append(bytes(msg.data))
+            if msg.arbitration_id == MANAGEMENT_ID:
+                out.append(Inbound(FrameFamily.MANAGEMENT, OFF_LINK, bytes(msg.data), self._arrived(msg.timestamp)))
                 continue
             connector = self._listen.get(msg.arbitration_id & LINK_END_MASK)
             if connector is None:
                 continue  # another module's link, or our own frame echoed back
             payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data))
             if payload is not None:
-                out.append((connector, payload, self._arrived(msg.timestamp)))
+                on_links = True
+                out.append(Inbound.on_link(connector, payload, self._arrived(msg.timestamp)))
 
     def _arrived(self, stamp: float) -> float:
         """python-can's receive timestamp (wall-clock seconds: the kernel's on SocketCAN and

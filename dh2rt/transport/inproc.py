@@ -12,7 +12,7 @@ import threading
 from collections import deque
 
 from dh2rt.errors import TransportError
-from dh2rt.transport.base import BusEnd, LinkEnd, Transport
+from dh2rt.transport.base import BusEnd, Inbound, LinkEnd, Transport
 from dh2rt.wire.frame import FrameCodec
 
 
@@ -84,12 +84,12 @@ class InprocTransport(Transport):
     def __init__(self, codec: FrameCodec, *, channel: str = "default", bus: InprocBus | None = None) -> None:
         super().__init__(codec)
         self.bus = bus if bus is not None else inproc_bus(channel)
-        self._inbox: deque[tuple[int, bytes, float]] = deque()
+        self._inbox: deque[Inbound] = deque()
         self._ready = threading.Condition()
 
     def _deliver(self, connector: int, payload: bytes) -> None:
         with self._ready:
-            self._inbox.append((connector, payload, self.clock()))
+            self._inbox.append(Inbound.on_link(connector, payload, self.clock()))
             self._ready.notify_all()
 
     def _attach(self, connector: int, end: LinkEnd) -> None:
@@ -106,7 +106,7 @@ class InprocTransport(Transport):
         self.bus.carry(end.link_id, end.side, payload)
         return True
 
-    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
+    def _receive(self, timeout: float) -> list[Inbound]:
         with self._ready:
             if not self._inbox and timeout > 0:
                 self._ready.wait(timeout)

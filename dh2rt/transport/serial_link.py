@@ -28,7 +28,7 @@ import time
 from typing import Any
 
 from dh2rt.errors import TransportError, TransportUnavailable
-from dh2rt.transport.base import LinkEnd, PortEnd, Transport
+from dh2rt.transport.base import Inbound, LinkEnd, PortEnd, Transport
 from dh2rt.wire.frame import FrameCodec
 from dh2rt.wire.serial_framing import SerialDecoder, encode_serial
 
@@ -189,8 +189,8 @@ class SerialTransport(Transport):
     def _transmit(self, connector: int, end: LinkEnd, payload: bytes) -> bool:
         return self._ports[connector].write(encode_serial(payload))
 
-    def _receive(self, timeout: float) -> list[tuple[int, bytes, float]]:
-        out: list[tuple[int, bytes, float]] = []
+    def _receive(self, timeout: float) -> list[Inbound]:
+        out: list[Inbound] = []
         deadline: float | None = None
         wait_ms = 0
         while True:
@@ -203,14 +203,14 @@ class SerialTransport(Transport):
                     continue
                 connector = port.connector
                 arrived = self.clock()  # read as it came (read_between_cycles)
-                out.extend((connector, p, arrived) for p in port.read())
+                out.extend(Inbound.on_link(connector, p, arrived) for p in port.read())
                 if port.lost is not None:
                     self._forget_fd(port)  # a dead descriptor stays ready: never poll it again
             if self._wake is not None:
                 with contextlib.suppress(queue.Empty):
                     while True:
                         connector, p = self._inbox.get_nowait()
-                        out.append((connector, p, self.clock()))
+                        out.append(Inbound.on_link(connector, p, self.clock()))
             if out or timeout <= 0:
                 return out
             # nothing whole yet (or only part of a frame): wait for the rest of the timeout

@@ -71,6 +71,13 @@ def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: i
     return (kind << 27) | (segment << 25) | (seq << 19) | (link_id << 1) | side
 
 
+#: The frame kind management frames use (kind 3, "hello": they lose arbitration to hormones).
+MANAGEMENT_KIND = 3
+#: The arbitration id of every management frame (link negotiation, :mod:`dh2rt.negotiation`):
+#: link id MAX_LINK_ID, side 0, single segment. No negotiated link ever uses MAX_LINK_ID, so
+#: no link's listen filter matches it; a CAN transport hands these to its management handler.
+MANAGEMENT_ID = make_arbitration_id(MANAGEMENT_KIND, SINGLE, 0, MAX_LINK_ID, 0)
+
 _ID_LIMIT = 1 << 29
 
 

@@ -14,13 +14,12 @@ import zlib
 from dataclasses import dataclass
 
 from dh2rt.errors import DecodeError, EncodeError, FrameCorrupted
-from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, make_arbitration_id
 
-#: The frame kind management frames use (kind 3, "hello": they lose arbitration to hormones).
-MANAGEMENT_KIND = 3
-#: The arbitration id of every management frame: link id MAX_LINK_ID, side 0, single segment.
-#: No negotiated link ever uses MAX_LINK_ID, so no link's listen filter matches it.
-MANAGEMENT_ID = make_arbitration_id(MANAGEMENT_KIND, SINGLE, 0, MAX_LINK_ID, 0)
+# the management channel's id is CAN framing's (the transports split it off by it)
+from dh2rt.wire.can_frames import MANAGEMENT_ID as MANAGEMENT_ID
+from dh2rt.wire.can_frames import MANAGEMENT_KIND as MANAGEMENT_KIND
+from dh2rt.wire.can_frames import MAX_LINK_ID
+
 #: The ids links may be given: 0 is left out (the HIL world's numbering starts there) and
 #: MAX_LINK_ID is the management channel's.
 FIRST_LINK_ID = 1

@@ -20,7 +20,7 @@ from dh2rt.flash.pacing import Pacing
 from dh2rt.flash.reports import ModuleReport
 from dh2rt.flash.values import Action, Send
 from dh2rt.hormone import Vocabulary
-from dh2rt.transport.base import Transport
+from dh2rt.transport.base import FrameFamily, Inbound, Transport
 from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
 from dh2rt.wire.transfer import MAX_CONNECTOR
 from drivers.connector_channel import ConnectorChannels
@@ -79,11 +79,13 @@ class FlashCable:
         self.on_step = on_step
         self.lock = threading.Lock()
         self._ticks_since_hello = HELLO_TICKS  # the first one at the first tick
-        transport.on_transfer = self._on_transfer
+        #: the transport's transfer frames come to the Flasher (the transport is the caller's
+        #: and outlives no cable: each run opens its own)
+        self.listening = transport.listen(FrameFamily.TRANSFER, self._on_transfer)
 
-    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
-        if connector == self.connector:
-            self._send(self.flasher.receive(connector, payload, arrived))
+    def _on_transfer(self, frame: Inbound) -> None:
+        if frame.connector == self.connector:
+            self._send(self.flasher.receive(frame.connector, frame.payload, frame.arrived))
 
     def _send(self, actions: Sequence[Action]) -> None:
         for a in actions:

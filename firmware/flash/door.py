@@ -16,8 +16,8 @@ Until then the door keeps what the host would have been told: the latest Hello o
 linked connector. When it opens, the new host attaches the transport's links as it always
 does and is handed those Hellos (the one that opened it among them), then the transfer frame
 that opened it, if one did, so it starts where an eagerly loaded host would be. After that
-the host is the runtime's observer and the transport's transfer handler, and the door only
-forwards the module host's calls.
+the host is the runtime's observer, the door's transfer handler (the transport's, registered
+once) hands it every transfer frame, and the door only forwards the module host's calls.
 
 Before any of this the door checks that the module's lines can carry a rollout at all
 (:func:`dh2rt.flash.pacing.link_pacing`) and raises its ValueError if not, so a module on too
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 from dh2rt.flash.pacing import link_pacing
 from dh2rt.runtime import ModuleRuntime
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import FrameFamily, Inbound, PortEnd
 from dh2rt.wire.frame import Hello
 from firmware.flash.slots import PARTIAL_INFO, Boot, Flash
 
@@ -57,7 +57,8 @@ class RolloutDoor:
         self._hellos: dict[int, tuple[int, Hello, float]] = {}
         rt.liveness.version = boot.version  # the Hellos state it from the first one
         rt.observer = self
-        rt.transport.on_transfer = self._on_transfer
+        #: the transport's transfer frames: they open the host, then go to it
+        self.listening = rt.transport.listen(FrameFamily.TRANSFER, self._on_transfer)
         if flash.held is not None:
             self._open("an image staged before this start")
         elif (flash.directory / PARTIAL_INFO).exists():
@@ -103,9 +104,9 @@ class RolloutDoor:
     def detached(self, connector: int) -> None:
         self._hellos.pop(connector, None)
 
-    def _on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
-        host = self._open(f"a transfer frame through connector {connector}")
-        host.on_transfer(connector, payload, arrived)
+    def _on_transfer(self, frame: Inbound) -> None:
+        host = self._open(f"a transfer frame through connector {frame.connector}")
+        host.on_transfer(frame.connector, frame.payload, frame.arrived)
 
     # -- opening ---------------------------------------------------------------------------
 

@@ -4,10 +4,11 @@
 host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
 :class:`firmware.flash.door.RolloutDoor` once a rollout concerns the module:
 
-* transfer frames reach it as the transport polls them (``Transport.on_transfer``: a
-  *prompt* host, between cycles as they arrive), Hellos, silent links, attaches and detaches
-  from the runtime (it is the runtime's :class:`~dh2rt.runtime.LinkObserver`), and it ticks
-  the Rollout at every cycle start, before the engine;
+* transfer frames reach it as the transport polls them (the door's transfer handler,
+  ``Transport.listen``, hands them on: a *prompt* host, between cycles as they arrive),
+  Hellos, silent links, attaches and detaches from the runtime (it is the runtime's
+  :class:`~dh2rt.runtime.LinkObserver`), and it ticks the Rollout at every cycle start,
+  before the engine;
 * it carries out the actions: ``Send`` through the transport, ``Persist``/``DropPartial``
   into ``partial.img``/``partial.json`` beside the slots of the module's flash (durably,
   so that a module restarted mid-staging resumes), ``Stage`` through ``Flash.stage(hold=
@@ -95,7 +96,6 @@ class RolloutHost:
         self.switched = False
         rt.liveness.version = boot.version
         rt.observer = self
-        rt.transport.on_transfer = self.on_transfer
         for c in rt.transport.links:
             self.attached(c)
 

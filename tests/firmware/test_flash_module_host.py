@@ -16,9 +16,10 @@ from typing import Any
 import pytest
 
 from dh2rt.compiler import compile_file, compile_source
+from dh2rt.errors import TransportError
 from dh2rt.flash.pacing import Pacing
 from dh2rt.signed_image import new_private_key, pack, public_key
-from dh2rt.transport.base import BusEnd
+from dh2rt.transport.base import BusEnd, FrameFamily
 from dh2rt.transport.inproc import InprocTransport
 from dh2rt.wire.transfer import Outcome, serial_cost
 from firmware.config import ModuleConfig
@@ -224,6 +225,11 @@ def test_the_rollout_opens_at_the_first_transfer_frame_and_not_before(tmp_path: 
     for m in range(4):
         assert door(robot, m).opened_by == f"a transfer frame through connector {FRONT}", m
         assert door(robot, m).switched and robot.program_of(m)["version"] == 2
+    # the door stays the transport's one transfer handler once the host it opened takes them
+    transport = door(robot, 0).rt.transport
+    with pytest.raises(TransportError, match="transfer frames already go to"):
+        transport.listen(FrameFamily.TRANSFER, lambda frame: None)
+    assert transport.counters.unhandled == 0
 
 
 @pytest.mark.parametrize("behind", [0, 2, 3])
