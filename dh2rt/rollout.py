@@ -989,13 +989,6 @@ class Rollout(_Node):
         return None if self._job is None else self._job.name
 
     @property
-    def switch_at(self) -> float | None:
-        """The switch instant on this module's clock, once a commit of its image is known."""
-        if self._job is None or self._job.info.image not in self._floods:
-            return None
-        return self._floods[self._job.info.image].at
-
-    @property
     def received(self) -> int:
         """Bytes of the incoming image held from the first (the whole image once complete)."""
         if self._job is None:
@@ -1738,11 +1731,6 @@ class Flasher(_Node):
     def failure(self) -> str | None:
         """Why the rollout stopped before a commit (None: it did not)."""
         return self._failure
-
-    @property
-    def switch_at(self) -> float | None:
-        flood = self._floods.get(self.info.image)
-        return None if flood is None else flood.at
 
     def report(self) -> list[ModuleReport]:
         """Every module heard of, by path from the entry point."""
