@@ -176,6 +176,17 @@ class Robot:
     def alive(self, module: int) -> bool:
         return self.engines[module] is not None
 
+    def asleep(self) -> list[int]:
+        """The modules asleep now (``skip_quiet``): quiet until mail, a link change or their
+        timer's next due value wakes them."""
+        return [m for m, slept in enumerate(self._slept_at) if slept >= 0]
+
+    @property
+    def skew_plan(self) -> SkewPlan | None:
+        """How :meth:`advance` steps its skewed windows; None until it first skews, and again
+        after a link changes."""
+        return self._skew_plan
+
     # the docking world (dh2rt.docking.DockingWorld): nothing to align in one process
 
     def peer_of(self, end: End) -> End | None:

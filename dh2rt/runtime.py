@@ -301,6 +301,12 @@ class ModuleRuntime:
         while (left := deadline - self.clock()) > 0:
             self._absorb(self.transport.poll(left))
 
+    def take_in(self, timeout: float = 0.0) -> None:
+        """Between cycles: take in what came, waiting up to ``timeout`` for it, as :meth:`run`
+        does while it waits (for a caller with a loop of its own): Hellos are handled now,
+        the rest kept for the next cycle."""
+        self._absorb(self.transport.poll(timeout))
+
     def _absorb(self, received: list[Received]) -> None:
         """Handle Hellos now (verification and link status); keep the rest for the cycle."""
         for r in received:

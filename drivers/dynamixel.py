@@ -91,10 +91,11 @@ _READ_WAIT_S: Final = 0.005
 _STALL_MS: Final = 25.0
 
 
-def _port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) -> Any:
-    """A PortHandler that waits for reply bytes instead of spinning and counts only the time
-    this process ran against a reply's timeout; with ``latency_timer_ms``, whose timeout uses
-    that instead of the process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the
+def port_handler(sdk: ModuleType, path: str, latency_timer_ms: float | None) -> Any:
+    """The SDK's PortHandler as :class:`DynamixelDriver` makes it (for a program that talks
+    to servos through the SDK itself): one that waits for reply bytes instead of spinning and
+    counts only the time this process ran against a reply's timeout; with ``latency_timer_ms``,
+    whose timeout uses that instead of the process-wide ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (16 ms, the
     FTDI default).
 
     The SDK opens its port with ``timeout=0`` and, awaiting a status packet, calls
@@ -272,10 +273,6 @@ class DynamixelDriver(ModuleDriver):
 
     # -- setup --
 
-    @property
-    def is_open(self) -> bool:
-        return self._port is not None
-
     def open(self) -> None:
         """Open the port (if needed), check both servos and put them in position mode with
         torque on. On a servo error the port stays open so :meth:`health` and
@@ -290,7 +287,7 @@ class DynamixelDriver(ModuleDriver):
 
     def _open_port(self) -> None:
         sdk = self._sdk = _load_sdk()
-        port = _port_handler(sdk, self.port_path, self._latency_timer_ms)
+        port = port_handler(sdk, self.port_path, self._latency_timer_ms)
         try:
             # setBaudRate (re)opens the port; openPort() would open it at the default rate first.
             ok = port.setBaudRate(self.baudrate)
@@ -383,6 +380,20 @@ class DynamixelDriver(ModuleDriver):
             for joint in Joint:
                 self._write(joint, dxt.TORQUE_ENABLE, int(enabled))
 
+    @property
+    def stale_replies(self) -> int:
+        """Late replies to an earlier request dropped since the port opened (see
+        :func:`_packet_handler`): a servo or emulator that answers past the timeout."""
+        return 0 if self._ph is None else int(self._ph.stale)
+
+    def reply_timeout_ms(self, packet_length: int) -> float:
+        """How long this port waits for a status packet of ``packet_length`` bytes: the SDK's
+        formula with this driver's ``latency_timer_ms`` (the SDK's own default without one)."""
+        with self._lock:
+            self._require_open()
+            self._port.setPacketTimeout(packet_length)
+            return float(self._port.packet_timeout)
+
     # -- health and recovery --
 
     def health(self) -> Health:
@@ -447,7 +458,7 @@ class DynamixelDriver(ModuleDriver):
                 return
             except ServoNotFound:
                 # a PING sent while the servo restarts goes unanswered and costs a whole reply
-                # timeout, longer on a machine that stalls (see _port_handler): give up only
+                # timeout, longer on a machine that stalls (see port_handler): give up only
                 # after REBOOT_PINGS, not after the first because its timeout ran past the deadline
                 if attempts >= REBOOT_PINGS and time.monotonic() > deadline:
                     raise

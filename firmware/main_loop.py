@@ -133,12 +133,26 @@ def open_driver(config: ModuleConfig) -> tuple[ModuleDriver | None, str | None]:
 
 class ModuleHost:
     """Runs one module from a config, reading commands from a queue and reporting through
-    a callback: the body of a module process, also run in a thread for in-process buses."""
+    a callback: the body of a module process, also run in a thread for in-process buses.
 
-    def __init__(self, config: ModuleConfig, commands: queue.Queue[Command], report: Reporter) -> None:
+    ``on_cycle``, if given, is called with the runtime at the end of every cycle, after the
+    host's own work (:meth:`end_cycle`): a place to watch a module cycle by cycle or to act on
+    it at a chosen cycle (queue a command, stop it) without racing its loop. A caller that
+    steps the runtime itself instead of :meth:`serve` calls :meth:`end_cycle` after each step
+    and :meth:`flush` when it wants the reports out.
+    """
+
+    def __init__(
+        self,
+        config: ModuleConfig,
+        commands: queue.Queue[Command],
+        report: Reporter,
+        on_cycle: Callable[[ModuleRuntime], None] | None = None,
+    ) -> None:
         self.config = config
         self.commands = commands
         self.report = report
+        self.on_cycle = on_cycle
         self.stop_event = threading.Event()
         self.failed = False
         #: the flash the program was booted from (None: the config's image), and what it booted
@@ -219,16 +233,16 @@ class ModuleHost:
                     # started at an agreed instant: stop at one too, so that no module runs on
                     # after its neighbours stopped and takes their silence for a lost link
                     until = start_at + self.cycles * self.config.cycle_period
-                    rt.run(None, self.stop_event, self._on_cycle, until=until, before_cycle=self._take_commands)
+                    rt.run(None, self.stop_event, self._cycled, until=until, before_cycle=self._take_commands)
                     # what the neighbours sent in their last cycles is counted, not lost
                     rt.drain(DRAIN_PERIODS * self.config.cycle_period)
                 else:
-                    rt.run(self.cycles, self.stop_event, self._on_cycle, before_cycle=self._take_commands)
+                    rt.run(self.cycles, self.stop_event, self._cycled, before_cycle=self._take_commands)
         except Exception as exc:  # report it to the world rather than die silently
             self.failed = True
             self.report(Failure(f"{type(exc).__name__}: {exc} ({_where(exc)})"))
         finally:
-            self._flush()
+            self.flush()
             # what was last commanded: the servos themselves may be gone by now
             targets = self.runtime.commanded if self.driver is not None else None
             final = Status(self._status(rt), final=True, failed=self.failed, targets=targets)
@@ -365,17 +379,25 @@ class ModuleHost:
                 break
             self._command(cmd)
 
-    def _on_cycle(self, rt: ModuleRuntime) -> None:
+    def _cycled(self, rt: ModuleRuntime) -> None:
+        self.end_cycle(rt)
+        if self.on_cycle is not None:
+            self.on_cycle(rt)
+
+    def end_cycle(self, rt: ModuleRuntime) -> None:
+        """The host's work at the end of a cycle: step the links' negotiation, watch a program
+        on trial, retry servos that were not there, and report a status every
+        ``status_every`` cycles (and what a native asked of the body at once)."""
         if self.links is not None:
             self.links.step(rt.clock())
         self._check_trial(rt)
         if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
         if rt.cycle % self.config.status_every == 0:
-            self._flush()
+            self.flush()
             self.report(Status(self._status(rt)))
         elif rt.effects:  # what a native asks of the body goes out in the cycle it was asked
-            self._flush()
+            self.flush()
 
     def _reopen_servos(self, rt: ModuleRuntime) -> None:
         """Servos that could not be opened are tried again (a bus that was busy or
@@ -387,7 +409,8 @@ class ModuleHost:
         self.driver = driver
         rt.attach_driver(driver, f"servos opened on {self.config.servo_port}")
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
+        """Report what the runtime gathered since the last flush: trace records, effects, log lines."""
         rt = self.runtime
         for rec in rt.records:
             rec["life"] = self.config.life

@@ -24,10 +24,8 @@ master is gone reads EIO).
 
 from __future__ import annotations
 
-import contextlib
 import os
 import random
-import selectors
 import threading
 from dataclasses import dataclass, field, replace
 
@@ -43,7 +41,7 @@ from drivers.connector_channel import (
     encode_local,
     local_decoder,
 )
-from hil.ptys import close_fd, open_raw_pty
+from hil.ptys import PtyRelay, close_fd, open_raw_pty
 
 #: A connector of a module: ``(module, connector)``.
 End = tuple[int, int]
@@ -93,13 +91,7 @@ class ContactEmulator(Closing):
         self._lock = threading.Lock()
         self._connectors: dict[End, _Connector] = {}
         self._by_master: dict[int, _Connector] = {}
-        self._sel = selectors.DefaultSelector()
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_w, False)
-        self._sel.register(self._wake_r, selectors.EVENT_READ)
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="dh2rt-contact-emulator", daemon=True)
-        self._thread.start()
+        self._ptys = PtyRelay("dh2rt-contact-emulator", self._lock, self._from_master)
 
     # -- connectors and contacts ----------------------------------------------------------------
 
@@ -107,7 +99,7 @@ class ContactEmulator(Closing):
         """A pty pair for ``connector`` of ``module``; the path its module opens."""
         end = (module, connector)
         with self._lock:
-            if self._closed:
+            if self._ptys.closed:
                 raise ContactEmulatorError("contact emulator is closed")
             if end in self._connectors:
                 raise ContactEmulatorError(f"contact emulator: connector {end} already exists")
@@ -115,8 +107,7 @@ class ContactEmulator(Closing):
             conn = _Connector(end, master, slave, path)
             self._connectors[end] = conn
             self._by_master[master] = conn
-            self._sel.register(master, selectors.EVENT_READ)
-        self._wake()
+            self._ptys.watch(master)
         return conn.path
 
     def path(self, end: End) -> str:
@@ -175,46 +166,21 @@ class ContactEmulator(Closing):
 
     def close(self) -> None:
         """Stop the relay thread and close every pty; idempotent."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._wake()
-        self._thread.join(5)
-        self._sel.close()
+        if not self._ptys.stop():
+            return
         for conn in self._connectors.values():
             close_fd(conn.master)
             close_fd(conn.slave)
-        close_fd(self._wake_r)
-        close_fd(self._wake_w)
         self._connectors.clear()
         self._by_master.clear()
 
     # -- the relay thread (and what it shares with the callers, under the lock) ---------------
 
-    def _wake(self) -> None:
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
-
-    def _run(self) -> None:
-        while True:
-            with self._lock:
-                if self._closed:
-                    return
-            for key, _ in self._sel.select(0.2):
-                fd = int(key.fd)
-                if fd == self._wake_r:
-                    with contextlib.suppress(OSError):
-                        os.read(fd, 4096)
-                    continue
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:  # EIO: no module has the port open; nothing to read
-                    continue
-                with self._lock:
-                    conn = self._by_master.get(fd)
-                    if conn is not None and not self._closed:
-                        self._from_module(conn, data)
+    def _from_master(self, fd: int, data: bytes) -> None:
+        with self._lock:
+            conn = self._by_master.get(fd)
+            if conn is not None and not self._ptys.closed:
+                self._from_module(conn, data)
 
     def _from_module(self, conn: _Connector, data: bytes) -> None:
         for payload in conn.decoder.feed(data):
@@ -266,4 +232,3 @@ class ContactEmulator(Closing):
             written = 0
         conn.resync = written != len(wire)
         return not conn.resync
-

@@ -59,10 +59,6 @@ class HardwareMap:
         return self.modules.get(module, ModuleHardware())
 
     @property
-    def has_servos(self) -> bool:
-        return any(h.servo_port for h in self.modules.values())
-
-    @property
     def has_connectors(self) -> bool:
         return any(h.connectors for h in self.modules.values())
 

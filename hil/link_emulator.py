@@ -25,12 +25,10 @@ the bytes as sent with ``lost=True``. It runs on the relay thread: keep it short
 
 from __future__ import annotations
 
-import contextlib
 import heapq
 import itertools
 import os
 import random
-import selectors
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -39,7 +37,7 @@ from dataclasses import dataclass, field, replace
 from dh2rt.closing import Closing
 from dh2rt.errors import TransportError
 from dh2rt.topology import Topology
-from hil.ptys import close_fd, open_raw_pty
+from hil.ptys import IDLE_WAIT_S, PtyRelay, close_fd, open_raw_pty
 
 #: Bytes held while waiting for a delimiter before they are relayed as they are.
 _MAX_PENDING = 2048
@@ -125,24 +123,20 @@ class LinkEmulator(Closing):
         self._lock = threading.Lock()
         self._links: dict[int, EmulatedLink] = {}
         self._by_fd: dict[int, tuple[EmulatedLink, int]] = {}
-        self._sel = selectors.DefaultSelector()
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_w, False)
-        self._sel.register(self._wake_r, selectors.EVENT_READ)
         self._queue: list[tuple[float, int, int, bytes, int]] = []  # (due, order, master fd, data, link)
         self._order = itertools.count()
         #: per target master fd: when the line into it is free again (paced links)
         self._line_free: dict[int, float] = {}
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="dh2rt-link-emulator", daemon=True)
-        self._thread.start()
+        self._ptys = PtyRelay(
+            "dh2rt-link-emulator", self._lock, self._from_master, wait=self._next_due, after_reads=self._deliver_due
+        )
 
     # -- links --------------------------------------------------------------------------------
 
     def add_link(self, link_id: int | None = None, *, docked: bool = True, **impairments: float) -> EmulatedLink:
         """Create a link (two pty pairs); ``impairments`` override the emulator's defaults."""
         with self._lock:
-            if self._closed:
+            if self._ptys.closed:
                 raise TransportError("link emulator is closed")
             if link_id is None:
                 link_id = max(self._links, default=-1) + 1
@@ -153,8 +147,7 @@ class LinkEmulator(Closing):
             self._links[link_id] = link
             for i, side in enumerate(sides):
                 self._by_fd[side.master] = (link, i)
-                self._sel.register(side.master, selectors.EVENT_READ)
-        self._wake()
+                self._ptys.watch(side.master)
         return link
 
     def link(self, link_id: int) -> EmulatedLink:
@@ -212,48 +205,20 @@ class LinkEmulator(Closing):
 
     def close(self) -> None:
         """Stop relaying and close every pty; idempotent."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._wake()
-        self._thread.join(5)
-        self._sel.close()
+        if not self._ptys.stop():
+            return
         for link in self._links.values():
             for side in link.sides:
                 for fd in (side.master, side.slave):
                     close_fd(fd)
-        close_fd(self._wake_r)
-        close_fd(self._wake_w)
         self._links.clear()
         self._by_fd.clear()
 
     # -- the relay thread ---------------------------------------------------------------------
 
-    def _wake(self) -> None:
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
-
-    def _run(self) -> None:
-        while True:
-            with self._lock:
-                if self._closed:
-                    return
-                due = self._queue[0][0] if self._queue else None
-            timeout = 0.2 if due is None else max(0.0, due - time.monotonic())
-            for key, _ in self._sel.select(timeout):
-                fd = int(key.fd)
-                if fd == self._wake_r:
-                    with contextlib.suppress(OSError):
-                        os.read(fd, 4096)
-                    continue
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:  # EIO: no slave open right now; the data is gone anyway
-                    data = b""
-                if data:
-                    self._from_master(fd, data)
-            self._deliver_due()
+    def _next_due(self) -> float:
+        """How long the relay may wait for a byte: until the next delivery is due (under the lock)."""
+        return IDLE_WAIT_S if not self._queue else max(0.0, self._queue[0][0] - time.monotonic())
 
     def _from_master(self, fd: int, data: bytes) -> None:
         with self._lock:

@@ -553,7 +553,3 @@ class LoopReaches:
             if self.holding.get(m) != rounded:
                 self.holding[m] = rounded
                 self.world.hold(m, rounded)
-
-    def release_all(self) -> None:
-        """Give every held joint back (the world stops)."""
-        self._send_holds({})

@@ -394,6 +394,12 @@ class World:
         return what + (": " + "; ".join(details) if details else "")
 
     @property
+    def go_at(self) -> float | None:
+        """The CLOCK_MONOTONIC instant every module started cycling at (None before
+        :meth:`start`): a trace record's time minus it, over the period, is its world cycle."""
+        return self._go_at
+
+    @property
     def cycle(self) -> int:
         """The world cycle: wall time since ``go`` over the cycle period."""
         if self._go_at is None:

@@ -490,14 +490,6 @@ class Reach:
         out: np.ndarray = np.linalg.solve(a, b)
         return out
 
-    def world_errors(self) -> tuple[float, float]:
-        """Face distance (m) and attitude error (deg) as the world measures them."""
-        a, ac = self.chain.asking
-        b, bc = self.chain.target
-        pa, _ = self.world.connector_pose(a, ac)
-        pb, _ = self.world.connector_pose(b, bc)
-        return math.dist(pa, pb), self.world.attitude_error_deg(a, ac, b, bc)
-
     def snapshot(self, cycle: int) -> Contact:
         a, ac = self.chain.asking
         b, bc = self.chain.target

@@ -194,7 +194,7 @@ class PhysicsSensors:
 
     # -- infrared --
 
-    def _poses(self) -> tuple[np.ndarray, np.ndarray]:
+    def connector_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """Face centres and outward normals of every connector of every module, in world
         coordinates: two arrays (modules, connectors, 3)."""
         cid = self.world.client
@@ -217,7 +217,7 @@ class PhysicsSensors:
         return np.array(pos).reshape(n, k, 3)[:, slots] + turned[:, :, 0], turned[:, :, 1]
 
     def _infrared(self, modules: Sequence[int], out: dict[int, Readings]) -> None:
-        faces, normals = self._poses()
+        faces, normals = self.connector_poses()
         k = faces.shape[1]
         targets, target_n = faces.reshape(-1, 3), normals.reshape(-1, 3)
         row_module, row_conn, other = self._row_layout(modules, len(targets), k)

@@ -97,7 +97,10 @@ class Hop(NamedTuple):
 class Decoder:
     """Turns capture records into :class:`Hop` s (see the module's docs)."""
 
-    def __init__(self, programs: Sequence[CompiledProgram], profile: Profile | None = None) -> None:
+    def __init__(
+        self, programs: Sequence[CompiledProgram], profile: Profile | None = None, *, memo: bool = True
+    ) -> None:
+        """``memo=False`` decodes every frame anew: slower, the same hops (what the memo is checked against)."""
         if not programs:
             raise ValueError("Decoder: no program to name the hormones")
         self.profile = profile or programs[0].profile
@@ -117,6 +120,7 @@ class Decoder:
         #: holds, by its key (emptied with the memo), and of any hop, by the hop time aside.
         self._rests: dict[tuple[int, bytes], str] = {}
         self._hop_rests: dict[tuple[Any, ...], str] = {}
+        self._remembering = memo
 
     def hops(self, records: Iterable[Record]) -> Iterator[Hop]:
         return map(self._record, records)
@@ -149,7 +153,7 @@ class Decoder:
     def _memo_key(self, rec: Record) -> tuple[int, bytes] | None:
         """(arbitration id, data) of a whole frame in one CAN frame (a hormone, a beacon, a
         Hello: what the memo keeps), or None."""
-        if isinstance(rec, SerialRecord) or not rec.is_extended_id:
+        if not self._remembering or isinstance(rec, SerialRecord) or not rec.is_extended_id:
             return None
         can_id = rec.arbitration_id
         if (can_id >> 25) & 3 != SINGLE or not 0 <= can_id < 1 << 29 or can_id == MANAGEMENT_ID:
@@ -254,6 +258,8 @@ class Decoder:
     ) -> Hop:
         """The hop of ``payload`` from ``end``: as remembered in ``memo`` under ``key``, or
         decoded and remembered (a Hello is always decoded: it may change its end's codec)."""
+        if not self._remembering:
+            return self._hop(at, end, payload, note)
         fields = memo.get(key)
         if fields is not None:
             return Hop._make((at, *fields))

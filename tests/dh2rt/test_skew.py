@@ -118,7 +118,7 @@ def test_advance_falls_back_to_steps_when_the_world_may_change(legs_to_snake: Co
     for _ in range(300):
         stepped.step()
     skewed.advance(300)
-    assert skewed._skew_plan is None  # never planned: every cycle was a plain step
+    assert skewed.skew_plan is None  # never planned: every cycle was a plain step
     assert state(skewed) == state(stepped) and skewed.log == stepped.log
     assert any("docked" in line for line in skewed.log)
 
@@ -133,7 +133,7 @@ def test_advance_keeps_scheduled_actions_on_their_cycle(caterpillar: CompiledPro
         stepped.step()
     skewed.advance(80)
     assert state(skewed) == state(stepped)
-    assert skewed._skew_plan is not None  # windows before and after the cut
+    assert skewed.skew_plan is not None  # windows before and after the cut
 
 
 def test_recording_robot_steps_every_cycle(caterpillar: CompiledProgram) -> None:
@@ -141,7 +141,7 @@ def test_recording_robot_steps_every_cycle(caterpillar: CompiledProgram) -> None
     robot.skew_block = 2
     robot.advance(20)
     assert sorted({r.cycle for r in robot.records}) == list(range(20))
-    assert robot._skew_plan is None
+    assert robot.skew_plan is None
 
 
 def test_plan_rejects_nonsense() -> None:

@@ -36,11 +36,12 @@ def test_fault_watch_sees_a_native_that_raises() -> None:
         _robot().run(8)
     assert len(watch.faults) == 4  # 2 modules, 2 periods each
     assert all("receptor r1: the native failed" in m for m in watch.messages)
-    before = Engine._fault
-    assert before is not None
-    with FaultWatch():
-        pass
-    assert Engine._fault is before  # restored
+    with FaultWatch() as outer:
+        with FaultWatch() as ended:
+            pass
+        _robot().run(8)
+    # restored: a watch that ended sees no more faults, and the one around it sees them all
+    assert ended.faults == [] and len(outer.faults) == 4
 
 
 @pytest.mark.expect_faults

@@ -248,9 +248,8 @@ def test_latency_timer_sets_this_ports_reply_timeout(emu: ServoEmulator) -> None
     import dynamixel_sdk.port_handler as sdk_port
 
     with DynamixelDriver(emu.port_path, latency_timer_ms=LATENCY_MS) as drv:
-        port = drv._port
-        port.setPacketTimeout(11)
-        assert port.packet_timeout == pytest.approx(port.tx_time_per_byte * 11 + 2 * LATENCY_MS + 2)
+        ms_per_byte = 1000.0 / drv.baudrate * 10  # the SDK's: 10 bits a byte on the wire
+        assert drv.reply_timeout_ms(11) == pytest.approx(ms_per_byte * 11 + 2 * LATENCY_MS + 2)
         assert drv.read_positions()
     assert sdk_port.LATENCY_TIMER == 16  # the process-wide default is untouched
 
@@ -273,7 +272,7 @@ def test_a_late_reply_is_not_taken_as_the_answer_to_the_next_request(emu: ServoE
         health = drv.health()
         assert health.faults == (), health.faults
         assert drv.models == [dxt.MODEL_XM430_W350] * 2
-        assert drv._ph.stale == 2  # both servos' late statuses, skipped
+        assert drv.stale_replies == 2  # both servos' late statuses, skipped
         dof1, dof2 = drv.read_positions()
         assert abs(dof1 - 20.0) <= dxt.DEG_PER_TICK and abs(dof2 + 10.0) <= dxt.DEG_PER_TICK
 

@@ -113,12 +113,12 @@ class Robot:
         for host in reversed(self.hosts):
             if host is not None and not host.stop_event.is_set():
                 host.runtime.step()
-                host._on_cycle(host.runtime)
+                host.end_cycle(host.runtime)
         if cable is not None and not cable.flasher.done:
             cable.step(self.clock.t)
         for host in self.hosts:
             if host is not None:
-                host._flush()
+                host.flush()
 
     def run(self, cycles: int, cable: FlashCable | None = None) -> None:
         for _ in range(cycles):

@@ -174,12 +174,12 @@ def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
 #: (its signal handlers are in place by then).
 STOP_AFTER_30_CYCLES = (
     "import firmware.main_loop as mp\n"
-    "on_cycle = mp.ModuleHost._on_cycle\n"
+    "end_cycle = mp.ModuleHost.end_cycle\n"
     "def counted(host, rt):\n"
-    "    on_cycle(host, rt)\n"
+    "    end_cycle(host, rt)\n"
     "    if rt.cycle == 30:\n"
     "        os.kill(os.getpid(), signal.SIGTERM)\n"
-    "mp.ModuleHost._on_cycle = counted\n"
+    "mp.ModuleHost.end_cycle = counted\n"
 )
 
 

@@ -45,16 +45,13 @@ def serve(cfg: dict[str, Any], commands: list[tuple[int, Command]] = ()) -> list
     reports: list[dict[str, Any]] = []
     q: queue.Queue[Command] = queue.Queue()
     q.put(Go())
-    host = ModuleHost(ModuleConfig.from_json(cfg), q, lambda rep: reports.append(report_to_json(rep)))
     pending = sorted(commands, key=lambda c: c[0])
-    hook = host._on_cycle
 
     def on_cycle(rt: Any) -> None:
         while pending and rt.cycle >= pending[0][0]:
             q.put(pending.pop(0)[1])
-        hook(rt)
 
-    host._on_cycle = on_cycle  # type: ignore[method-assign]
+    host = ModuleHost(ModuleConfig.from_json(cfg), q, lambda rep: reports.append(report_to_json(rep)), on_cycle)
     try:
         assert host.serve() == 0
     finally:
@@ -150,19 +147,17 @@ def test_a_servo_that_stops_answering_is_a_sensor_fault_not_a_crash() -> None:
         reports: list[dict[str, Any]] = []
         q: queue.Queue[Command] = queue.Queue()
         q.put(Go())
-        host = ModuleHost(
-            ModuleConfig.from_json(config(servo_port=emulator.port_path, cycles=40)),
-            q,
-            lambda rep: reports.append(report_to_json(rep)),
-        )
-        hook = host._on_cycle
 
         def on_cycle(rt: Any) -> None:
             if rt.cycle == stop_at:
                 emulator.set_fault(2, Fault.NO_REPLY)
-            hook(rt)
 
-        host._on_cycle = on_cycle  # type: ignore[method-assign]
+        host = ModuleHost(
+            ModuleConfig.from_json(config(servo_port=emulator.port_path, cycles=40)),
+            q,
+            lambda rep: reports.append(report_to_json(rep)),
+            on_cycle,
+        )
         try:
             assert host.serve() == 0
         finally:

@@ -90,7 +90,7 @@ def rollout(request: pytest.FixtureRequest) -> Run:
         result = flash_through_cable(world, 0, pack(new.image, 2, world.signer))
         run_until_confirmed(world)
         statuses = [dict(v.status) for v in world.views]
-        go_at = world._go_at
+        go_at = world.go_at
         assert go_at is not None
     finally:
         world.stop()

@@ -3,7 +3,7 @@ a hardware map naming each module's servo port, UARTs and CAN adapter, and the v
 PyBullet stand-in (`--record`, `--plot`).
 
 There is no USB-CAN adapter and no SocketCAN here: the slcan path runs against ptys that
-speak the adapters' protocol (hil.slcan_emulator) with python-can's own slcan driver in every
+speak the adapters' protocol (tests/hil/slcan_emulator.py) with python-can's own slcan driver in every
 module, and the test on a real adapter skips with the reason."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from hil.link_emulator import LinkEmulator
 from hil.pace import PACE
 from hil.servo_emulator import ServoEmulator
-from hil.slcan_emulator import SlcanBusEmulator
+from tests.hil.slcan_emulator import SlcanBusEmulator
 
 ROOT = Path(__file__).resolve().parents[2]
 

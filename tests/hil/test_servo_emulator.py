@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 import time
 from collections.abc import Iterator
 
@@ -13,7 +15,7 @@ from dynamixel_sdk import GroupSyncRead, GroupSyncWrite, PacketHandler, PortHand
 from dh2rt.errors import EmulatorError
 from dh2rt.testing import FakeClock
 from drivers import dxl_table as dxt
-from drivers.dynamixel import _port_handler
+from drivers.dynamixel import port_handler
 from drivers.recording import RecordingDriver
 from hil.dxl_protocol import (
     BROADCAST_ID,
@@ -58,7 +60,7 @@ def sdk() -> Iterator[tuple[ServoEmulator, PortHandler, PacketHandler]]:
         # the SDK's PortHandler as the driver makes it: replies awaited in select, a 250 ms
         # latency timer (an emulator thread's reply can come hundreds of ms late on a loaded
         # machine; these tests are about what the replies say)
-        port = _port_handler(dynamixel_sdk, emu.port_path, 250.0)
+        port = port_handler(dynamixel_sdk, emu.port_path, 250.0)
         assert port.openPort() and port.setBaudRate(1_000_000)
         try:
             yield emu, port, PacketHandler(2.0)
@@ -291,10 +293,22 @@ def test_emulator_for_a_module_driver_over_the_sdk() -> None:
             port.closePort()
 
 
+def open_fds() -> set[int]:
+    """This process's open file descriptors (not the one that listed them, closed by then)."""
+    fds = set()
+    for name in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            os.fstat(int(name))
+            fds.add(int(name))
+    return fds
+
+
 def test_stop_ends_the_thread_and_closes_every_fd() -> None:
+    fds_before, threads_before = open_fds(), set(threading.enumerate())
     emu = ServoEmulator((1,)).start()
-    fds = (emu._master, emu._slave, emu._wake_r, emu._wake_w)
-    thread = emu._thread
+    fds = open_fds() - fds_before
+    assert len(fds) == 4  # the pty's two ends and the wake-up pipe's two
+    (thread,) = set(threading.enumerate()) - threads_before
     emu.stop()
     emu.stop()  # idempotent
     assert thread is not None and not thread.is_alive()

@@ -17,7 +17,7 @@ import pytest
 from dh2rt.docking import End
 from dh2rt.profile import CONRO
 from sim.conro import DEFAULT_MODEL
-from sim.reach import ROT_WEIGHT_M, STANDOFF_M, Chain, _rz, mated_turn, plan
+from sim.reach import ROT_WEIGHT_M, STANDOFF_M, Chain, mated_turn, plan
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 #: Three tail modules in a row, 0 the tail's end: each one's front docked to the next's back.
@@ -26,6 +26,14 @@ LINKS = {(0, FRONT): (1, BACK), (1, BACK): (0, FRONT), (1, FRONT): (2, BACK), (2
 
 def peer_of(end: End) -> End | None:
     return LINKS.get(end)
+
+
+def turn_about_z(a: float) -> np.ndarray:
+    """A homogeneous transform (4 x 4): a turn of ``a`` radians about z."""
+    c, s = math.cos(a), math.sin(a)
+    t = np.eye(4)
+    t[0, 0], t[0, 1], t[1, 0], t[1, 1] = c, -s, s, c
+    return t
 
 
 def creep_chain(behind_m: float, aside_m: float, turned_deg: float, *, free_distance: bool) -> Chain:
@@ -37,7 +45,7 @@ def creep_chain(behind_m: float, aside_m: float, turned_deg: float, *, free_dist
     a, b = model.connector(BACK), model.connector(FRONT)
     normal = np.array(a.normal)
     side = np.array([-normal[1], normal[0], 0.0])
-    turn = _rz(mated_turn(model, BACK, FRONT) + math.radians(turned_deg))
+    turn = turn_about_z(mated_turn(model, BACK, FRONT) + math.radians(turned_deg))
     face = np.array(a.position) + behind_m * normal + aside_m * side
     foot = turn.copy()
     foot[:3, 3] = face - turn[:3, :3] @ np.array(b.position)

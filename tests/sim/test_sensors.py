@@ -128,7 +128,7 @@ def test_a_physics_run_fills_the_sensors_a_program_declares(watcher: CompiledPro
         run.run(4)
         roll = e.var("roll")
         assert isinstance(roll, int) and abs(roll - 90) <= ROLL_TOLERANCE_DEG
-        assert {n for n, _, _ in run._sensor_slots} == {"roll", "pitch", "contact", "ir_front", "pos1"}
+        assert set(run.sensors.names) == {"roll", "pitch", "contact", "ir_front", "pos1"}
     finally:
         run.close()
 
@@ -263,7 +263,7 @@ def test_sensor_geometry_matches_the_world() -> None:
     with World(parse_spec("snake:2"), seed=3) as w:
         w.set_targets(0, 35.0, -20.0)
         w.step(60)
-        faces, normals = PhysicsSensors(w, ["ir_front"])._poses()
+        faces, normals = PhysicsSensors(w, ["ir_front"]).connector_poses()
         for m in (0, 1):
             for i, c in enumerate(w.model.connectors):
                 pos, normal = w.connector_pose(m, c.index)

@@ -112,16 +112,9 @@ def tangle(programs: list[CompiledProgram], n: int, seed: int = 7) -> list[Recor
     return out
 
 
-def afresh(programs: list[CompiledProgram], records: list[Record], monkeypatch: pytest.MonkeyPatch) -> list[str]:
+def afresh(programs: list[CompiledProgram], records: list[Record]) -> list[str]:
     """Each record's line with every frame decoded anew: the decoder with its memo turned off."""
-    with monkeypatch.context() as patch:
-        patch.setattr(decode.Decoder, "_memo_key", lambda self, rec: None)
-        patch.setattr(
-            decode.Decoder,
-            "_remembered",
-            lambda self, memo, key, at, end, payload, note="": self._hop(at, end, payload, note),
-        )
-        return [hop.describe() for hop in decode.Decoder(programs).hops(records)]
+    return [hop.describe() for hop in decode.Decoder(programs, memo=False).hops(records)]
 
 
 @pytest.mark.parametrize("memo_size", [1, 7, decode.MEMO_SIZE])
@@ -134,7 +127,7 @@ def test_the_memo_changes_nothing_but_the_speed(
         compile_file(str(examples / name)) for name in ("caterpillar.dh2", "locomotion.dh2", "legs_to_snake.dh2")
     ]
     records = tangle(programs, 6000)
-    reference = afresh(programs, records, monkeypatch)
+    reference = afresh(programs, records)
     kinds = {line.split()[5] for line in reference if " ? side ?" not in line}
     assert {"hormone", "keepalive", "hello", "segment", "error", "link"} <= kinds, kinds
     # after a Hello of locomotion.dh2, the caterpillar's X(A) bytes mean its L(0)

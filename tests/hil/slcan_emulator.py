@@ -14,19 +14,19 @@ speaks, one command per line ended by ``\\r``:
   as a real adapter does not echo), in the order the emulator read them.
 
 A frame sent on a closed or listen-only channel is refused with ``\\a`` and delivered nowhere.
-``close()`` stops the thread and closes every pty.
+``close()`` stops the thread and closes every pty. Test-only (tests/hil/test_real_ports.py):
+no adapter is needed to run the slcan path of the loop.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import selectors
 import threading
 from dataclasses import dataclass, field
 
 from dh2rt.closing import Closing
-from hil.ptys import close_fd, open_raw_pty
+from hil.ptys import PtyRelay, close_fd, open_raw_pty
 
 #: slcan's bitrate commands S0..S8, in bit/s.
 BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
@@ -56,12 +56,7 @@ class SlcanBusEmulator(Closing):
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._adapters: dict[int, Adapter] = {}
-        self._sel = selectors.DefaultSelector()
-        self._wake_r, self._wake_w = os.pipe()
-        self._sel.register(self._wake_r, selectors.EVENT_READ)
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="dh2rt-slcan-bus", daemon=True)
-        self._thread.start()
+        self._ptys = PtyRelay("dh2rt-slcan-bus", self._lock, self._from_master)
 
     def add_adapter(self) -> Adapter:
         """A new adapter on the bus; open ``adapter.path`` with ``can.Bus(interface="slcan", ...)``."""
@@ -69,9 +64,7 @@ class SlcanBusEmulator(Closing):
         adapter = Adapter(master, slave, path)
         with self._lock:
             self._adapters[master] = adapter
-            self._sel.register(master, selectors.EVENT_READ)
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
+            self._ptys.watch(master)
         return adapter
 
     @property
@@ -80,41 +73,21 @@ class SlcanBusEmulator(Closing):
             return list(self._adapters.values())
 
     def close(self) -> None:
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
-        self._thread.join(5)
-        self._sel.close()
+        if not self._ptys.stop():
+            return
         for adapter in self._adapters.values():
             close_fd(adapter.master)
             close_fd(adapter.slave)
-        close_fd(self._wake_r)
-        close_fd(self._wake_w)
         self._adapters.clear()
 
     # -- the bus thread -------------------------------------------------------------------
 
-    def _run(self) -> None:
-        while True:
-            with self._lock:
-                if self._closed:
-                    return
-            for key, _ in self._sel.select(0.2):
-                fd = int(key.fd)
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:  # EIO: no module has the port open right now
-                    data = b""
-                if fd == self._wake_r or not data:
-                    continue
-                with self._lock:
-                    adapter = self._adapters.get(fd)
-                    if adapter is not None:
-                        adapter.pending += data
-                        self._lines(adapter)
+    def _from_master(self, fd: int, data: bytes) -> None:
+        with self._lock:
+            adapter = self._adapters.get(fd)
+            if adapter is not None:
+                adapter.pending += data
+                self._lines(adapter)
 
     def _lines(self, adapter: Adapter) -> None:
         while (end := adapter.pending.find(b"\r")) >= 0:
