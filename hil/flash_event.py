@@ -19,7 +19,7 @@ from typing import IO
 from dh2rt.errors import EventError, SignedImageError, TopologyError
 from dh2rt.flash.flasher import Progress
 from dh2rt.flash.pacing import link_pacing
-from dh2rt.flash.reports import ModuleReport, describe_path
+from dh2rt.flash.reports import RANK, ModuleReport, describe_path
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.topology import Topology
 from dh2rt.transport.base import PortEnd, Transport
@@ -31,6 +31,35 @@ from hil.world import World
 
 #: Seconds a rollout may take before the flasher gives up.
 FLASH_TIMEOUT = 120.0
+
+
+#: Outcomes of a module that runs the image.
+_RUNS_IT = frozenset({"committed", "current", "confirmed"})
+
+
+@dataclass(frozen=True, slots=True)
+class ModuleRow:
+    """One module of the robot in a rollout report: its world name, its path from the cable
+    (None: never heard of), the outcome, the version and program SHA-256 it runs, and the
+    verdict and reason of a refusal."""
+
+    module: str
+    path: str | None
+    outcome: str
+    version: object
+    sha256: object
+    verdict: str
+    reason: str
+
+    def describe(self) -> str:
+        why = f" ({self.verdict}: {self.reason})" if self.verdict or self.reason else ""
+        sha = f", sha256 {str(self.sha256)[:16]}" if self.sha256 else ""
+        where = self.path or "(no path)"
+        return f"{where}: {self.outcome}, runs version {self.version}{sha}{why}  [{self.module}]"
+
+    def to_json(self) -> dict[str, object]:
+        return {"path": self.path, "module": self.module, "outcome": self.outcome, "version": self.version,
+                "sha256": self.sha256, "verdict": self.verdict, "reason": self.reason}  # fmt: skip
 
 
 @dataclass(slots=True)
@@ -132,7 +161,8 @@ class FlashEvents:
         transport.attach(1, PortEnd(path))
         pacing, segment, _ = link_pacing("serial", world.cycle_period, 115200, 0)
         ev._cable = (link_id, transport)
-        return FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment)
+        return FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment,
+                          expect=world.topology.size, connector_name=world.profile.connector_name)  # fmt: skip
 
     def _bus_cable(self, ev: FlashEvent) -> FlashCable:
         """On a bus the cable is a node of its own: its connector-local channel touches M's
@@ -152,12 +182,14 @@ class FlashEvents:
         ev._cable = (mate, transport)
         ev._bus = bus_cable
         return FlashCable(ev.image, transport, period=world.cycle_period, pacing=pacing, segment_size=segment,
-                          connector=mate, on_step=bus_cable.step)  # fmt: skip
+                          connector=mate, on_step=bus_cable.step, expect=world.topology.size,
+                          connector_name=world.profile.connector_name)  # fmt: skip
 
     def _finish(self, ev: FlashEvent) -> None:
         assert ev._flash is not None and ev._cable is not None
         ev.result = ev._flash.result()
         link_or_mate, transport = ev._cable
+        self.world.count_cable(transport.counters)  # the flasher's frames are the run's too
         if ev._bus is not None:
             with ev._flash.lock:
                 ev._bus.close()  # the link released on the bus before the contact breaks
@@ -166,7 +198,9 @@ class FlashEvents:
         else:
             transport.close()
             self.world.unplug_cable(ev.module, ev.connector, link_or_mate)
-        self.world.note(f"{ev.text}: {'every module committed' if ev.result.succeeded else 'not committed'}")
+        heard = len(ev.result.modules)
+        self.world.note(f"{ev.text}: the flasher is done: {heard} of {self.world.topology.size} module(s) heard of, "
+                        f"{'every one committed' if ev.result.succeeded else 'not every one committed'}")  # fmt: skip
 
     def close(self) -> None:
         """The run ends: flashers still running are stopped and their cables pulled out."""
@@ -177,32 +211,67 @@ class FlashEvents:
                     self._finish(ev)
 
     def report(self) -> list[dict[str, object]]:
-        """Every flash event's rollout report (for --json)."""
+        """Every flash event's rollout report (for --json): a row for every module of the robot."""
         out: list[dict[str, object]] = []
         for ev in self.events:
             r = ev.result
             out.append(
                 {
                     "event": ev.text,
-                    "succeeded": bool(r and r.succeeded),
-                    "failure": None if r is None else r.failure,
-                    "modules": [] if r is None else [self._module(ev, m) for m in r.modules],
+                    "succeeded": self.event_succeeded(ev),
+                    "failure": None if r is None else self.failure(ev),
+                    "modules": [] if r is None else [row.to_json() for row in self.rows(ev)],
                 }
             )
         return out
 
-    def _module(self, ev: FlashEvent, m: ModuleReport) -> dict[str, object]:
-        return {
-            "path": describe_path(m.path, self.world.profile.connector_name),
-            "module": self.module_at(ev, m.path),
-            "outcome": m.outcome.name.lower(),
-            "version": m.version,
-            "verdict": m.verdict,
-            "reason": m.reason,
-        }
+    def rows(self, ev: FlashEvent) -> list[ModuleRow]:
+        """One row per module of the robot, in the world's order: its path from the cable and
+        the flasher's outcome for it (``unreachable``: the flasher never heard of it), and the
+        version and program SHA-256 it runs by its own last status."""
+        heard: dict[int, ModuleReport] = {}
+        for m in [] if ev.result is None else ev.result.modules:
+            index = self.module_index(ev, m.path)
+            old = heard.get(index) if index is not None else None
+            if index is not None and (old is None or RANK[m.outcome] > RANK[old.outcome]):
+                heard[index] = m
+        name = self.world.profile.connector_name
+        out: list[ModuleRow] = []
+        for index, view in enumerate(self.world.views):
+            program = view.program
+            got = heard.get(index)
+            version = program.get("version", got.version if got is not None else None)
+            if got is None:
+                out.append(ModuleRow(view.name, None, "unreachable", version, program.get("sha256"), "",
+                                     "the flasher never heard of it"))  # fmt: skip
+            else:
+                outcome = got.outcome.name.lower()
+                out.append(ModuleRow(view.name, describe_path(got.path, name), outcome, version, program.get("sha256"),
+                                     got.verdict, got.reason))  # fmt: skip
+        return out
 
-    def module_at(self, ev: FlashEvent, path: tuple[tuple[int, int], ...]) -> str | None:
-        """The world's name of the module a path names (the world knows; the robot does not)."""
+    def event_succeeded(self, ev: FlashEvent) -> bool:
+        """The flasher succeeded and every module of the robot runs the image."""
+        r = ev.result
+        if r is None or not r.succeeded:
+            return False
+        return all(row.outcome in _RUNS_IT for row in self.rows(ev))
+
+    def failure(self, ev: FlashEvent) -> str | None:
+        """Why not every module of the robot committed (None: every one did)."""
+        r = ev.result
+        if r is None:
+            return "never started (the run ended first)"
+        if self.event_succeeded(ev):
+            return None
+        if r.failure is not None:
+            return r.failure
+        short = [row for row in self.rows(ev) if row.outcome not in _RUNS_IT]
+        named = ", ".join(f"{row.module} {row.outcome}" for row in short[:3])
+        return f"not committed: {named}" + (f" and {len(short) - 3} more" if len(short) > 3 else "")
+
+    def module_index(self, ev: FlashEvent, path: tuple[tuple[int, int], ...]) -> int | None:
+        """The world's index of the module a path names (the world knows; the robot does not)."""
         here: tuple[int, int] | None = None
         for i, (sent, received) in enumerate(path):
             if i == 0:
@@ -213,24 +282,26 @@ class FlashEvents:
             if peer is None or peer[1] != received:
                 return None
             here = peer
-        return None if here is None else self.world.topology.names[here[0]]
+        return None if here is None else here[0]
+
+    def module_at(self, ev: FlashEvent, path: tuple[tuple[int, int], ...]) -> str | None:
+        """The world's name of the module a path names."""
+        index = self.module_index(ev, path)
+        return None if index is None else self.world.topology.names[index]
 
     def lines(self) -> list[str]:
-        """The rollout report, one line per module, for the summary."""
+        """The rollout report, one line per module of the robot, for the summary."""
         out: list[str] = []
-        name = self.world.profile.connector_name
         for ev in self.events:
-            r = ev.result
-            if r is None:
+            if ev.result is None:
                 out.append(f"{ev.text}: never started (the run ended first)")
                 continue
-            head = "every module committed" if r.succeeded else f"NOT every module committed ({r.failure})"
+            ok = self.event_succeeded(ev)
+            head = "every module committed" if ok else f"NOT every module committed ({self.failure(ev)})"
             out.append(f"{ev.text}: {head}")
-            for m in r.modules:
-                who = self.module_at(ev, m.path)
-                out.append(f"  {m.describe(name)}" + (f"  [{who}]" if who else ""))
+            out.extend(f"  {row.describe()}" for row in self.rows(ev))
         return out
 
     @property
     def succeeded(self) -> bool:
-        return all(e.result is not None and e.result.succeeded for e in self.events)
+        return all(self.event_succeeded(e) for e in self.events)

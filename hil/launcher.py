@@ -471,8 +471,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     wrong = problems(world, events, clean_links=ns.frame_loss == 0 and ns.bit_error == 0)
     if failed:
         wrong.insert(0, "the world failed (see above)")
-    wrong += [f"{e.text}: not every module committed ({e.result.failure if e.result else 'never started'})"
-              for e in flashes.events if not (e.result and e.result.succeeded)]  # fmt: skip
+    wrong += [f"{e.text}: not every module committed ({flashes.failure(e)})"
+              for e in flashes.events if not flashes.event_succeeded(e)]  # fmt: skip
     _write_log(log_path, world, wrong)
     _summary(world, elapsed, out, ns.json, wrong, log_path, flashes)
     if views is not None:

@@ -183,6 +183,14 @@ class LinkEmulator(Closing):
             link.docked = False
             link.sides[0].pending.clear()
             link.sides[1].pending.clear()
+            # frames on the line when it parts are lost: counted, so that frames add up
+            kept = [item for item in self._queue if item[4] != link_id]
+            for item in self._queue:
+                if item[4] == link_id:
+                    link.stats.frames_lost += 1
+                    link.stats.bytes_discarded += len(item[3])
+            self._queue[:] = kept
+            heapq.heapify(self._queue)
 
     def set_impairments(self, link_id: int, **impairments: float) -> None:
         """Change what ``link_id`` does to its bytes from now on."""
@@ -229,10 +237,12 @@ class LinkEmulator(Closing):
             side = link.sides[side_index]
             if not link.docked:
                 link.stats.bytes_discarded += len(data)
-                if self.tap is not None:  # sent into an undocked link: the capture shows it lost
-                    side.pending += data
-                    for frame in self._frames(side.pending):
-                        self._tapped(link, side_index, frame, lost=True)
+                side.pending += data  # sent into an undocked link: lost (and the capture shows it so)
+                for frame in self._frames(side.pending):
+                    if frame[-1] == 0 and len(frame) > 1:
+                        link.stats.frames += 1
+                        link.stats.frames_lost += 1
+                    self._tapped(link, side_index, frame, lost=True)
                 return
             target = link.sides[1 - side_index].master
             side.pending += data
@@ -316,8 +326,9 @@ class LinkEmulator(Closing):
                 link = self._links.get(link_id)
                 if link is None:
                     return
-                if not link.docked:
+                if not link.docked:  # (undock() takes its frames off the queue; a race is lost all the same)
                     link.stats.bytes_discarded += len(data)
+                    link.stats.frames_lost += 1
                     continue
             try:
                 n = os.write(target, data)

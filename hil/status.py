@@ -21,6 +21,8 @@ class ModuleView:
     status: Mapping[str, Any] = field(default_factory=dict)
     frames_per_s: float = 0.0
     errors: list[str] = field(default_factory=list)
+    #: the program it last said it runs (a status without one, e.g. a new life's first, keeps it)
+    program: Mapping[str, Any] = field(default_factory=dict)
     _last: tuple[float, int] | None = None
 
     @property
@@ -44,6 +46,8 @@ class ModuleView:
                 self.frames_per_s = (frames - self._last[1]) / (now - self._last[0])
             self._last = (now, frames)
         self.status = status
+        if status.get("program"):
+            self.program = status["program"]
 
 
 def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
@@ -69,8 +73,8 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 "last_fault": s.get("last_fault"),
                 "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),
                 # the program it runs, booted from its flash (a rollout may have switched it)
-                "version": s.get("program", {}).get("version"),
-                "sha256": s.get("program", {}).get("sha256"),
+                "version": v.program.get("version"),
+                "sha256": v.program.get("sha256"),
             }
         )
     return out

@@ -66,7 +66,7 @@ from dh2rt.program import CompiledProgram
 from dh2rt.robot import PhaseDraw
 from dh2rt.runtime import CYCLE_PERIOD_S
 from dh2rt.topology import Topology
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
@@ -267,6 +267,10 @@ class World:
                 raise
             self.signer = None
         self.views = [ModuleView(m, topology.names[m]) for m in range(topology.size)]
+        #: frame counters of each module's earlier lives (a restarted module counts from 0)
+        self.earlier_lives: list[dict[str, int]] = [{} for _ in range(topology.size)]
+        #: frame counters of the programming cables' transports (the flasher's frames)
+        self.cable_frames: dict[str, int] = {}
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
         self.handles: list[ModuleHandle | None] = [None] * topology.size
@@ -353,6 +357,12 @@ class World:
                 config, self.reports, thread=self.threads, workdir=self.workdir, flash_image=self.signed_image
             )
         v = self.views[module]
+        if self.lives[module] > 1:  # a new life counts from 0: keep what the last one counted
+            earlier = self.earlier_lives[module]
+            for key, n in v.status.get("counters", {}).items():
+                if key in FRAME_COUNTERS:
+                    earlier[key] = earlier.get(key, 0) + int(n)
+            v.status = {}
         v.alive, v.ready, v.finished, v.failed, v.killed = True, False, False, False, False
 
     def start(self, ready_timeout: float = 30.0) -> None:
@@ -646,6 +656,12 @@ class World:
         self._send(module, Attach(connector, PortEnd(link.paths[0])))
         return link.link_id, link.paths[1]
 
+    def count_cable(self, counters: LinkCounters) -> None:
+        """Add a programming cable's transport counters (at its end) to the run's frames."""
+        for key in ("sent", "received", "corrupted", "dropped"):
+            name = f"frames_{key}"
+            self.cable_frames[name] = self.cable_frames.get(name, 0) + int(getattr(counters, key))
+
     def unplug_cable(self, module: int, connector: int, link_id: int) -> None:
         """The cable is pulled out: the module's connector is free again."""
         self._send(module, Detach(connector))
@@ -742,10 +758,12 @@ class World:
         on a serial link by the emulator. ``unaccounted`` is what none of those counted (0 on a
         run whose modules stopped together and read their neighbours' last frames)."""
         totals = {"sent": 0, "received": 0, "corrupted": 0, "dropped": 0, "lost_on_link": 0}
-        for v in self.views:
+        for v, earlier in zip(self.views, self.earlier_lives, strict=True):
             c = v.status.get("counters", {})
             for key in ("sent", "received", "corrupted", "dropped"):
-                totals[key] += int(c.get(f"frames_{key}", 0))
+                totals[key] += int(c.get(f"frames_{key}", 0)) + earlier.get(f"frames_{key}", 0)
+        for key in ("sent", "received", "corrupted", "dropped"):
+            totals[key] += self.cable_frames.get(f"frames_{key}", 0)
         totals["lost_on_link"] = self._frames_lost_on_link()
         totals["unaccounted"] = totals["sent"] - sum(
             totals[k] for k in ("received", "corrupted", "dropped", "lost_on_link")
@@ -756,7 +774,8 @@ class World:
         if self.emulator is None:
             return 0
         if self._lost_on_link is None:  # read once the links are closed: kept from stop()
-            return sum(self.emulator.stats(i).frames_lost for i in self.link_map.links)
+            # every link the run had: cut ones and cables' too (what they lost stays lost)
+            return sum(self.emulator.stats(i).frames_lost for i in list(self.emulator.links))
         return self._lost_on_link
 
     def sorted_records(self) -> list[dict[str, Any]]:
@@ -796,6 +815,10 @@ class World:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+#: The status counters the frame accounting adds up.
+FRAME_COUNTERS = frozenset({"frames_sent", "frames_received", "frames_corrupted", "frames_dropped"})
 
 
 def module_pids(world: World) -> Sequence[int]:

@@ -68,7 +68,7 @@ from dh2rt.flash.pacing import Pacing, link_pacing
 from dh2rt.flash.reports import COMMITTED, ModuleReport, describe_path
 from dh2rt.profile import CONRO
 from dh2rt.runtime import ms_to_s
-from dh2rt.signed_image import SignedImage, describe_key_id
+from dh2rt.signed_image import SignedImage, Verdict, describe_key_id, examine, read_public_key
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.transport.base import PortEnd, Transport
 from dh2rt.transport.registry import open_transport
@@ -89,7 +89,8 @@ EXIT_CODES = """\
 exit codes:
   0    every module committed the image (confirmed it, with --confirm)
   1    the rollout ran but a module did not commit, it timed out, or no module answered
-  2    bad input: an image that cannot be read or is no signed image, a bad option,
+  2    bad input: an image that cannot be read, is unsigned or is no signed image, one
+       that does not verify against --trust (tampered, wrong key), a bad option,
        a port, bus or contact channel that cannot be opened
   130  interrupted (Ctrl-C): the report so far is printed
 """
@@ -118,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_cycle_argument(p, "the robot's cycle period")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds before the flasher gives up (default: 120)")
     p.add_argument("--confirm", action="store_true", help="wait until every module confirmed the image (trial over)")
+    p.add_argument(
+        "--trust",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PUBKEY",
+        help="a public key the robot trusts (repeatable): the image must verify against one before a byte is sent",
+    )
     p.add_argument("--json", action="store_true", help="the rollout report as one JSON object")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")
     return p
@@ -140,9 +149,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
     try:
         _check_options(ns)
-        image = read_image(ns.image)
+        image = read_image(ns.image, trust=[read_public_key(k) for k in ns.trust])
         pacing, segment = cable_pacing(ns, image)
-    except ValueError as exc:  # SignedImageError is one
+    except (ValueError, OSError) as exc:  # SignedImageError and KeyFileError are ValueErrors; a key file unread
         err(str(exc))
         return EXIT_USAGE
     bus: BusCable | None = None
@@ -198,8 +207,10 @@ def _check_options(ns: argparse.Namespace) -> None:
             raise ValueError(f"--bitrate {ns.bitrate}: must be a positive number of bits per second")
 
 
-def read_image(path: Path) -> Image:
-    """The image at ``path``; ValueError (SignedImageError) naming the file and what is wrong."""
+def read_image(path: Path, trust: Sequence[bytes] = ()) -> Image:
+    """The image at ``path``; ValueError (SignedImageError) naming the file and what is wrong.
+    An unsigned image is refused here, before a byte is sent (every module would refuse it);
+    with ``trust`` the signature must verify against one of those keys (tampered, wrong key)."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -209,6 +220,15 @@ def read_image(path: Path) -> Image:
         program = signed.program()  # the body must hold the program the header states
     except SignedImageError as exc:
         raise SignedImageError(f"{path}: {exc}") from None
+    if signed.signature is None:
+        raise SignedImageError(
+            f"{path}: unsigned image (key id {describe_key_id(signed.key_id)}): modules take only signed ones; "
+            "sign it: dh2rt image PROGRAM --sign KEY --version N -o IMAGE"
+        )
+    if trust:
+        exam = examine(data, trust)
+        if exam.verdict is not Verdict.OK:
+            raise SignedImageError(f"{path}: {exam.verdict}: {exam.reason}")
     return Image(path, data, signed, hashlib.sha256(program).hexdigest())
 
 

@@ -8,6 +8,7 @@ the cable reports the robot staged, and collects every module's report; ``dh2rt 
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from dh2rt.flash.node import Flood, Node, Port
@@ -62,7 +63,12 @@ class Flasher(Node):
     ``period``: the robot's cycle period in seconds (the commit margin is counted in
     cycles). ``settle_ticks``: after the switch instant, how long to wait for modules still
     staged or silent. ``confirm``: wait for CONFIRMED reports too. ``latency``: as for
-    :class:`Rollout` (unused here; the first module re-anchors the instant)."""
+    :class:`Rollout` (unused here; the first module re-anchors the instant). ``expect``: how
+    many modules the robot has, when the caller knows (the rollout is not settled, and did
+    not succeed, until that many reported). ``quiet_ticks``: how long no report may change
+    before the settled reports are taken as the whole robot (None: long enough for a report
+    re-sent after its longest back-off to arrive). ``connector_name``: how connectors are
+    named in :attr:`failure` (the profile's names: one name for a module in every output)."""
 
     def __init__(
         self,
@@ -74,8 +80,10 @@ class Flasher(Node):
         timing: Timing | None = None,
         segment_size: int = 128,
         settle_ticks: int = 250,
-        quiet_ticks: int = 5,
+        quiet_ticks: int | None = None,
         confirm: bool = False,
+        expect: int | None = None,
+        connector_name: Callable[[int], str] = str,
     ) -> None:
         super().__init__([connector], pacing, timing or Timing(), segment_size=segment_size, cut_through=True)
         if period <= 0:
@@ -86,7 +94,12 @@ class Flasher(Node):
         self.period = period
         self.connector = connector
         self.settle_ticks = settle_ticks
-        self.quiet_ticks = quiet_ticks
+        # with no module count to wait for, a report lost on a hop (re-sent after rto, 2, 4, 8 x
+        # rto ticks) must not be taken for a module that is not there: wait out the longest
+        quiet = 5 if expect is not None else (self.timing.rto_ticks << 3) + 1
+        self.quiet_ticks = quiet_ticks if quiet_ticks is not None else quiet
+        self.expect = expect
+        self.connector_name = connector_name
         self.confirm = confirm
         self.phase = FlasherPhase.SENDING
         self._store = Store(info, image, released=True)
@@ -108,7 +121,8 @@ class Flasher(Node):
     def succeeded(self) -> bool:
         """Done, and every module heard of runs the image (confirmed, with ``confirm``)."""
         wanted = {Outcome.CONFIRMED, Outcome.CURRENT} if self.confirm else COMMITTED
-        return self.done and bool(self._modules) and all(m.outcome in wanted for m in self._modules.values())
+        everyone = len(self._modules) >= (self.expect or 1)
+        return self.done and everyone and all(m.outcome in wanted for m in self._modules.values())
 
     @property
     def failure(self) -> str | None:
@@ -197,7 +211,8 @@ class Flasher(Node):
             return True
         final = _FINAL - ({Outcome.COMMITTED} if self.confirm else set())
         quiet = self._tick - self._heard_at >= self.quiet_ticks
-        return quiet and all(m.outcome in final for m in self._modules.values())
+        everyone = self.expect is None or len(self._modules) >= self.expect
+        return quiet and everyone and all(m.outcome in final for m in self._modules.values())
 
     def _fail(self, why: str) -> None:
         self._failure = why
@@ -279,6 +294,7 @@ class Flasher(Node):
         refusals = [m for m in self.report() if m.outcome in _BLOCKING]
         if refusals:
             first = refusals[0]
-            self._fail(f"not committed: {describe_path(first.path)} {first.outcome.name.lower()} the image")
+            where = describe_path(first.path, self.connector_name)
+            self._fail(f"not committed: {where} {first.outcome.name.lower()} the image")
         elif outcome in (Outcome.STAGED, Outcome.CURRENT, Outcome.COMMITTED, Outcome.CONFIRMED):
             self._commit()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from dh2rt.errors import SignedImageError
@@ -69,6 +69,10 @@ class Role(enum.Enum):
 
 #: Roles in which the module holds the image's bytes and passes them on.
 _HOLDING = frozenset({Role.RECEIVING, Role.STAGING, Role.STAGED, Role.CURRENT, Role.SWITCHED})
+#: Roles in which the module holds an image it does not run yet (a switched image is the
+#: running program: an offer is judged against ``running`` then, so that an image of the same
+#: version reaches the flash and is judged there, tampered or not).
+_INCOMING = frozenset({Role.RECEIVING, Role.STAGING, Role.STAGED})
 #: Roles that report themselves once every neighbour offered the image has, and as what.
 _RESOLVED_OUTCOME = {Role.STAGED: Outcome.STAGED, Role.CURRENT: Outcome.CURRENT, Role.SWITCHED: Outcome.COMMITTED}
 
@@ -116,7 +120,8 @@ class Rollout(Node):
     ``reverted``: ids of images reverted here (never taken again). ``latency``: the
     transit time of a COMMIT frame on this module's links, in seconds (its bytes at the
     link's rate), subtracted from the commit's remaining time. ``cut_through``: forward
-    segments while later ones arrive (False: store and forward)."""
+    segments while later ones arrive (False: store and forward). ``connector_name``: how
+    the reasons it reports name connectors."""
 
     def __init__(
         self,
@@ -131,10 +136,13 @@ class Rollout(Node):
         reverted: Iterable[bytes] = (),
         latency: float = 0.0,
         cut_through: bool = True,
+        connector_name: Callable[[int], str] = str,
     ) -> None:
         super().__init__(connectors, pacing, timing or Timing(), segment_size=segment_size, cut_through=cut_through)
         self.running = running
         self.latency = latency
+        #: how the reasons it reports name connectors (the profile's names, as every output does)
+        self.connector_name = connector_name
         self._previous: Program | None = None
         self._switched_at: int | None = None
         self._on_trial = False
@@ -211,7 +219,8 @@ class Rollout(Node):
         self._link(port, remote)
         port.version, port.digest = version, digest
         job = self._job
-        if job is not None and job.role is Role.STAGED and job.program is not None and job.program.digest == digest:
+        staged = job.program if job is not None and job.role is Role.STAGED else None
+        if job is not None and staged is not None and staged.runs(version, digest):
             job.running_offer = True  # the neighbour switched: so do we
         self._offer_job(port)
         self._offer_running(port)
@@ -407,7 +416,7 @@ class Rollout(Node):
             return DeclineReason.NEWER
         if self._on_trial:
             return DeclineReason.BUSY
-        if job is not None and job.role in _HOLDING and job.role is not Role.CURRENT:
+        if job is not None and job.role in _INCOMING:
             return DeclineReason.NEWER if info.version <= job.info.version else None
         return None
 
@@ -480,7 +489,7 @@ class Rollout(Node):
 
     def _holds_newer(self, info: ImageInfo) -> bool:
         job = self._job
-        return job is not None and job.role in _HOLDING and job.info.image != info.image
+        return job is not None and job.role in _INCOMING and job.info.image != info.image
 
     def _join_current(self, port: Port, info: ImageInfo, name: Path) -> None:
         """Offered the image it runs: it takes part as a holder (offers it on, and reports
@@ -591,7 +600,8 @@ class Rollout(Node):
             job.program = Program.from_image(job.store.assemble())
         except SignedImageError:
             job.program = Program(job.info.version, b"", job.store.assemble())
-        if any(p.linked and p.digest == job.program.digest for p in self._ports.values()):
+        program = job.program
+        if any(p.linked and p.digest is not None and program.runs(p.version, p.digest) for p in self._ports.values()):
             job.running_offer = True  # a neighbour runs it already
 
     def _refuse(self, job: _Job, verdict: str, reason: str) -> None:
@@ -625,7 +635,7 @@ class Rollout(Node):
                 continue
             refusal.told.add(port.connector)
             path = (*name, (port.connector, port.remote))
-            why = f"not passed on: refused at {describe_path(name)}"
+            why = f"not passed on: refused at {describe_path(name, self.connector_name)}"
             self._report(Outcome.WITHHELD, path, len(name), refusal.tag, refusal.verdict, why, port.version or 0)
 
     def _on_cancel(self, port: Port, cancel: Cancel) -> None:

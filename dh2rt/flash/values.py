@@ -60,6 +60,13 @@ class Program:
         parsed = parse_image(data)
         return cls(parsed.version, parsed.digest, bytes(data))
 
+    def runs(self, version: int | None, digest: bytes) -> bool:
+        """Whether a neighbour whose Hello states ``version`` and ``digest`` runs this program:
+        the digest names the program, the version tells this image from the same program
+        signed again (flashing the same program at a new version must not switch a module at
+        once because its neighbours run the old one). A Hello without a version: digest only."""
+        return digest == self.digest and (version is None or version == self.version)
+
 
 @dataclass(frozen=True, slots=True)
 class Partial:

@@ -50,7 +50,8 @@ class FlashResult:
 
 
 class FlashCable:
-    """The Flasher on ``connector`` of ``transport`` (already attached), at ``period`` s."""
+    """The Flasher on ``connector`` of ``transport`` (already attached), at ``period`` s;
+    ``expect`` (the robot's module count, when known) and ``connector_name`` go to it."""
 
     def __init__(
         self,
@@ -65,6 +66,8 @@ class FlashCable:
         confirm: bool = False,
         settle_ticks: int = 250,
         on_step: Callable[[float], None] | None = None,
+        expect: int | None = None,
+        connector_name: Callable[[int], str] = str,
     ) -> None:
         self.transport = transport
         self.connector = connector
@@ -73,7 +76,7 @@ class FlashCable:
         transport.clock = clock
         self.flasher = Flasher(
             image, pacing=pacing, period=period, connector=connector, segment_size=segment_size,
-            confirm=confirm, settle_ticks=settle_ticks,
+            confirm=confirm, settle_ticks=settle_ticks, expect=expect, connector_name=connector_name,
         )  # fmt: skip
         #: called with the clock at the start of every step (a bus cable's link negotiation)
         self.on_step = on_step

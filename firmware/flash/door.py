@@ -19,6 +19,13 @@ that opened it, if one did, so it starts where an eagerly loaded host would be. 
 the host is the runtime's observer, the door's transfer handler (the transport's, registered
 once) hands it every transfer frame, and the door only forwards the module host's calls.
 
+The host's code is not loaded on the cycle's path, though: importing and compiling it (a
+module process may run without bytecode on disk) held a module past its neighbours' liveness
+bound when the first transfer frame opened it, and they dropped the link. So the door
+imports :mod:`firmware.flash.module_host` (and :mod:`dh2rt.flash` with it) in a background
+thread as the module boots, before its first cycle, and opening the host later only builds
+it. The saving left is the host's objects, not its code (``benchmarks/bench_footprint.py``).
+
 Before any of this the door checks that the module's lines can carry a rollout at all
 (:func:`dh2rt.flash.pacing.link_pacing`) and raises its ValueError if not, so a module on too
 slow a line says so at boot, not at the first offer.
@@ -26,6 +33,8 @@ slow a line says so at boot, not at the first offer.
 
 from __future__ import annotations
 
+import importlib
+import threading
 from collections import Counter
 from typing import TYPE_CHECKING
 
@@ -38,6 +47,17 @@ from firmware.flash.slots import PARTIAL_INFO, Boot, Flash
 if TYPE_CHECKING:
     from firmware.flash.module_host import OnSwitch, RolloutHost
 
+#: The host's module, imported off the cycle's path (see the module docs).
+HOST_MODULE = "firmware.flash.module_host"
+
+
+def preload_host() -> threading.Thread:
+    """Import the rollout host's code in a background thread (started; joined by nobody: an
+    import the main thread needs meanwhile waits for it on the import lock)."""
+    thread = threading.Thread(target=importlib.import_module, args=(HOST_MODULE,), name="dh2rt-rollout-preload",
+                              daemon=True)  # fmt: skip
+    thread.start()
+    return thread
 
 
 class RolloutDoor:
@@ -63,6 +83,8 @@ class RolloutDoor:
             self._open("an image staged before this start")
         elif (flash.directory / PARTIAL_INFO).exists():
             self._open("an image received in part before this start")
+        #: the host's code loading off the cycle's path (None: loaded at boot, opened then)
+        self.preloading = preload_host() if self.host is None else None
 
     # -- what the module host reads and tells -------------------------------------------------
 

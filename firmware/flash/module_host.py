@@ -84,6 +84,7 @@ class RolloutHost:
             staged=staged,
             reverted=[image_id(i) for i in flash.reverted],
             latency=latency,
+            connector_name=rt.program.profile.connector_name,
         )
         self.log: list[str] = []
         self.stages = 0

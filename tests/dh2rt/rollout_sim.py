@@ -431,6 +431,7 @@ class Entry(Node):
             segment_size=world.medium.segment_size,
             settle_ticks=settle_ticks,
             confirm=confirm,
+            expect=world.topology.size,
         )
         self.done_at: float | None = None
 

@@ -53,6 +53,7 @@ from tests.dh2rt.rollout_sim import (
     MEDIA,
     PERIOD,
     SERIAL,
+    TRIAL,
     Entry,
     FakeFlash,
     Images,
@@ -712,3 +713,42 @@ def test_the_default_lines_carry_every_transfer_frame(transport: str, period: fl
     pacing, segment, transit = link_pacing(transport, period, 115_200, 1_000_000)
     assert pacing.cost(max(segment + 6, LARGEST_CONTROL)) <= pacing.budget
     assert pacing.shared == (transport == "can") and 0 < transit < period
+
+
+# ---------------------------------------------------------------------------------------------
+# The same program signed again, and an image of the version the robot runs (issue 27)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_same_program_at_a_new_version_switches_at_one_cycle(images: Images, seed: int) -> None:
+    """The program the robot runs, signed again at version 2: its digest is the neighbours',
+    but not its version. No module switches as it stages (its neighbours do not run *this*
+    image); every one waits for the commit, and the report names the whole robot."""
+    again = si.pack(si.parse(images.v1).program(), 2, images.key)
+    world = World("snake:8", SERIAL, images, seed=seed, image=again, aligned=True)
+    world.run()
+    flasher = world.flasher
+    assert flasher.succeeded, world.summary()
+    assert world.versions() == [2] * 8
+    report = flasher.report()
+    assert len(report) == 8 and all(m.version == 2 for m in report), report
+    cycles = {m.switched_cycle for m in world}
+    assert len(cycles) == 1, f"modules switched at cycles {sorted(Counter(m.switched_cycle for m in world).items())}"
+
+
+def test_a_tampered_image_of_the_running_version_is_refused_as_tampered(images: Images) -> None:
+    """A robot that switched to version 2 is offered a tampered version 2: the equal version
+    is no rollback; the flash judges the image and refuses it as tampered."""
+    world = World("snake:8", SERIAL, images, seed=4, image=images.v2)
+    world.run()
+    assert world.flasher.succeeded, world.summary()
+    world.run_until(world.t + (TRIAL + 10) * PERIOD)  # the trial over: a busy module declines at once
+    assert all(m.flash.trial is None for m in world)
+    second = Entry(world, world.entry_index, world.rng.uniform(0, PERIOD), images.tampered, 250)
+    world.entry = second
+    world.schedule_ticks(second)
+    world.run()
+    flasher = world.flasher
+    assert not flasher.succeeded
+    head = {m.path: m for m in flasher.report()}[snake_path(0)]
+    assert (head.outcome, head.verdict) == (Outcome.REFUSED, "tampered"), head

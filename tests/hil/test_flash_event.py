@@ -76,3 +76,31 @@ def test_a_flash_event_needs_cables(tmp_path: Path, capsys: pytest.CaptureFixtur
                      "--event", f"40:flash:m0:{image}"])  # fmt: skip
     assert code == 2
     assert "a programming cable needs links it can join" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("seed", "at"), [(0, 100), (3, 60)])
+def test_the_docs_example_the_same_program_at_version_2_names_all_8_modules(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, at: int
+) -> None:
+    """docs/flashing.md's example with the image unedited (issue 27): the program the robot
+    runs, signed again at version 2. Every one of the 8 modules is in the report, with version
+    2 and its SHA-256, and no link was lost to the rollout's loading."""
+    key_file = tmp_path / "robot.key"
+    write_key_pair(key_file)
+    image = tmp_path / "cat2.simg"
+    image.write_bytes(pack(caterpillar(40).image, 2, read_private_key(key_file)))
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--module-count", "8", "--cycles", "600", "--cycle-ms", "20", "--seed", str(seed),
+         "--stand-in", "recording", "--key", str(key_file), "--event", f"{at}:flash:m0:{image}", "--json"]
+    )  # fmt: skip
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0, summary["problems"]
+    (rollout,) = summary["rollouts"]
+    assert rollout["succeeded"], rollout
+    sha = hashlib.sha256(caterpillar(40).image).hexdigest()
+    rows = {m["module"]: m for m in rollout["modules"]}
+    assert sorted(rows) == [f"m{i}" for i in range(8)], rows
+    for name, m in rows.items():
+        assert (m["outcome"], m["version"], m["sha256"]) == ("committed", 2, sha), (name, m)
+    assert all(int(r["counters"].get("links_lost", 0)) == 0 for r in summary["modules"]), summary["modules"]

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt.signed_image import new_private_key, pack
+from dh2rt.signed_image import new_private_key, pack, read_private_key, write_key_pair
 from hil.world import World
 from tests.hil.flashing import beside, caterpillar, running_snake, tick_until, versions
 from tools.flash import main
@@ -249,3 +249,39 @@ def test_help_names_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
     assert "usage: dh2rt flash" in out and "exit codes:" in out and "130  interrupted" in out
 
 
+
+
+@pytest.mark.parametrize("case", ["unsigned", "tampered"])
+def test_an_unsigned_or_tampered_image_is_refused_before_a_byte_is_sent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
+    """Exit 2 before the port is written: the unsigned program image (key id none), and,
+    against the robot's key (--trust), a signed image with a byte of its header changed."""
+    write_key_pair(tmp_path / "robot.key")
+    key = read_private_key(tmp_path / "robot.key")
+    program = caterpillar(20).image
+    if case == "unsigned":
+        data = program  # today's DH2IMG1 program image: an unsigned image of version 0
+    else:
+        signed = bytearray(pack(program, 2, key))
+        signed[8] ^= 0x01  # the program version, covered by the signature only
+        data = bytes(signed)
+    image = tmp_path / f"{case}.simg"
+    image.write_bytes(data)
+    master, slave = os.openpty()
+    os.set_blocking(master, False)
+    try:
+        trust = [] if case == "unsigned" else ["--trust", str(tmp_path / "robot.key.pub")]  # unsigned: no key needed
+        code = main([str(image), "--port", os.ttyname(slave), *trust, "--quiet"])
+        try:
+            sent = os.read(master, 4096)
+        except BlockingIOError:
+            sent = b""
+    finally:
+        os.close(slave)
+        os.close(master)
+    out, err = capsys.readouterr()
+    assert code == 2, (out, err)
+    assert sent == b"", sent
+    says = "unsigned image (key id (none))" if case == "unsigned" else "tampered: the signature does not match"
+    assert says in err and "Traceback" not in err, err
