@@ -22,12 +22,15 @@ and never changes; another dictionary needs another format version.
 An image of today's unsigned format (``DH2IMG1``) reads as an *unsigned* image of version 0;
 a module accepts one only when its configuration allows unsigned programs.
 
-Signatures are checked by :mod:`dh2rt.ed25519` (pure Python, the same verdict as
-``cryptography`` on every input), so a module that verifies images never imports
-``cryptography`` (7 MB of resident memory). Signing, key generation and PEM key files need
-it; it is imported inside the functions that do those, so importing this module costs
-nothing. Keys travel as raw bytes (32-byte private seed, 32-byte public key); key files hold
-PEM (PKCS#8 private, SubjectPublicKeyInfo public) or the raw 32 bytes.
+Signatures are checked by :mod:`dh2rt.ed25519`: libsodium's strict check, through PyNaCl
+(imported the first time an image is verified), so a module that verifies images never
+imports ``cryptography`` (7 MB of resident memory, OpenSSL). Signing, key generation and PEM
+key files need ``cryptography`` (PyNaCl reads no PEM); it is imported inside the functions
+that do those, so importing this module costs nothing. Keys travel as raw bytes (32-byte
+private seed, 32-byte public key); key files hold PEM (PKCS#8 private, SubjectPublicKeyInfo
+public) or the raw 32 bytes. A public key that libsodium would refuse (of small order, not
+canonical, no curve point: :func:`dh2rt.ed25519.weakness`) is refused when it is read, so
+that a trust store never names a key whose signatures anyone can forge.
 """
 
 from __future__ import annotations
@@ -172,18 +175,25 @@ def pack(program_image: bytes, version: int, private_key: bytes) -> bytes:
         raise ImageError(f"program version {version} is outside 0..{MAX_VERSION}")
     if len(program_image) > MAX_PROGRAM_BYTES:
         raise ImageError(f"program image of {len(program_image)} bytes is over the {MAX_PROGRAM_BYTES}-byte limit")
+    signed = signed_part(program_image, version, public_key(private_key))
+    return signed + _sign(private_key, signed)
+
+
+def signed_part(program_image: bytes, version: int, public: bytes) -> bytes:
+    """The bytes a signature covers (header and body) of ``program_image`` as program
+    version ``version`` signed by the raw public key ``public``: what an image is without
+    its last 64 bytes."""
     body = _compress(program_image)
     header = HEADER.pack(
         MAGIC,
         FORMAT_VERSION,
         version,
         program_digest(program_image),
-        key_id(public_key(private_key)),
+        key_id(public),
         len(program_image),
         len(body),
     )
-    signed_part = header + body
-    return signed_part + _sign(private_key, signed_part)
+    return header + body
 
 
 def parse(data: bytes) -> SignedImage:
@@ -311,6 +321,10 @@ def examine(data: bytes, trust: Sequence[bytes]) -> Examination:
     if verdict is Verdict.WRONG_KEY:
         return Examination(verdict, f"signed by key {describe_key_id(signed.key_id)}, not in the trust store", signed)
     if verdict is Verdict.TAMPERED:
+        weak = [why for k in trust if key_id(k) == signed.key_id and (why := ed25519.weakness(k)) is not None]
+        if weak:  # a trust store made without check_public_key
+            kid = describe_key_id(signed.key_id)
+            return Examination(verdict, f"signed for key {kid}, a weak key: {weak[0]}", signed)
         return Examination(
             verdict,
             f"the signature does not match the bytes (key {describe_key_id(signed.key_id)}): altered after signing",
@@ -404,7 +418,23 @@ def decode_private_key(data: bytes) -> bytes:
 
 
 def decode_public_key(data: bytes) -> bytes:
-    """The raw public key in ``data`` (PEM SubjectPublicKeyInfo or 32 raw bytes)."""
+    """The raw public key in ``data`` (PEM SubjectPublicKeyInfo or 32 raw bytes); KeyFileError
+    for anything else and for a weak key (:func:`check_public_key`)."""
+    return check_public_key(_decode_public_key(data))
+
+
+def check_public_key(public: bytes) -> bytes:
+    """``public`` (a raw public key) when libsodium may accept signatures of it; KeyFileError
+    for a key whose signatures it refuses, or anyone can forge (:func:`dh2rt.ed25519.weakness`)."""
+    why = ed25519.weakness(_raw_key(public, "public"))
+    if why is not None:
+        raise KeyFileError(
+            f"refused: a weak Ed25519 public key, {why}; a trust store lists the .pub file of dh2rt keys new"
+        )
+    return public
+
+
+def _decode_public_key(data: bytes) -> bytes:
     if not data.lstrip().startswith(b"-----BEGIN"):
         return _raw_key(data, "public")
     if b"PRIVATE KEY" in data:

@@ -14,9 +14,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from dh2rt.errors import ModuleConfigError
+from dh2rt.errors import KeyFileError, ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
 from dh2rt.runtime import CYCLE_PERIOD_S as CYCLE_PERIOD_S  # the core's one default, re-exported
+from dh2rt.signed_image import check_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from drivers.dxl_table import MODEL_XM430_W350
 
@@ -238,7 +239,9 @@ class ModuleConfig:
             if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
                 raise ModuleConfigError("config trust: expected a list of public keys in hexadecimal")
             try:
-                kw["trust"] = tuple(bytes.fromhex(k) for k in keys)
+                kw["trust"] = tuple(check_public_key(bytes.fromhex(k)) for k in keys)
+            except KeyFileError as exc:  # a weak key (anyone could sign for it), or no key
+                raise ModuleConfigError(f"config trust: {exc}") from None
             except ValueError:
                 raise ModuleConfigError("config trust: not hexadecimal") from None
         for name in ("servo_port", "log_file", "status_file", "flash"):

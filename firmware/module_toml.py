@@ -75,7 +75,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dh2rt.errors import DH2Error, ModuleConfigError
+from dh2rt.errors import DH2Error, KeyFileError, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
 from dh2rt.runtime import ms_to_s, s_to_ms
 from dh2rt.signed_image import public_key_pem, read_public_key
@@ -219,6 +219,8 @@ def _program(t: _Table, base: Path) -> dict[str, Any]:
         path = Path(name) if Path(name).is_absolute() else base / name
         try:
             trust.append(read_public_key(path))
+        except KeyFileError as exc:  # names its file: a weak key, or no key
+            raise t.fail(f"trust[{i}]", str(exc)) from None
         except (OSError, DH2Error) as exc:
             raise t.fail(f"trust[{i}]", f"{path}: {getattr(exc, 'strerror', None) or exc}") from None
     allow_unsigned = t.get_bool("allow_unsigned", False)

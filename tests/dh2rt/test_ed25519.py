@@ -1,25 +1,39 @@
-"""dh2rt.ed25519: RFC 8032's test vectors, the same verdict as ``cryptography`` (OpenSSL) on
-valid, altered and malformed signatures and keys, and a module that verifies images without
+"""dh2rt.ed25519: RFC 8032's test vectors, libsodium's verdict on the published edge cases
+(Wycheproof, "Taming the many EdDSAs") and on valid, altered, malformed and forged signatures
+and keys, the weak-key check a trust store makes, and a module that verifies images without
 importing ``cryptography``."""
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
+import importlib.util
+import json
 import random
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from dh2rt import ed25519
 from dh2rt import signed_image as si
 from dh2rt.program import CompiledProgram
+from tests.dh2rt.forgery import (
+    SMALL_ORDER,
+    WEAK_KEYS,
+    add,
+    decode,
+    encode,
+    mul,
+    openssl_accepts,
+    other_encodings,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
+VECTORS = Path(__file__).resolve().parent / "vectors"
 
 # ---------------------------------------------------------------- RFC 8032, section 7.1
 
@@ -107,15 +121,65 @@ def test_the_rfc_8032_vectors_verify(name: str) -> None:
     assert not ed25519.verify(bytes(public[:-1]) + bytes([public[-1] ^ 0x01]), signature, message)
 
 
-# ---------------------------------------------------------------- the same verdict as cryptography
+# ---------------------------------------------------------------- libsodium's verdict
+
+#: PyNaCl's own libsodium (its extension module exports libsodium's functions)
+_SODIUM = ctypes.CDLL(str(getattr(importlib.util.find_spec("nacl._sodium"), "origin", None)))
+_SODIUM.crypto_sign_verify_detached.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_ulonglong, ctypes.c_char_p]
+_SODIUM.crypto_sign_verify_detached.restype = ctypes.c_int
 
 
-def _openssl(public: bytes, signature: bytes, message: bytes) -> bool:
-    try:
-        Ed25519PublicKey.from_public_bytes(public).verify(signature, message)
-    except InvalidSignature:
+def _libsodium(public: bytes, signature: bytes, message: bytes) -> bool:
+    """libsodium's ``crypto_sign_verify_detached``, called directly (dh2rt goes through
+    PyNaCl's ``VerifyKey.verify`` and ``crypto_sign_open``). It reads 64 bytes of signature
+    and 32 of key: other lengths are no signature."""
+    if len(public) != 32 or len(signature) != 64:
         return False
-    return True
+    return bool(_SODIUM.crypto_sign_verify_detached(signature, message, len(message), public) == 0)
+
+
+def _vectors(name: str, key: str) -> list[dict[str, object]]:
+    cases: list[dict[str, object]] = json.loads((VECTORS / name).read_text())[key]
+    return cases
+
+
+WYCHEPROOF = _vectors("wycheproof_ed25519.json", "tests")
+SPECCHECK = _vectors("speccheck_cases.json", "cases")
+#: "Taming the many EdDSAs", results.md: OpenSSL 3.0 accepts cases 0 to 3 and 11, as
+#: dh2rt's own cofactorless verifier did before issue 27; libsodium accepts case 3 only.
+OPENSSL_SPECCHECK = [True] * 4 + [False] * 7 + [True]
+
+
+def _hex(case: dict[str, object], *names: str) -> tuple[bytes, ...]:
+    return tuple(bytes.fromhex(str(case[n])) for n in names)
+
+
+def test_the_vectors_are_all_there() -> None:
+    assert len(WYCHEPROOF) == 151 and len(SPECCHECK) == 12
+    assert sum(c["result"] == "valid" for c in WYCHEPROOF) == 88
+    assert [c["libsodium"] for c in SPECCHECK] == [i == 3 for i in range(12)]
+
+
+@pytest.mark.parametrize("case", WYCHEPROOF, ids=lambda c: f"tc{c['tcId']}")
+def test_wycheproof_vectors_get_libsodiums_verdict(case: dict[str, object]) -> None:
+    public, message, signature = _hex(case, "pk", "msg", "sig")
+    expected = case["result"] == "valid"
+    assert ed25519.verify(public, signature, message) is _libsodium(public, signature, message) is expected, case
+    if ed25519.weakness(public) is not None:
+        assert not expected
+
+
+@pytest.mark.parametrize("case", SPECCHECK, ids=lambda c: f"case{c['case']}")
+def test_taming_the_many_eddsas_cases_get_libsodiums_verdict(case: dict[str, object]) -> None:
+    """The twelve cases of the paper: small-order A or R (0 to 2), mixed-order A and R
+    (3 to 5, only 3 holds cofactorless), S >= L (6, 7), non-canonical A or R (8 to 11).
+    OpenSSL, as the old verifier, accepts the ones of small order, which libsodium refuses."""
+    public, message, signature = _hex(case, "pub_key", "message", "signature")
+    i = int(str(case["case"]))
+    assert ed25519.verify(public, signature, message) is _libsodium(public, signature, message) is case["libsodium"]
+    assert openssl_accepts(public, signature, message) is OPENSSL_SPECCHECK[i]
+    if i <= 2:
+        assert ed25519.weakness(public) is not None or ed25519.weakness(signature[:32]) is not None
 
 
 def _flip(data: bytes, bit: int) -> bytes:
@@ -124,7 +188,7 @@ def _flip(data: bytes, bit: int) -> bytes:
     return bytes(out)
 
 
-def test_random_signatures_and_one_bit_changes_get_cryptographys_verdict() -> None:
+def test_random_signatures_and_one_bit_changes_get_libsodiums_verdict() -> None:
     """300 keys and messages: the signature holds for both; one bit flipped in the signature,
     the message or the key gives both the same verdict (nearly always: refused)."""
     rng = random.Random(8032)
@@ -134,100 +198,40 @@ def test_random_signatures_and_one_bit_changes_get_cryptographys_verdict() -> No
         public = _raw_public(private)
         message = rng.randbytes(rng.choice([0, 1, 31, 64, 200, 1000]))
         signature = private.sign(message)
-        assert ed25519.verify(public, signature, message) and _openssl(public, signature, message), i
+        assert ed25519.verify(public, signature, message) and _libsodium(public, signature, message), i
+        assert ed25519.weakness(public) is None
         part = i % 3
         if part == 0:
-            cases = [(public, _flip(signature, rng.randrange(512)), message)]
+            case = (public, _flip(signature, rng.randrange(512)), message)
         elif part == 1 and message:
-            cases = [(public, signature, _flip(message, rng.randrange(8 * len(message))))]
+            case = (public, signature, _flip(message, rng.randrange(8 * len(message))))
         else:
-            cases = [(_flip(public, rng.randrange(256)), signature, message)]
-        for case in cases:
-            ours, theirs = ed25519.verify(*case), _openssl(*case)
-            assert ours == theirs, (i, case[0].hex(), case[1].hex(), case[2].hex())
-            refused += not ours
+            case = (_flip(public, rng.randrange(256)), signature, message)
+        ours, theirs = ed25519.verify(*case), _libsodium(*case)
+        assert ours == theirs, (i, case[0].hex(), case[1].hex(), case[2].hex())
+        refused += not ours
     assert refused == 300
 
 
-def test_random_garbage_gets_cryptographys_verdict() -> None:
-    """Keys and signatures of random bytes: keys that are no point (about half), S >= L
-    (about 15 in 16): both refuse the same ones for the same reasons."""
+def test_random_garbage_gets_libsodiums_verdict() -> None:
+    """Keys and signatures of random bytes (keys that are no point, about half; S >= L, about
+    15 in 16), and signatures of the wrong length: refused by both."""
     rng = random.Random(25519)
-    for _ in range(200):
+    for _ in range(300):
         public, signature, message = rng.randbytes(32), rng.randbytes(64), rng.randbytes(10)
-        assert ed25519.verify(public, signature, message) is _openssl(public, signature, message) is False
+        assert ed25519.verify(public, signature, message) is _libsodium(public, signature, message) is False
+        short = signature[: rng.randrange(64)]
+        assert ed25519.verify(public, short, message) is False
 
 
 # ---------------------------------------------------------------- malleability and strictness
 
 P = 2**255 - 19
 L = 2**252 + 27742317777372353535851937790883648493
-D = -121665 * pow(121666, P - 2, P) % P
 BASE = (
     15112221349535400772501151409588531511454012693041857206046113283949847762202,
     46316835694926478169428394003475163141307993866256225615783033603165251855960,
 )
-Affine = tuple[int, int]
-
-#: The eight points of small order, canonically encoded: the identity (y = 1), the point of
-#: order 2 (y = -1), two of order 4 (y = 0) and four of order 8.
-SMALL_ORDER = [
-    bytes.fromhex(h)
-    for h in (
-        "0100000000000000000000000000000000000000000000000000000000000000",
-        "ecffffffffffffffffffffffffffffffffffffffffffffffffffffffffffff7f",
-        "0000000000000000000000000000000000000000000000000000000000000000",
-        "0000000000000000000000000000000000000000000000000000000000000080",
-        "26e8958fc2b227b045c3f489f2ef98f0d5dfac05d3c63339b13802886d53fc05",
-        "26e8958fc2b227b045c3f489f2ef98f0d5dfac05d3c63339b13802886d53fc85",
-        "c7176a703d4dd84fba3c0b760d10670f2a2053fa2c39ccc64ec7fd7792ac037a",
-        "c7176a703d4dd84fba3c0b760d10670f2a2053fa2c39ccc64ec7fd7792ac03fa",
-    )
-]
-
-
-# Affine arithmetic, independent of dh2rt.ed25519, to build the points the cases need.
-def _add(p: Affine, q: Affine) -> Affine:
-    (x1, y1), (x2, y2) = p, q
-    t = D * x1 * x2 * y1 * y2 % P
-    inverse = pow((1 + t) * (1 - t), P - 2, P)  # of both denominators at once
-    return (x1 * y2 + x2 * y1) * (1 - t) * inverse % P, (y1 * y2 + x1 * x2) * (1 + t) * inverse % P
-
-
-def _mul(n: int, p: Affine) -> Affine:
-    acc = (0, 1)
-    for bit in bin(n)[2:]:
-        acc = _add(acc, acc)
-        if bit == "1":
-            acc = _add(acc, p)
-    return acc
-
-
-def _encode(p: Affine) -> bytes:
-    return (p[1] | (p[0] & 1) << 255).to_bytes(32, "little")
-
-
-def _decode(data: bytes) -> Affine:
-    """RFC 8032 5.1.3 for canonical encodings of points (the cases only decode those)."""
-    n = int.from_bytes(data, "little")
-    y = n & ((1 << 255) - 1)
-    x2 = (y * y - 1) * pow(D * y * y + 1, P - 2, P) % P
-    x = pow(x2, (P + 3) // 8, P)
-    if x * x % P != x2:
-        x = x * pow(2, (P - 1) // 4, P) % P
-    assert x * x % P == x2 and y < P
-    return (P - x if x & 1 != n >> 255 else x) % P, y
-
-
-def _other_encodings(point: bytes) -> list[bytes]:
-    """The non-canonical encodings of a canonically encoded point: y + p where it fits in
-    255 bits, and the sign bit set where x = 0."""
-    n = int.from_bytes(point, "little")
-    y, sign = n & ((1 << 255) - 1), n >> 255
-    ys = [y + P] if y + P < 2**255 else []
-    signs = [1 - sign] if _decode(point)[0] == 0 else []
-    out = [y2 | sign << 255 for y2 in ys] + [y | s << 255 for s in signs] + [y2 | s << 255 for y2 in ys for s in signs]
-    return [v.to_bytes(32, "little") for v in out]
 
 
 def _le(n: int) -> bytes:
@@ -235,64 +239,60 @@ def _le(n: int) -> bytes:
 
 
 def test_s_must_be_below_l() -> None:
-    """S + L (and anything else >= L) is refused by both, though [S + L]B = [S]B."""
+    """S + L (and anything else >= L) is refused, though [S + L]B = [S]B."""
     _, public, message, signature = (bytes.fromhex(h) for h in RFC_8032["TEST 2"])
     s = int.from_bytes(signature[32:], "little")
     for big in (s + L, s + 2 * L, s + 15 * L, L, 2**256 - 1, s | 1 << 255):
         forged = signature[:32] + _le(big)
-        assert not ed25519.verify(public, forged, message) and not _openssl(public, forged, message)
+        assert ed25519.verify(public, forged, message) is _libsodium(public, forged, message) is False
     assert ed25519.verify(public, signature, message)
 
 
-def test_small_order_and_non_canonical_keys_and_r_get_cryptographys_verdict() -> None:
+def test_small_order_and_non_canonical_keys_and_r_are_refused() -> None:
     """Every small-order key, canonical or not, against R of small order (canonical or not)
-    and S in {0, 1, L-1, L}. What OpenSSL does and so dh2rt.ed25519: a key is decoded with
-    y modulo p and a sign bit on x = 0 ignored (so these keys are not refused), R is
-    compared as bytes with the canonical encoding of [S]B - [k]A (so a non-canonical R never
-    holds). The identity as public key with R = identity and S = 0 holds for every message."""
-    keys = [k for point in SMALL_ORDER for k in [point, *_other_encodings(point)]]
-    rs = [r for point in SMALL_ORDER for r in [point, *_other_encodings(point)[:1]]]
-    held = 0
-    for public in keys:
+    and S in {0, 1, L-1, L}: libsodium, and so dh2rt, refuses every one. OpenSSL (as dh2rt's
+    own verifier did before issue 27) accepts some of them: the identity as public key with
+    R = identity and S = 0 holds for every message there."""
+    rs = [r for point in SMALL_ORDER for r in [point, *other_encodings(point)[:1]]]
+    openssl_held = 0
+    for public in WEAK_KEYS.values():
         for r in rs:
             for s in (0, 1, L - 1, L):
                 signature = r + _le(s)
-                ours, theirs = ed25519.verify(public, signature, b"m"), _openssl(public, signature, b"m")
-                assert ours == theirs, (public.hex(), signature.hex())
-                held += ours
-    assert held > 0
-    identity, identity_signed = SMALL_ORDER[0], (1 | 1 << 255).to_bytes(32, "little")
-    for public in (identity, identity_signed, _le(P + 1)):
-        for message in (b"", b"any message at all"):
-            assert ed25519.verify(public, identity + _le(0), message) and _openssl(public, identity + _le(0), message)
-        assert not ed25519.verify(public, identity_signed + _le(0), b"")  # R: the identity, non-canonical
-        assert not _openssl(public, identity_signed + _le(0), b"")
+                assert ed25519.verify(public, signature, b"m") is _libsodium(public, signature, b"m") is False
+                openssl_held += openssl_accepts(public, signature, b"m")
+    assert openssl_held > 0
+    identity = SMALL_ORDER[0]
+    for message in (b"", b"any message at all"):
+        assert openssl_accepts(identity, identity + _le(0), message)
+        assert not ed25519.verify(identity, identity + _le(0), message)
 
 
 def test_a_small_order_component_is_not_multiplied_away() -> None:
     """Signatures made with the secret scalar for a key A = aB + T and R = [r]B + T2 (T, T2
     of small order), S = r + k a: the cofactored check [8][S]B = [8]R + [8][k]A holds for
-    every one of them, the cofactorless one only when [k]T = -T2. OpenSSL checks
-    cofactorless; so does dh2rt.ed25519, and both agree on each case."""
+    every one of them, the cofactorless one only when [k]T = -T2. libsodium checks
+    cofactorless and refuses neither such A nor such R (they are not of small order): dh2rt,
+    libsodium and OpenSSL agree on each case."""
     rng = random.Random(8)
     message = b"a program image"
     held = total = 0
     for point in SMALL_ORDER:
-        torsion = _decode(point)
+        torsion = decode(point)
         seed = rng.randbytes(32)
         a = int.from_bytes(hashlib.sha512(seed).digest()[:32], "little") & ((1 << 254) - 8) | 1 << 254
         real = _raw_public(Ed25519PrivateKey.from_private_bytes(seed))
         if point == SMALL_ORDER[0]:
-            assert _encode(_mul(a, BASE)) == real  # a is the secret scalar
+            assert encode(mul(a, BASE)) == real  # a is the secret scalar
         r = rng.randrange(1, L)
-        r_point = _mul(r, BASE)
-        for public in (_encode(_add(_decode(real), torsion)), real):
+        r_point = mul(r, BASE)
+        for public in (encode(add(decode(real), torsion)), real):
             for other in SMALL_ORDER:
-                big_r = _encode(_add(r_point, _decode(other)))
+                big_r = encode(add(r_point, decode(other)))
                 k = int.from_bytes(hashlib.sha512(big_r + public + message).digest(), "little") % L
                 signature = big_r + _le((r + k * a) % L)
-                ours, theirs = ed25519.verify(public, signature, message), _openssl(public, signature, message)
-                assert ours == theirs, (public.hex(), signature.hex())
+                ours = ed25519.verify(public, signature, message)
+                assert ours is _libsodium(public, signature, message) is openssl_accepts(public, signature, message)
                 held += ours
                 total += 1
     trivial = 8 + 1  # no torsion in A nor in R: the real key (and A + identity) with T2 the identity
@@ -300,36 +300,77 @@ def test_a_small_order_component_is_not_multiplied_away() -> None:
 
 
 def test_points_off_the_curve_are_refused() -> None:
-    """A key whose y has no x is refused; so is an R that is no point (no [S]B - [k]A
-    encodes to it)."""
+    """A key whose y has no x is refused, and named so by the weak-key check; so is an R that
+    is no point (no [S]B - [k]A encodes to it)."""
     _, public, message, signature = (bytes.fromhex(h) for h in RFC_8032["TEST 1"])
     off = next(_le(y) for y in range(2, 100) if not _on_curve(y))
-    assert not ed25519.verify(off, signature, message) and not _openssl(off, signature, message)
+    assert ed25519.verify(off, signature, message) is _libsodium(off, signature, message) is False
+    assert "no point of the curve" in str(ed25519.weakness(off))
     forged = off + signature[32:]
-    assert not ed25519.verify(public, forged, message) and not _openssl(public, forged, message)
+    assert ed25519.verify(public, forged, message) is _libsodium(public, forged, message) is False
 
 
 def _on_curve(y: int) -> bool:
-    x2 = (y * y - 1) * pow(D * y * y + 1, P - 2, P) % P
-    return pow(x2, (P - 1) // 2, P) in (0, 1)
+    """Whether some x makes (x, y) a point: tried by taking the square root."""
+    try:
+        decode(_le(y))
+    except AssertionError:
+        return False
+    return True
 
 
-def test_wrong_lengths_behave_as_in_cryptography() -> None:
-    """A public key of the wrong length raises ValueError (cryptography's from_public_bytes
-    does); a signature of the wrong length is no signature (False)."""
+def test_wrong_lengths() -> None:
+    """A public key of the wrong length raises ValueError (as cryptography's
+    from_public_bytes does); a signature of the wrong length is no signature (False)."""
     _, public, message, signature = (bytes.fromhex(h) for h in RFC_8032["TEST 1"])
     for bad in (b"", public[:31], public + b"\0"):
         with pytest.raises(ValueError):
             ed25519.verify(bad, signature, message)
         with pytest.raises(ValueError):
             Ed25519PublicKey.from_public_bytes(bad)
+        assert ed25519.weakness(bad) is not None
     for bad in (b"", signature[:63], signature + b"\0"):
-        assert not ed25519.verify(public, bad, message) and not _openssl(public, bad, message)
+        assert not ed25519.verify(public, bad, message)
 
 
-def test_the_base_point_constants() -> None:
-    assert _mul(L, BASE) == (0, 1) and BASE == (ed25519.BASE_X, ed25519.BASE_Y)
-    assert _encode(_mul(8, _decode(SMALL_ORDER[4]))) == SMALL_ORDER[0]
+# ---------------------------------------------------------------- the weak-key check
+
+
+def test_the_weak_keys_are_the_fourteen_encodings_of_small_order_points() -> None:
+    """The eight points of small order (each [8]P is the identity) have fourteen encodings
+    that a verifier taking y modulo p decodes; libsodium's list is exactly those, and
+    dh2rt.ed25519.weakness names each as of small order."""
+    listed = {
+        _le(y + extra | sign << 255)
+        for y in ed25519.SMALL_ORDER_Y
+        for extra in (0, P)
+        for sign in (0, 1)
+        if y + extra < 2**255
+    }
+    assert listed == set(WEAK_KEYS.values()) and len(listed) == 14
+    assert set(SMALL_ORDER) <= listed
+    for key in listed:
+        assert mul(8, decode(key)) == (0, 1)
+        assert "small order" in str(ed25519.weakness(key)), key.hex()
+    assert "all zeros" in str(ed25519.weakness(bytes(32)))
+    assert "the identity" in str(ed25519.weakness(SMALL_ORDER[0]))
+
+
+def test_the_weak_key_check_refuses_what_libsodium_refuses_and_only_that() -> None:
+    """Non-canonical encodings (y >= p) and keys that are no point are weak; the keys of
+    real signers are not, nor a key with a small-order component (A = aB + T, which
+    libsodium accepts: the mixed-order cases above)."""
+    for y in range(P, 2**255):
+        for sign in (0, 1):
+            assert ed25519.weakness(_le(y | sign << 255)) is not None
+    rng = random.Random(27)
+    for _ in range(200):
+        assert ed25519.weakness(_raw_public(Ed25519PrivateKey.from_private_bytes(rng.randbytes(32)))) is None
+        key = rng.randbytes(32)
+        y = int.from_bytes(key, "little") & ((1 << 255) - 1)
+        assert (ed25519.weakness(key) is None) is (y < P and _on_curve(y) and y % P not in ed25519.SMALL_ORDER_Y)
+    mixed = encode(add(decode(_raw_public(Ed25519PrivateKey.from_private_bytes(bytes(32)))), decode(SMALL_ORDER[4])))
+    assert ed25519.weakness(mixed) is None
 
 
 # ---------------------------------------------------------------- a module without cryptography
@@ -337,7 +378,8 @@ def test_the_base_point_constants() -> None:
 
 def test_a_module_verifies_images_without_importing_cryptography(caterpillar: CompiledProgram, tmp_path: Path) -> None:
     """Packed here (signing needs cryptography), examined in a fresh process as a module
-    does it: OK, TAMPERED and WRONG_KEY, and cryptography never imported there."""
+    does it: OK, TAMPERED and WRONG_KEY; cryptography (OpenSSL) never imported there, PyNaCl
+    only once an image is verified."""
     private, other = si.new_private_key(), si.new_private_key()
     data = si.pack(caterpillar.image, 3, private)
     tampered = bytearray(data)
@@ -350,14 +392,16 @@ def test_a_module_verifies_images_without_importing_cryptography(caterpillar: Co
         "import sys\n"
         "from pathlib import Path\n"
         "import firmware.flash.slots\n"
-        "from dh2rt.signed_image import examine, parse, verify\n"
+        "from dh2rt.signed_image import examine, parse, read_public_key, verify\n"
         f"d = Path({str(tmp_path)!r})\n"
         "image, tampered = (d / 'image').read_bytes(), (d / 'tampered').read_bytes()\n"
-        "key, other = (d / 'key').read_bytes(), (d / 'other').read_bytes()\n"
+        "key, other = read_public_key(d / 'key'), read_public_key(d / 'other')\n"
+        "print('nacl' in sys.modules)\n"
         "print(examine(image, [key]).verdict, examine(tampered, [key]).verdict, examine(image, [other]).verdict,"
         " verify(parse(image), [other, key]))\n"
         "print('cryptography' in sys.modules, sorted(m for m in sys.modules if m.startswith('cryptography')))\n"
+        "print('nacl' in sys.modules, '_ssl' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.splitlines() == ["ok tampered wrong key ok", "False []"]
+    assert out.stdout.splitlines() == ["False", "ok tampered wrong key ok", "False []", "True False"]

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from dh2rt import ed25519
 from dh2rt import signed_image as si
 from dh2rt.cli import main
 from dh2rt.compiler import compile_file, load_image
@@ -18,6 +19,7 @@ from dh2rt.errors import ImageError, KeyFileError, SignedImageError
 from dh2rt.program import CompiledProgram
 from dh2rt.signed_image import Verdict
 from dh2rt.wire.frame import program_digest
+from tests.dh2rt.forgery import WEAK_KEYS, forge, openssl_accepts
 
 #: The target of issue 11: the caterpillar's signed image, signature included.
 CATERPILLAR_LIMIT = 512
@@ -227,13 +229,17 @@ def test_pack_refuses_what_is_no_signed_program(caterpillar: CompiledProgram, ke
 
 
 def test_cryptography_is_not_imported_by_importing_these() -> None:
-    """Only signing and key generation import it (verifying is dh2rt.ed25519: test_ed25519)."""
+    """Only signing and key generation import it (verifying is dh2rt.ed25519: test_ed25519);
+    PyNaCl only verifying, not reading a raw key and checking that it is not weak."""
     code = (
-        "import sys\nimport dh2rt.cli, dh2rt.signed_image, firmware.flash.slots\nprint('cryptography' in sys.modules)\n"
+        "import sys\nimport dh2rt.cli, dh2rt.signed_image, firmware.flash.slots, firmware.module_toml\n"
+        "dh2rt.signed_image.decode_public_key(bytes.fromhex("
+        "'d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a'))\n"
+        "print('cryptography' in sys.modules, 'nacl' in sys.modules)\n"
     )
     root = Path(__file__).resolve().parents[2]
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=60)
-    assert (out.returncode, out.stdout.strip()) == (0, "False"), out.stderr
+    assert (out.returncode, out.stdout.strip()) == (0, "False False"), out.stderr
 
 
 # ---------------------------------------------------------------- keys
@@ -262,6 +268,49 @@ def test_key_files_of_the_wrong_kind_are_named(key: bytes) -> None:
         si.decode_private_key(x25519)
     with pytest.raises(KeyFileError, match="not a readable PEM"):
         si.decode_private_key(b"-----BEGIN PRIVATE KEY-----\nAAAA\n-----END PRIVATE KEY-----\n")
+
+
+@pytest.mark.parametrize("weak", list(WEAK_KEYS.values()), ids=list(WEAK_KEYS))
+def test_a_weak_public_key_is_refused_when_read(weak: bytes, tmp_path: Path) -> None:
+    """Every encoding of a point of small order, raw or PEM: anyone can forge its signatures."""
+    raw, pem = tmp_path / "raw.pub", tmp_path / "pem.pub"
+    raw.write_bytes(weak)
+    pem.write_bytes(si.public_key_pem(weak))
+    for path in (raw, pem):
+        with pytest.raises(KeyFileError, match=rf"^{path}: refused: a weak Ed25519 public key, a point of small order"):
+            si.read_public_key(path)
+    with pytest.raises(KeyFileError, match="small order"):
+        si.check_public_key(weak)
+
+
+def test_an_all_zero_key_file_is_refused_naming_it(tmp_path: Path) -> None:
+    zeros = tmp_path / "zeros.pub"
+    zeros.write_bytes(bytes(32))
+    with pytest.raises(KeyFileError) as caught:
+        si.read_public_key(zeros)
+    assert str(caught.value).startswith(f"{zeros}: refused: a weak Ed25519 public key")
+    assert "all zeros" in str(caught.value) and "forge" in str(caught.value)
+
+
+def test_keys_that_are_no_point_or_not_canonical_are_refused_when_read(key: bytes) -> None:
+    public = si.public_key(key)
+    off_curve = next(k for i in range(256) if ed25519.weakness(k := public[:-1] + bytes([i])) is not None)
+    with pytest.raises(KeyFileError, match="no point of the curve"):
+        si.decode_public_key(off_curve)
+    with pytest.raises(KeyFileError, match="not a canonical encoding"):
+        si.decode_public_key((2**255 - 19 + 2).to_bytes(32, "little"))  # y = 2 + p
+
+
+@pytest.mark.parametrize("weak", list(WEAK_KEYS.values()), ids=list(WEAK_KEYS))
+def test_an_image_forged_for_a_weak_key_is_refused(caterpillar: CompiledProgram, weak: bytes) -> None:
+    """R of small order, S = 0, no private key: OpenSSL accepts the signature (as dh2rt's own
+    verifier did before issue 27); dh2rt refuses it even when the weak key is trusted."""
+    forged = forge(caterpillar.image, weak)
+    signed = si.parse(forged)
+    assert openssl_accepts(weak, forged[-64:], signed.signed_part)
+    assert si.verify(signed, [weak]) is Verdict.TAMPERED
+    exam = si.examine(forged, [weak])
+    assert exam.verdict is Verdict.TAMPERED and "a weak key" in exam.reason and exam.program is None
 
 
 def test_a_key_pair_file_is_private_and_never_overwritten(tmp_path: Path) -> None:
@@ -349,6 +398,19 @@ def test_inspect_exit_codes(examples: Path, keyfile: Path, tmp_path: Path, capsy
     for args, expected, text in cases:
         code, out, err = _run(["image", "--inspect", *args], capsys)
         assert (code, text in out + err) == (expected, True), (args, out, err)
+
+
+@pytest.mark.parametrize("weak", list(WEAK_KEYS.values()), ids=list(WEAK_KEYS))
+def test_inspect_refuses_a_weak_trusted_key_naming_it(
+    weak: bytes, caterpillar: CompiledProgram, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``image --inspect FORGED --trust WEAK.pub`` said "verification ok" before issue 27."""
+    forged, pub = tmp_path / "forged.simg", tmp_path / "weak.pub"
+    forged.write_bytes(forge(caterpillar.image, weak))
+    pub.write_bytes(weak)
+    code, out, err = _run(["image", "--inspect", str(forged), "--trust", str(pub)], capsys)
+    assert code == 2 and f"{pub}: refused: a weak Ed25519 public key" in err, err
+    assert "verification" not in out
 
 
 def test_image_options_that_do_not_go_together(
