@@ -99,7 +99,7 @@ def caterpillar_traffic(program: CompiledProgram, n: int, modules: int = 8, seed
                 if garbage == 0:
                     yield [(rng.randrange(0x800), rng.randbytes(rng.randrange(9)), False)]
                 elif garbage == 1:
-                    yield [(single, b"\xc2\x00\x00\x00", True)]  # wire version 3
+                    yield [(single, b"\x42\x00\x00\x00", True)]  # wire version 1: a module not updated
                 elif garbage == 2:
                     yield [(make_arbitration_id(0, MIDDLE, 1, link, 0), rng.randbytes(8), True)]
                 else:

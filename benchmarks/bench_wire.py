@@ -1,4 +1,6 @@
-"""Wire-format figures: frames and bytes per caterpillar hop, codec throughput vs json/pickle.
+"""Wire-format figures: frames and bytes per caterpillar hop, what a multi-frame hormone costs
+on CAN (its segment train's check included; baseline: the same payload cut without one, as
+before wire version 3), codec throughput vs json/pickle.
 
 Run: ``python -m benchmarks.bench_wire [--quick]``. Prints absolute figures, ratios against
 baselines measured in the same run (json and pickle of the same hormone), and one JSON
@@ -16,14 +18,45 @@ from typing import Any
 
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
 from dh2rt.testing import CONTRACT_VOCABULARY, collect, contract_codec
-from dh2rt.wire.can_frames import Reassembler, segment
+from dh2rt.wire.can_frames import CLASSIC_DATA, Reassembler, segment
 from dh2rt.wire.frame import FrameCodec
 from dh2rt.wire.serial_framing import SerialDecoder, encode_serial
+from dh2rt.wire.sizes import can_frame_bits
 
 CATERPILLAR = Vocabulary([HormoneSpec(0, "X", (ParamSpec("a", ("A", "B")),))])
 CAT = Hormone("X", ("A",))
 #: A reply that crossed 8 links and travels back along a route: a "typical" larger hormone.
 ROUTED = Hormone("P", (-1234, 99, "down"), tuple((2, 1) for _ in range(8)), tuple(1 for _ in range(8)))
+#: Multi-frame hormones: issue 27's N(100, 200, 300) (P here: two integers and an atom, one
+#: hop), the routed reply, and the largest hormone frame (255-hop path and route).
+MULTI = {
+    "p_one_hop": Hormone("P", (100, 200, "up"), ((1, 2),)),
+    "routed8": ROUTED,
+    "largest": Hormone("P", (-(2**31), -(2**31), "down"), ((1, 2),) * 255, (1,) * 255),
+}
+
+
+def _multi_frame_costs(codec: FrameCodec) -> dict[str, Any]:
+    """Per multi-frame hormone: payload bytes, classic CAN frames, data bytes and worst-case
+    bus bits, now (a segment train with its check) and cut without a check (the baseline)."""
+    out: dict[str, Any] = {}
+    for label, hormone in MULTI.items():
+        payload = codec.encode(2, hormone)
+        frames = segment(payload, 1, 0)
+        unchecked = [len(payload[i : i + CLASSIC_DATA]) for i in range(0, len(payload), CLASSIC_DATA)]
+        bits = sum(can_frame_bits(len(f.data)) for f in frames)
+        base_bits = sum(can_frame_bits(n) for n in unchecked)
+        out[label] = {
+            "payload_bytes": len(payload),
+            "can_frames": len(frames),
+            "can_data_bytes": sum(len(f.data) for f in frames),
+            "can_bus_bits": bits,
+            "unchecked_can_frames": len(unchecked),
+            "unchecked_can_data_bytes": len(payload),
+            "unchecked_can_bus_bits": base_bits,
+            "bits_vs_unchecked": round(bits / base_bits, 3),
+        }
+    return out
 
 
 def _rate(fn: Callable[[], object], n: int) -> float:
@@ -94,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "routed8_pickle_bytes": len(pickle.dumps(_as_dict(ROUTED))),
         "routed8_can_frames": len(segment(routed_payload, 1, 0)),
         "routed8_serial_bytes": len(encode_serial(routed_payload)),
+        "multi_frame": _multi_frame_costs(codec),
     }
 
     for label, h, c in (("caterpillar", CAT, cat_codec), ("routed8", ROUTED, codec)):
@@ -144,6 +178,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{r['routed8_json_bytes']} B json, {r['routed8_pickle_bytes']} B pickle; "
         f"{r['routed8_can_frames']} CAN frames, {r['routed8_serial_bytes']} B serial"
     )
+    for label, m in r["multi_frame"].items():
+        print(
+            f"  multi-frame {label} ({m['payload_bytes']} B): {m['can_frames']} CAN frames, "
+            f"{m['can_data_bytes']} data bytes, {m['can_bus_bits']} bus bits worst case; without a check "
+            f"{m['unchecked_can_frames']} frames, {m['unchecked_can_data_bytes']} bytes, "
+            f"{m['unchecked_can_bus_bits']} bits (ratio {m['bits_vs_unchecked']})"
+        )
     for label in ("caterpillar", "routed8"):
         print(
             f"  {label} encode+decode: {r[label + '_codec_roundtrips_per_s']:,}/s; "

@@ -11,7 +11,8 @@ Connector indices, not module addresses: nothing here names a module.
 
 Content encoding (used by every wire codec and by the size check): one byte for the hormone's
 index in the program's vocabulary, then per argument one byte (the atom's index in its
-parameter's domain) or a zig-zag varint (an integer, at most 5 bytes).
+parameter's domain) or a zig-zag varint (an integer, at most 5 bytes, in its shortest form:
+the decoder refuses an over-long one, so every accepted encoding re-encodes to itself).
 """
 
 from __future__ import annotations
@@ -195,6 +196,8 @@ def _get_varint(data: bytes, pos: int) -> tuple[int, int]:
         pos += 1
         result |= (b & 0x7F) << shift
         if not b & 0x80:
+            if b == 0 and shift:
+                raise DecodeError("varint not in its shortest form")
             return result, pos
         shift += 7
     raise DecodeError("varint longer than 5 bytes")

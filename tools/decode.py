@@ -1,6 +1,7 @@
 """A capture's frames in DH2 terms: which link and side, what kind of frame, the hormone as
 text with its path. CAN frames: segments of a long hormone reassembled per link end, as a
-module's transport does (:class:`~dh2rt.wire.can_frames.Reassembler`). Serial link frames:
+module's transport does (:class:`~dh2rt.wire.can_frames.Reassembler`): a train whose check
+fails (spliced from two hormones, or a piece lost) is marked refused. Serial link frames:
 COBS and CRC-32 undone, lost frames (sent, never delivered) marked. Frames that do not decode
 are kept, marked with the reason, so that a capture shows the robot's errors too.
 
@@ -29,6 +30,8 @@ KINDS = ("hormone", "routed", "keepalive", "hello", "link")
 MEMO_SIZE = 8192
 #: How a line of :meth:`Hop.describe` starts: the time (then :meth:`Hop.rest`).
 TIME_FORMAT = "%17.6f"
+#: What a last segment whose train fails its check says (the Wireshark dissector says it too).
+REFUSED = "train refused: its check fails (spliced from two hormones, or a piece lost)"
 
 
 class Hop(NamedTuple):
@@ -236,11 +239,13 @@ class Decoder:
             end = ("can", (can_id >> 1) & MAX_LINK_ID, can_id & 1)
             return self._remembered(self._memo, key, rec.timestamp, end, key[1])
         link, side = (can_id >> 1) & MAX_LINK_ID, can_id & 1
-        corrupted, dropped = reassembler.corrupted, reassembler.dropped
+        corrupted, dropped, refused = reassembler.corrupted, reassembler.dropped, reassembler.refused
         whole = reassembler.feed(can_id, rec.data)
         self._rebuilding = reassembler.pending
         if whole is None:
             seq = (can_id >> 19) & 63
+            if reassembler.refused > refused:
+                return Hop(rec.timestamp, link, side, "error", error=f"segment {seq}: {REFUSED}")
             if reassembler.corrupted > corrupted or reassembler.dropped > dropped:
                 return Hop(rec.timestamp, link, side, "error", error=f"segment {seq} out of order: lost")
             return Hop(rec.timestamp, link, side, "segment", text=f"#{seq}")

@@ -26,9 +26,9 @@ from dh2rt.wire.can_frames import (
     LINK_END_MASK,
     MANAGEMENT_ID,
     Reassembler,
+    Segmenter,
     listen_filter,
     make_arbitration_id,
-    segment,
 )
 from dh2rt.wire.frame import FrameCodec
 
@@ -95,6 +95,7 @@ class CanTransport(Transport):
         self.max_data = FD_DATA if fd else CLASSIC_DATA
         self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
+        self._segmenter = Segmenter(self.max_data)  # numbers each link end's segment trains
         self._bus: Any = self._open_bus(bus_options)
         import can  # already imported by _open_bus; kept for exception and Message types
 
@@ -167,7 +168,7 @@ class CanTransport(Transport):
     def _transmit(self, connector: int, end: LinkEnd, payload: bytes) -> bool:
         assert isinstance(end, BusEnd)
         can = self._can
-        for fr in segment(payload, end.link_id, end.side, self.max_data):
+        for fr in self._segmenter.segment(payload, end.link_id, end.side):
             msg = can.Message(
                 arbitration_id=fr.arbitration_id,
                 data=fr.data,

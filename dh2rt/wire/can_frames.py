@@ -7,7 +7,7 @@ its two ends are *side* 0 and side 1. Every frame uses a 29-bit extended identif
     bits 28..27  kind      frame kind (0 hormone, 1 routed, 2 keep-alive, 3 hello);
                            lower ids win arbitration, so hormones go before beacons
     bits 26..25  segment   0 single, 1 first, 2 middle, 3 last
-    bits 24..19  seq       segment number within one payload (0..63)
+    bits 24..19  seq       a segment train's tag plus the segment's index, mod 64 (single: 0)
     bits 18..1   link id   0..262143
     bit  0       side      the end that SENT the frame
 
@@ -15,29 +15,42 @@ A module at side ``s`` of link ``L`` sends with ``(L, s)`` and listens for ``(L,
 an acceptance filter on the low 19 bits (:func:`listen_filter`). Its own frames (which
 ``udp_multicast`` echoes back) carry its own side and are filtered out by the same rule.
 
-Payloads of up to 8 bytes (a caterpillar hormone is 4) go in one classic frame. Longer ones
-are segmented here: the segment marker and number ride in the arbitration id, so each data
-field carries 8 payload bytes and no protocol byte; no flow control is needed because a
-receiver only reassembles and CAN keeps one sender's frames in order (docs/link-layer.md
-explains why this beats ISO-TP for hormones). With CAN FD, segments carry up to 64 bytes and
-are cut to lengths FD can carry unpadded (``FD_LENGTHS``).
+Payloads of up to 8 bytes (a caterpillar hormone is 4) go in one classic frame, as they are:
+CAN's own CRC guards them. Longer ones are segmented here: the segment marker and number ride
+in the arbitration id, and the payload is followed by a CRC-32 of the train's *tag* and the
+payload, so a receiver refuses a payload spliced from two trains or missing a piece
+(``Reassembler.refused``). The tag is a per-link-end count of the sender's segment trains
+(:class:`Segmenter`); segment ``i`` of a train with tag ``t`` carries seq ``(t + i) % 64``,
+so segments of two consecutive trains never continue each other at the same position. No
+flow control is needed: a receiver only reassembles, and CAN keeps one sender's frames in
+order (docs/link-layer.md explains why this beats ISO-TP for hormones). With CAN FD,
+segments carry up to 64 bytes and are cut to lengths FD can carry unpadded (``FD_LENGTHS``).
 """
 
 from __future__ import annotations
 
+from binascii import crc32
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.wire.frame import frame_kind
+from dh2rt.wire.serial_framing import MAX_PAYLOAD
 
 SINGLE, FIRST, MIDDLE, LAST = 0, 1, 2, 3
 MAX_LINK_ID = (1 << 18) - 1
-MAX_SEGMENTS = 64
+#: Values of the seq field: tags and segment numbers count modulo this.
+SEQ_MODULUS = 64
 CLASSIC_DATA = 8
 FD_DATA = 64
 #: Low 19 bits of the id: link id and side, what a receiver filters on.
 LINK_END_MASK = (1 << 19) - 1
+#: Bytes of the check that ends a segment train: CRC-32/ISO-HDLC of the tag byte and the
+#: payload, little-endian (serial framing's FCS).
+CHECK_BYTES = 4
+#: The longest segment train: the longest payload a link carries (serial framing's limit,
+#: a transfer frame's largest) and its check; 65 classic frames.
+MAX_TRAIN = MAX_PAYLOAD + CHECK_BYTES
 
 
 class CanId(NamedTuple):
@@ -62,7 +75,7 @@ def make_arbitration_id(kind: int, segment: int, seq: int, link_id: int, side: i
     for name, value, limit in (
         ("kind", kind, 3),
         ("segment", segment, 3),
-        ("seq", seq, MAX_SEGMENTS - 1),
+        ("seq", seq, SEQ_MODULUS - 1),
         ("link_id", link_id, MAX_LINK_ID),
         ("side", side, 1),
     ):
@@ -103,26 +116,58 @@ def listen_filter(link_id: int, my_side: int) -> dict[str, int | bool]:
     }
 
 
-def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA) -> list[CanFrame]:
-    """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``."""
+def segment(payload: bytes, link_id: int, side: int, max_data: int = CLASSIC_DATA, tag: int = 0) -> list[CanFrame]:
+    """Split one frame's bytes into CAN frames sent by ``side`` of ``link_id``: one frame as it
+    is when it fits, else a train numbered by ``tag`` (0..63) ending in its check.
+    :class:`Segmenter` chooses the tags; a lone call may keep the default."""
     if not payload:
         raise EncodeError("cannot send an empty payload")
+    if not 0 <= tag < SEQ_MODULUS:
+        raise EncodeError(f"segment tag {tag} is outside 0..{SEQ_MODULUS - 1}")
+    if len(payload) > MAX_PAYLOAD:
+        raise EncodeError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
     kind = int(frame_kind(payload))
-    sizes = _chunk_sizes(len(payload), max_data)
-    if len(sizes) == 1:
+    if len(_chunk_sizes(len(payload), max_data)) == 1:
         return [CanFrame(make_arbitration_id(kind, SINGLE, 0, link_id, side), bytes(payload))]
-    chunks: list[bytes] = []
-    pos = 0
-    for size in sizes:
-        chunks.append(bytes(payload[pos : pos + size]))
-        pos += size
-    if len(chunks) > MAX_SEGMENTS:
-        raise EncodeError(f"payload of {len(payload)} bytes needs more than {MAX_SEGMENTS} CAN frames")
+    body = bytes(payload) + train_check(tag, payload)
+    sizes = _chunk_sizes(len(body), max_data)
+    if len(sizes) == 1:  # FD: the payload fits no frame unpadded, payload and check one
+        first = max(s for s in FD_LENGTHS if s < len(body))
+        sizes = [first, *_chunk_sizes(len(body) - first, max_data)]
     frames = []
-    for i, chunk in enumerate(chunks):
-        mark = FIRST if i == 0 else LAST if i == len(chunks) - 1 else MIDDLE
-        frames.append(CanFrame(make_arbitration_id(kind, mark, i, link_id, side), bytes(chunk)))
+    pos = 0
+    for i, size in enumerate(sizes):
+        mark = FIRST if i == 0 else LAST if i == len(sizes) - 1 else MIDDLE
+        can_id = make_arbitration_id(kind, mark, (tag + i) % SEQ_MODULUS, link_id, side)
+        frames.append(CanFrame(can_id, body[pos : pos + size]))
+        pos += size
     return frames
+
+
+def train_check(tag: int, payload: bytes) -> bytes:
+    """The check a segment train with ``tag`` ends in: CRC-32 of the tag byte and the payload."""
+    return crc32(payload, crc32(bytes((tag,)))).to_bytes(CHECK_BYTES, "little")
+
+
+class Segmenter:
+    """Cuts payloads into CAN frames for one module, numbering each link end's segment
+    trains with consecutive tags (mod 64): what lets a receiver tell two trains apart."""
+
+    __slots__ = ("_next_tag", "max_data")
+
+    def __init__(self, max_data: int = CLASSIC_DATA) -> None:
+        _chunk_sizes(1, max_data)  # validates max_data
+        self.max_data = max_data
+        self._next_tag: dict[tuple[int, int], int] = {}
+
+    def segment(self, payload: bytes, link_id: int, side: int) -> list[CanFrame]:
+        """The frames of ``payload`` sent by ``side`` of ``link_id``."""
+        key = (link_id, side)
+        tag = self._next_tag.get(key, 0)
+        frames = segment(payload, link_id, side, self.max_data, tag)
+        if len(frames) > 1:
+            self._next_tag[key] = (tag + 1) % SEQ_MODULUS
+        return frames
 
 
 #: Data lengths a CAN FD frame can have; others would be padded, and the frame codec rejects
@@ -146,6 +191,7 @@ def _chunk_sizes(n: int, max_data: int) -> list[int]:
 @dataclass(slots=True)
 class _Partial:
     kind: int
+    tag: int
     next_seq: int
     data: bytearray = field(default_factory=bytearray)
 
@@ -154,15 +200,18 @@ class Reassembler:
     """Rebuilds payloads from segments, per sending link end.
 
     ``feed`` returns a whole payload or None. A segment out of sequence abandons the payload
-    being rebuilt (``dropped``); a segment that cannot start or continue one is ``corrupted``.
+    being rebuilt (``dropped``); a segment that cannot start or continue one is ``corrupted``;
+    a train whose check fails (spliced from two trains, or a piece missing) is ``refused``,
+    and counted in ``dropped`` too. Only payloads that were sent come out.
     """
 
-    __slots__ = ("_partial", "corrupted", "dropped")
+    __slots__ = ("_partial", "corrupted", "dropped", "refused")
 
     def __init__(self) -> None:
         self._partial: dict[tuple[int, int], _Partial] = {}
         self.dropped = 0
         self.corrupted = 0
+        self.refused = 0
 
     @property
     def pending(self) -> bool:
@@ -184,10 +233,10 @@ class Reassembler:
         kind, seq = can_id >> 27, (can_id >> 19) & 63
         if mark == FIRST:
             self._abandon(key)
-            if seq != 0 or not data:
+            if not data:
                 self.corrupted += 1
                 return None
-            self._partial[key] = _Partial(kind, 1, bytearray(data))
+            self._partial[key] = _Partial(kind, seq, (seq + 1) % SEQ_MODULUS, bytearray(data))
             return None
         part = self._partial.get(key)
         if part is None or seq != part.next_seq or kind != part.kind or not data:
@@ -198,11 +247,17 @@ class Reassembler:
                 self.corrupted += 1
             return None
         part.data += data
-        part.next_seq += 1
+        part.next_seq = (seq + 1) % SEQ_MODULUS
         if mark == LAST:
             del self._partial[key]
-            return bytes(part.data)
-        if part.next_seq >= MAX_SEGMENTS:
+            body = part.data
+            payload = bytes(body[:-CHECK_BYTES])
+            if len(body) <= CHECK_BYTES or train_check(part.tag, payload) != body[-CHECK_BYTES:]:
+                self.refused += 1
+                self.dropped += 1
+                return None
+            return payload
+        if len(part.data) >= MAX_TRAIN:  # a last segment would make it too long
             self._abandon(key)
         return None
 

@@ -4,7 +4,7 @@ A frame is what one module sends through one connector: a hormone, a keep-alive 
 hello. Its bytes are the same on every medium (CAN segments them, serial wraps them in COBS
 and a CRC). Layout, byte by byte (``w`` = connector width in bits, 3 for CONRO)::
 
-    byte 0      VV KK SSSS   version (2 bits, = 1), kind (2 bits), sender connector (4 bits)
+    byte 0      VV KK SSSS   version (2 bits, = 3), kind (2 bits), sender connector (4 bits)
     HORMONE (kind 0) and ROUTED (kind 1):
     byte 1      hop count H (0..255)
     content     Vocabulary.encode_content: hormone index, then one byte per atom / varint
@@ -37,8 +37,10 @@ from typing import NamedTuple
 from dh2rt.errors import CodecError, DecodeError, FrameEncodeError
 from dh2rt.hormone import MAX_HOPS_LIMIT, Hormone, Vocabulary
 
-#: The wire format version carried in every frame's first byte.
-WIRE_VERSION = 1
+#: The wire format version carried in every frame's first byte. 3 since CAN segment trains
+#: carry a tag and a CRC-32 and integer arguments must be in their shortest form (1 before;
+#: 2 is the transfer family's; docs/link-layer.md).
+WIRE_VERSION = 3
 #: The same two bits of a transfer frame (:mod:`dh2rt.wire.transfer`): a second frame family.
 TRANSFER_FAMILY = 2
 #: Bytes of program digest a hello carries.
@@ -57,7 +59,6 @@ class FrameKind(IntEnum):
     ROUTED = 1
     KEEPALIVE = 2
     HELLO = 3
-
 
 
 @dataclass(frozen=True, slots=True)

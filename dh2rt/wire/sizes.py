@@ -6,6 +6,8 @@ re-exports them.
 
 from __future__ import annotations
 
+from dh2rt.wire.can_frames import CHECK_BYTES, CLASSIC_DATA
+
 #: Longest path an OFFER or a REPORT carries: rollouts reach modules up to this deep.
 MAX_PATH = 64
 #: Longest verdict (ASCII) and reason (UTF-8, cut at a character boundary) a frame carries.
@@ -30,6 +32,9 @@ def can_frame_bits(data: int) -> int:
 
 
 def can_cost(payload: int) -> int:
-    """Worst-case bus bits a frame of ``payload`` bytes takes as classic CAN segments."""
-    full, rest = divmod(payload, 8)
-    return full * can_frame_bits(8) + (can_frame_bits(rest) if rest else 0)
+    """Worst-case bus bits a frame of ``payload`` bytes takes on classic CAN: one frame, or a
+    segment train carrying the payload and its check (:mod:`dh2rt.wire.can_frames`)."""
+    if payload > CLASSIC_DATA:
+        payload += CHECK_BYTES
+    full, rest = divmod(payload, CLASSIC_DATA)
+    return full * can_frame_bits(CLASSIC_DATA) + (can_frame_bits(rest) if rest else 0)

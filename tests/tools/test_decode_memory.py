@@ -107,7 +107,7 @@ def tangle(programs: list[CompiledProgram], n: int, seed: int = 7) -> list[Recor
             wire = encode_serial(codec.encode(2, Hormone("X", ("B",))))
             out.append(SerialRecord(at, link, side, wire, lost=rng.random() < 0.3))
         else:  # bytes that are a hormone for one program and not for another, or garbage
-            data = rng.choice((b"\x42\x00\x01\x00", b"\x42\x00\x02\x01\x02", rng.randbytes(rng.randrange(1, 9))))
+            data = rng.choice((b"\xc2\x00\x01\x00", b"\xc2\x00\x02\x01\x02", rng.randbytes(rng.randrange(1, 9))))
             out.append(CanRecord(at, make_arbitration_id(0, SINGLE, 0, link, side), data, True))
     return out
 
@@ -163,7 +163,7 @@ def packets(program: CompiledProgram, n: int) -> Iterator[tuple[int, bytes]]:
                 send(codec.encode(BACK, Hormone("X", (phase,), long_path)), link, 0)
                 frames.append((0x123, bytes([seq]), False))
                 frames.append((make_arbitration_id(0, MIDDLE, 1, link, 0), b"\x00" * 8, True))
-                frames.append((make_arbitration_id(0, SINGLE, 0, link, 0), b"\xc2\x00\x00\x00", True))
+                frames.append((make_arbitration_id(0, SINGLE, 0, link, 0), b"\x42\x00\x00\x00", True))
     can_packets = [
         (CAN_INTERFACE, struct.pack(">IBBxx", can_id | (CAN_EFF_FLAG if ext else 0), len(data), 0) + data)
         for can_id, data, ext in frames

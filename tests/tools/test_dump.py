@@ -116,6 +116,36 @@ def test_long_hormones_are_reassembled_and_garbage_is_marked(
     assert sum("!!" in line for line in lines) == 2
 
 
+def test_a_spliced_train_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 27: the last frame of one hormone and the first of the next lost, the rest of the
+    two would make a hormone nobody sent. dump shows it refused, as a module's transport does."""
+    from dh2rt.wire.can_frames import Segmenter, segment
+
+    codec = contract_codec()
+    a = codec.encode(2, Hormone("P", (100, 200, "up"), ((1, 2),)))
+    b = codec.encode(2, Hormone("P", (-700, 800, "down"), ((3, 4),)))
+    restarted = [segment(p, 9, 1) for p in (a, b)]  # a sender that restarted: both trains tag 0
+    sender = Segmenter()
+    trains = [sender.segment(p, 9, 1) for p in (a, b)]  # one sender: tags 0 and 1
+    sent = [restarted[0][0], restarted[1][1], trains[0][0], trains[1][1], *trains[1]]
+    pcap = tmp_path / "spliced.pcap"
+    write_pcap(pcap, [CapturedFrame(1.0 + i / 100, f.arbitration_id, f.data) for i, f in enumerate(sent)])
+    program = tmp_path / "contract.dh2"
+    program.write_text(
+        "program contract\nconst ClockCycle = 4\nhormone X(a: A | B)\nhormone N(n: int)\n"
+        "hormone P(n: int, m: int, d: up | down)\n"
+    )
+    assert main([str(pcap), "--program", str(program)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "segment   #0" in lines[0] and "segment   #0" in lines[2] and "segment   #1" in lines[4]
+    assert lines[1].endswith(
+        "!! segment 1: train refused: its check fails (spliced from two hormones, or a piece lost)"
+    )
+    assert lines[3].endswith("!! segment 2 out of order: lost")  # the tag tells the trains apart
+    assert "P(-700, 800, down) (reassembled)" in lines[5]
+    assert len(lines) == 6 and sum("!!" in line for line in lines) == 2
+
+
 def test_bad_captures_name_the_file_and_offset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     good = tmp_path / "good.pcap"
     write_pcap(good, [CapturedFrame(1.0, 5, b"\x01\x02"), CapturedFrame(2.0, 6, b"\x03")])

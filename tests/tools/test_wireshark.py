@@ -24,11 +24,12 @@ from dh2rt.compiler import compile_file, compile_source
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.wire import can_frames
-from dh2rt.wire.can_frames import FIRST, LAST, make_arbitration_id, parse_arbitration_id, segment
-from dh2rt.wire.frame import FrameCodec, FrameKind, Hello, KeepAlive, program_digest
+from dh2rt.wire.can_frames import FIRST, LAST, Segmenter, make_arbitration_id, parse_arbitration_id, segment
+from dh2rt.wire.frame import WIRE_VERSION, FrameCodec, FrameKind, Hello, KeepAlive, program_digest
+from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.wire.serial_framing import encode_serial
 from tools import serial_records
-from tools.decode import Hop
+from tools.decode import REFUSED, Hop
 from tools.pcap import CAN_EFF_FLAG
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
 from tools.reading import open_capture
@@ -46,6 +47,8 @@ hormone W(phase: A | B, n: int, opposite: A | B)
 hormone LTS
 receptor grow when T == T1 and H == GROW(?n) { emit LTS via back }
 """
+#: Byte 0 of a hormone frame, sender and kind bits clear: the wire version alone.
+HEADER = WIRE_VERSION << 6
 FIELDS = ("frame.number", "dh2rt.medium", "dh2rt.link", "dh2rt.side", "dh2rt.kind", "dh2rt.text", "_ws.col.Info")
 
 
@@ -146,7 +149,7 @@ def record_traffic(rec: Recorder, caterpillar: CompiledProgram, counters: Compil
     kind of frame and the ways a frame goes wrong."""
     cat = FrameCodec(caterpillar.vocabulary, 4)
     cnt = FrameCodec(counters.vocabulary, 4)
-    long_path = tuple((FRONT, BACK) for _ in range(14))
+    long_path = tuple((FRONT, BACK) for _ in range(10))  # 12 bytes and a check: two frames
     # CAN link 5: the caterpillar's head (side 0) and its neighbour (side 1)
     rec.can(cat.encode(BACK, Hello(program_digest(caterpillar.image))), 5, 0)
     rec.can(cat.encode(BACK, Hormone("X", ("A",))), 5, 0)
@@ -180,7 +183,7 @@ def record_traffic(rec: Recorder, caterpillar: CompiledProgram, counters: Compil
     rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",), (), (BACK, BACK)))), 3, 1)
     # frames that pass the CRC and still do not decode: the codec's own errors
     rec.serial(encode_serial(b"\x82\x00"), 3, 1)  # wire version 2
-    rec.serial(encode_serial(bytes((0x41, 0, 7, 0))), 3, 1)  # hormone index 7
+    rec.serial(encode_serial(bytes((HEADER | 1, 0, 7, 0))), 3, 1)  # hormone index 7
     rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",))) + b"\x99"), 3, 1)  # trailing byte
     # serial link 4: the second program
     rec.serial(encode_serial(cnt.encode(RIGHT, Hello(program_digest(counters.image)))), 4, 1)
@@ -288,7 +291,7 @@ def random_frame(rng: random.Random, codec: FrameCodec) -> bytes:
     damage = rng.random()
     if damage < 0.2:
         at = rng.randrange(len(frame))
-        frame = frame[:at] + bytes((rng.randrange(256) if at else 0x40 | rng.randrange(64),)) + frame[at + 1 :]
+        frame = frame[:at] + bytes((rng.randrange(256) if at else HEADER | rng.randrange(64),)) + frame[at + 1 :]
     elif damage < 0.3:
         frame = frame[: rng.randrange(1, len(frame))]
     elif damage < 0.4:
@@ -322,6 +325,72 @@ def test_random_frames_show_as_dump_does(
     assert [row[-1] for row in rows] == [dump_line(hop, path) for hop in hops]
     kinds = [hop.kind for hop in hops]
     assert min(kinds.count(k) for k in ("hormone", "routed", "segment", "error")) >= 20, kinds
+
+
+def test_management_frames_and_refused_trains_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Link negotiation's management frames (valid and not), segment trains spliced or cut,
+    and an over-long integer: the dissector reads each as dump does."""
+    cnt = FrameCodec(programs[1].vocabulary, 4)
+    path = tmp_path / "management.pcapng"
+    rec = Recorder(path, (programs[1],))
+    try:
+        for op, link, tag in ((BusOp.CLAIM, 17, 0x1234), (BusOp.HOLD, 262142, 0xFFFFFFFF), (BusOp.RELEASE, 1, 7)):
+            rec.can_raw(MANAGEMENT_ID, encode_bus(BusMessage(op, link, tag)))
+        for garbage in (
+            b"\x01\x00\x00",
+            bytes((9, 0, 0, 17, 0, 0, 0, 1)),
+            bytes((1, 0, 0, 0, 0, 0, 0, 1)),
+            bytes((3, 0, 0, 17, 0, 0, 0, 0)),
+            b"",
+        ):
+            rec.can_raw(MANAGEMENT_ID, garbage)
+        a = cnt.encode(LEFT, Hormone("W", ("A", 100, "B"), ((RIGHT, LEFT),) * 3))
+        b = cnt.encode(LEFT, Hormone("W", ("B", -700, "A"), ((LEFT, RIGHT),) * 3))
+        restarted = [segment(p, 9, 1) for p in (a, b)]  # both trains tag 0: the check refuses the splice
+        sender = Segmenter()
+        trains = [sender.segment(p, 9, 1) for p in (a, b)]  # tags 0 and 1: the seq tells them apart
+        for frame in (restarted[0][0], restarted[1][1], trains[0][0], trains[1][1], *trains[1]):
+            rec.can_raw(frame.arbitration_id, frame.data)
+        rec.can_raw(make_arbitration_id(0, 0, 0, 9, 1), bytes((HEADER | LEFT, 0, 0, 0x8A, 0x00)))  # GROW(5), padded
+        rec.can_raw(make_arbitration_id(0, 0, 0, 9, 1), cnt.encode(LEFT, Hormone("GROW", (5,))))
+    finally:
+        rec.writer.close()
+    script = tmp_path / "dh2rt.lua"
+    assert main(["--capture", str(path), "-o", str(script)]) == 0
+    hops = dump_hops(path)
+    # the generic dissector (no program) reads all but the hormones' contents alike: the first 13
+    generic = run_tshark(tshark, COMMITTED, path, tmp_path / "home")
+    for rows, compared in ((run_tshark(tshark, script, path, tmp_path / "home"), 16), (generic, 13)):
+        assert len(rows) == len(hops) == 16
+        for row, hop in zip(rows[:compared], hops, strict=False):
+            number, medium, link_id, side, kind, text, line = row
+            link_and_side = ("" if hop.link is None else str(hop.link), "" if hop.side is None else str(hop.side))
+            assert (medium, (link_id, side), kind, text) == ("can", link_and_side, hop.kind, hop.text), number
+            assert line == dump_line(hop, path), number
+    info = [row[-1] for row in run_tshark(tshark, script, path, tmp_path / "home")]
+    assert info[:3] == [
+        "link   17 side -  link      CLAIM tag 00001234",
+        "link 262142 side -  link      HOLD tag ffffffff",
+        "link    1 side -  link      RELEASE tag 00000007",
+    ]
+    assert info[3] == "link    ? side ?  error       !! link negotiation: management frame of 3 bytes; it must be 8"
+    assert info[4].endswith("!! link negotiation: management op 9 is unknown")
+    assert info[5].endswith("!! link negotiation: management frame names link id 0, outside 1..262142")
+    assert info[6].endswith("!! link negotiation: management frame with tag 0 (no pair has it)")
+    assert info[7] == "link    ? side ?  error       !! link negotiation: management frame of 0 bytes; it must be 8"
+    assert info[8] == info[10] == "link    9 side 1  segment   #0"
+    assert info[9] == "link    9 side 1  error       !! segment 1: " + REFUSED
+    assert REFUSED == "train refused: its check fails (spliced from two hormones, or a piece lost)"
+    assert info[11] == "link    9 side 1  error       !! segment 2 out of order: lost"
+    assert info[12] == "link    9 side 1  segment   #1"
+    assert (
+        info[13]
+        == "link    9 side 1  hormone   W(B, -700, A) (reassembled) via left  path left>right left>right left>right"
+    )
+    assert info[14] == "link    9 side 1  error       !! varint not in its shortest form"
+    assert info[15] == "link    9 side 1  hormone   GROW(5) via left"
 
 
 # -- the layout check --------------------------------------------------------------------
@@ -358,7 +427,7 @@ def test_the_layout_reads_what_the_codec_writes() -> None:
         (FRONT, KeepAlive(3), FrameKind.KEEPALIVE),
     ):
         head = codec.encode(sender, frame)[0]
-        assert [layout.extract(head, header[n]) for n in ("version", "kind", "sender")] == [1, kind, sender]
+        assert [layout.extract(head, header[n]) for n in ("version", "kind", "sender")] == [WIRE_VERSION, kind, sender]
 
 
 def test_bit_fields_must_be_one_run() -> None:

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dh2rt.errors import CodecError, FrameEncodeError, HormoneError
+from dh2rt.errors import CodecError, DecodeError, FrameEncodeError, HormoneError
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
 from dh2rt.wire.frame import (
     FrameCodec,
@@ -53,14 +53,14 @@ frames = st.one_of(
 
 def test_caterpillar_frame_is_four_bytes() -> None:
     data = CODEC.encode(2, Hormone("X", ("A",)))
-    assert data == bytes([0x42, 0x00, 0x00, 0x00])  # v1, hormone, sender 2 | 0 hops | X | A
+    assert data == bytes([0xC2, 0x00, 0x00, 0x00])  # v3, hormone, sender 2 | 0 hops | X | A
     assert len(data) <= 8  # one classic CAN frame
 
 
 def test_header_and_path_layout() -> None:
     h = Hormone("X", ("B",), ((1, 2), (3, 4)), (2, 1))
     data = CODEC.encode(3, h)
-    assert data[0] == 0x40 | (FrameKind.ROUTED << 4) | 3
+    assert data[0] == 0xC0 | (FrameKind.ROUTED << 4) | 3
     assert data[1] == 2  # hops
     assert data[2:4] == b"\x00\x01"  # content: X, B
     # 3-bit fields 1,2,3,4 = 001 010 011 100 -> 0010 1001 1100 (+ 4 zero bits)
@@ -71,7 +71,7 @@ def test_header_and_path_layout() -> None:
 
 
 def test_keepalive_and_hello() -> None:
-    assert CODEC.encode(1, KeepAlive(9)) == bytes([0x61, 9])
+    assert CODEC.encode(1, KeepAlive(9)) == bytes([0xE1, 9])
     digest = program_digest(b"some program")
     assert len(digest) == 6 and CODEC.decode(CODEC.encode(4, Hello(digest))) == (4, Hello(digest))
 
@@ -89,8 +89,47 @@ def test_garbage_raises_only_codec_error(data: bytes) -> None:
         sender, frame = CODEC.decode(data)
     except CodecError:
         return
-    # Whatever does decode is a valid frame that re-encodes to a decodable frame.
-    assert CODEC.decode(CODEC.encode(sender, frame)) == (sender, frame)
+    # Whatever does decode is a valid frame that re-encodes to the very same bytes.
+    assert CODEC.encode(sender, frame) == data
+
+
+def test_an_over_long_varint_is_refused() -> None:
+    """Issue 27: ``c1 00 02 8a 00 00 00`` read as Q(5, up, 0) although 5 is ``0a``: an
+    argument had two encodings. Only the shortest is accepted, so every accepted frame is
+    canonical and re-encodes to itself."""
+    assert CODEC.encode(1, Hormone("Q", (5, "up", 0))) == bytes.fromhex("c100020a0000")
+    for padded in ("8a00", "8a8000", "8a808000", "8a80808000", "ff80808000"):
+        with pytest.raises(DecodeError, match="shortest form"):
+            CODEC.decode(bytes.fromhex("c10002" + padded + "0000"))
+
+
+@given(i32, i32)
+def test_integers_round_trip_in_their_shortest_form(n: int, m: int) -> None:
+    data = CODEC.encode(1, Hormone("Q", (n, "down", m)))
+    assert CODEC.decode(data) == (1, Hormone("Q", (n, "down", m)))
+    assert len(data) == 3 + _shortest(n) + 1 + _shortest(m)
+
+
+def _shortest(n: int) -> int:
+    """Bytes of the shortest LEB128 of ``n`` zig-zagged: 7 bits a byte."""
+    zigzag = 2 * n if n >= 0 else -2 * n - 1
+    return max(1, -(-zigzag.bit_length() // 7))
+
+
+#: Bytes that make varints end, continue, or end in a zero: what an over-long one is made of.
+_tricky = st.lists(st.sampled_from([0x00, 0x01, 0x0A, 0x7F, 0x80, 0x8A, 0xFF]), min_size=1, max_size=12).map(bytes)
+
+
+@given(st.binary(min_size=1, max_size=12) | _tricky)
+@settings(max_examples=2000)
+def test_every_accepted_content_re_encodes_to_itself(content: bytes) -> None:
+    """Random bytes where Q's two integers and its atom go: whatever decodes is canonical."""
+    data = b"\xc1\x00\x02" + content
+    try:
+        sender, frame = CODEC.decode(data)
+    except CodecError:
+        return
+    assert CODEC.encode(sender, frame) == data
 
 
 @given(hormones, connector, st.data())
@@ -133,11 +172,13 @@ def test_decode_errors_are_specific() -> None:
     with pytest.raises(CodecError, match="wire version 0"):
         CODEC.decode(b"\x02\x00\x01")
     with pytest.raises(CodecError, match="sender connector 7"):
-        CODEC.decode(b"\x47\x00\x01")
+        CODEC.decode(b"\xc7\x00\x01")
     with pytest.raises(CodecError, match="trailing"):
-        CODEC.decode(b"\x41\x00\x01\x00")
+        CODEC.decode(b"\xc1\x00\x01\x00")
     with pytest.raises(CodecError, match="padding"):
-        CODEC.decode(b"\x41\x01\x01\x49\x01")  # hop (2, 2) = 010 010 then nonzero pad bits
+        CODEC.decode(b"\xc1\x01\x01\x49\x01")  # hop (2, 2) = 010 010 then nonzero pad bits
+    with pytest.raises(CodecError, match="wire version 1, expected 3"):
+        CODEC.decode(b"\x41\x00\x01")  # version 1: segment trains without a check
 
 
 def test_connector_width_follows_the_profile() -> None:

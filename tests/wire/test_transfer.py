@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.hormone import Hormone, HormoneSpec, ParamSpec, Vocabulary
 from dh2rt.wire import transfer as tw
-from dh2rt.wire.can_frames import CLASSIC_DATA, Reassembler, parse_arbitration_id, segment
-from dh2rt.wire.frame import FrameCodec, FrameKind, Hello, frame_kind, program_digest
+from dh2rt.wire.can_frames import CHECK_BYTES, CLASSIC_DATA, MAX_TRAIN, Reassembler, parse_arbitration_id, segment
+from dh2rt.wire.frame import WIRE_VERSION, FrameCodec, FrameKind, Hello, frame_kind, program_digest
 from dh2rt.wire.serial_framing import MAX_PAYLOAD, SerialDecoder, encode_serial
 from dh2rt.wire.transfer import (
     Ack,
@@ -213,7 +213,7 @@ def test_link_frames_are_not_transfer_frames() -> None:
     for frame in (Hormone("H0", (1,), ((1, 2),)), Hello(b"abcdef")):
         data = CODEC.encode(3, frame)
         assert not tw.is_transfer(data)
-        with pytest.raises(DecodeError, match="family 1"):
+        with pytest.raises(DecodeError, match=f"family {WIRE_VERSION}"):
             tw.decode(data)
     assert not tw.is_transfer(b"")
 
@@ -242,7 +242,9 @@ def test_the_largest_frames_fit_a_serial_frame() -> None:
         wire = encode_serial(data)
         assert SerialDecoder().feed(wire) == [data]
         assert tw.serial_cost(len(data)) >= len(wire)
-        assert len(segment(data, 1, 0)) <= 64
+        frames = segment(data, 1, 0)  # a train of the frame and its check, within MAX_TRAIN
+        assert len(frames) == -(-(len(data) + CHECK_BYTES) // CLASSIC_DATA) <= 65
+        assert sum(len(f.data) for f in frames) <= MAX_TRAIN
 
 
 @pytest.mark.parametrize("n", [1, 4, 13, 86, 253, 254, 300, 512])
@@ -255,9 +257,13 @@ def test_serial_cost_is_the_framed_length_at_worst(n: int) -> None:
 def test_can_cost_counts_worst_case_stuffing() -> None:
     assert tw.can_frame_bits(8) == 160  # 67 + 64 + floor(117 / 4)
     assert tw.can_frame_bits(0) == 80
-    assert tw.can_cost(8) == 160
-    assert tw.can_cost(13) == 160 + tw.can_frame_bits(5)
-    assert tw.can_cost(86) == 10 * 160 + tw.can_frame_bits(6)
+    assert tw.can_cost(8) == 160  # one frame, no check
+    # longer: a segment train, the payload and its 4-byte check
+    assert tw.can_cost(13) == 2 * 160 + tw.can_frame_bits(1)
+    assert tw.can_cost(86) == 11 * 160 + tw.can_frame_bits(2)
+    for n in (9, 12, 13, 56 + 6, 143, 512):
+        frames = segment(bytes((0xC0,)) + bytes(n - 1), 1, 0)
+        assert tw.can_cost(n) == sum(tw.can_frame_bits(len(f.data)) for f in frames)
 
 
 # ---------------------------------------------------------------- the Hello with a version

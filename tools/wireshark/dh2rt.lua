@@ -3,7 +3,10 @@
 -- It reads both halves of a dh2rt capture (docs/capture.md):
 --   * CAN frames in SocketCAN captures (link type 227): a heuristic dissector on "can", since
 --     a dh2rt link id lives in the 29-bit arbitration id (kind, segment, seq, link id, side);
---     segments of a long hormone are reassembled per link end, as a module's transport does;
+--     segments of a long hormone are reassembled per link end, as a module's transport does,
+--     and a train whose CRC-32 fails (spliced from two hormones, or a piece lost) is refused;
+--     the management frames of link negotiation (one arbitration id) show their op, link id
+--     and tag;
 --   * the emulated infrared serial links (link type 147, USER0): the 8-byte "D2" record
 --     (side, lost, corrupted, link id), then the frame as on the wire: COBS, CRC-32, 0x00.
 -- The Info column is the line `dh2rt dump` prints for the frame, without its time.
@@ -16,15 +19,15 @@
 -- personal Lua plugins folder (Help > About Wireshark > Folders).
 --
 -- The block below is written by tools/wireshark/generate.py from dh2rt's codec modules
--- (dh2rt/wire/frame.py, dh2rt/wire/can_frames.py, dh2rt/wire/serial_framing.py,
--- tools/serial_records.py): a test checks that this file is what the generator writes, so
+-- (dh2rt/wire/frame.py, dh2rt/wire/can_frames.py, dh2rt/wire/negotiation.py,
+-- dh2rt/wire/serial_framing.py, tools/serial_records.py): a test checks that this file is what the generator writes, so
 -- the dissector and the codec cannot drift apart. Edit the generator, not the block.
 
 -- BEGIN GENERATED
 -- Written by `dh2rt wireshark`; do not edit.
 -- Profile conro; programs: none.
 local LAYOUT = {
-    wire_version = 1,
+    wire_version = 3,
     header = {
         version = { shift = 6, width = 2 },
         kind = { shift = 4, width = 2 },
@@ -44,7 +47,19 @@ local LAYOUT = {
     },
     segments = { single = 0, first = 1, middle = 2, last = 3 },
     segment_names = { [0] = "single", [1] = "first", [2] = "middle", [3] = "last" },
-    max_segments = 64,
+    train = {
+        check_bytes = 4,
+        seq_modulus = 64,
+        max_train = 516,
+        refused = "train refused: its check fails (spliced from two hormones, or a piece lost)",
+    },
+    management = {
+        id = 403177470,
+        bytes = 8,
+        ops = { [1] = "CLAIM", [2] = "RELEASE", [3] = "HOLD" },
+        first_link_id = 1,
+        last_link_id = 262142,
+    },
     serial = {
         magic = "D2",
         version = 1,
@@ -177,8 +192,13 @@ local F = {
     -- CAN arbitration id
     can_kind = ProtoField.uint8("dh2rt.can.kind", "Kind (id)", base.DEC, FRAME_KINDS),
     segment = ProtoField.uint8("dh2rt.can.segment", "Segment", base.DEC, SEGMENTS),
-    seq = ProtoField.uint8("dh2rt.can.seq", "Segment number"),
+    seq = ProtoField.uint8("dh2rt.can.seq", "Seq (the train's tag plus the segment's index)"),
     segment_frames = ProtoField.string("dh2rt.can.segment_frames", "Reassembled from frames"),
+    train_tag = ProtoField.uint8("dh2rt.can.tag", "Train tag"),
+    train_check = ProtoField.uint32("dh2rt.can.check", "Train check (CRC-32)", base.HEX),
+    -- link negotiation's management frames
+    op = ProtoField.string("dh2rt.link.op", "Management op (CLAIM, RELEASE, HOLD)"),
+    pair_tag = ProtoField.uint32("dh2rt.link.tag", "Pair tag", base.HEX),
     -- serial record
     magic = ProtoField.string("dh2rt.serial.magic", "Magic"),
     record_version = ProtoField.uint8("dh2rt.serial.version", "Record version"),
@@ -300,6 +320,9 @@ function Decode:varint(pos)
         pos = pos + 1
         result = result + (b % 128) * scale
         if b < 128 then
+            if b == 0 and scale > 1 then
+                decode_error("varint not in its shortest form")
+            end
             return result, pos
         end
         scale = scale * 128
@@ -528,7 +551,14 @@ end
 
 local function describe(medium, link, side, hop)
     local label = medium == "serial" and "ir  " or "link"
-    local line = string.format("%s %4d side %d  %-9s %s", label, link, side, hop.kind, hop.text)
+    local line
+    if link == nil then
+        line = string.format("%s    ? side ?  %-9s %s", label, hop.kind, hop.text)
+    else
+        -- a management frame names a link, no side
+        local shown = side == nil and "-" or string.format("%d", side)
+        line = string.format("%s %4d side %s  %-9s %s", label, link, shown, hop.kind, hop.text)
+    end
     if hop.sender then
         line = line .. " via " .. hop.sender
     end
@@ -612,9 +642,19 @@ local function is_dh2rt(tvb, id)
     return state.ends[id.link .. ":" .. id.side] == true
 end
 
--- One frame into the reassembler: the whole payload (or nil), and whether a payload was lost.
+-- The little-endian number in a byte string.
+local function little_endian(data)
+    local value = 0
+    for i = #data, 1, -1 do
+        value = value * 256 + data:byte(i)
+    end
+    return value
+end
+
+-- One frame into the reassembler: the whole payload (or nil); whether a payload was lost
+-- (true) or refused by its check ("refused"); the frame numbers a whole payload came in.
 local function reassemble(id, data, number)
-    local S = LAYOUT.segments
+    local S, T = LAYOUT.segments, LAYOUT.train
     local key = id.link .. ":" .. id.side
     local part = state.partial[key]
     if id.segment == S.single or id.segment == S.first then
@@ -623,10 +663,13 @@ local function reassemble(id, data, number)
         if id.segment == S.single then
             return data, lost, nil
         end
-        if id.seq ~= 0 or #data == 0 then
+        if #data == 0 then
             return nil, true, nil
         end
-        state.partial[key] = { kind = id.kind, next_seq = 1, chunks = { data }, frames = { number } }
+        state.partial[key] = {
+            kind = id.kind, tag = id.seq, next_seq = (id.seq + 1) % T.seq_modulus,
+            chunks = { data }, frames = { number }, length = #data,
+        }
         return nil, lost, nil
     end
     if part == nil or id.seq ~= part.next_seq or id.kind ~= part.kind or #data == 0 then
@@ -635,12 +678,19 @@ local function reassemble(id, data, number)
     end
     part.chunks[#part.chunks + 1] = data
     part.frames[#part.frames + 1] = number
-    part.next_seq = part.next_seq + 1
+    part.next_seq = (id.seq + 1) % T.seq_modulus
+    part.length = part.length + #data
     if id.segment == S.last then
         state.partial[key] = nil
-        return table.concat(part.chunks), false, part.frames
+        local body = table.concat(part.chunks)
+        local payload = body:sub(1, -T.check_bytes - 1)
+        local check = little_endian(body:sub(-T.check_bytes))
+        if #body <= T.check_bytes or crc32(string.char(part.tag) .. payload) ~= check then
+            return nil, "refused", nil
+        end
+        return payload, false, part.frames, part.tag, check
     end
-    if part.next_seq >= LAYOUT.max_segments then
+    if part.length >= T.max_train then
         state.partial[key] = nil
         return nil, true, nil
     end
@@ -654,8 +704,8 @@ local function first_look_can(tvb, pinfo, id)
     end
     state.ends[id.link .. ":" .. id.side] = true
     local data = tvb:len() > 0 and tvb:range(0):raw() or ""
-    local payload, lost, frames = reassemble(id, data, pinfo.number)
-    return { payload = payload, lost = lost, frames = frames }
+    local payload, lost, frames, tag, check = reassemble(id, data, pinfo.number)
+    return { payload = payload, lost = lost, frames = frames, tag = tag, check = check }
 end
 
 local function add_can_id(tree, tvb, id)
@@ -668,11 +718,52 @@ local function add_can_id(tree, tvb, id)
     tree:add(F.seq, here, id.seq):set_generated()
 end
 
+-- A management frame of link negotiation (dh2rt.wire.negotiation.decode_bus): its op, link
+-- id and pair tag, or an error hop as dump has it.
+local function management_hop(tvb, root)
+    local M = LAYOUT.management
+    local function fail(message)
+        return { kind = "error", text = "", error = "link negotiation: " .. message }, nil
+    end
+    if tvb:len() ~= M.bytes then
+        return fail(string.format("management frame of %d bytes; it must be %d", tvb:len(), M.bytes))
+    end
+    local op = tvb:range(0, 1):uint()
+    local name = M.ops[op]
+    if name == nil then
+        return fail(string.format("management op %d is unknown", op))
+    end
+    local link = tvb:range(1, 3):uint()
+    local tag = tvb:range(4, 4):uint()
+    if link < M.first_link_id or link > M.last_link_id then
+        return fail(string.format("management frame names link id %d, outside %d..%d", link, M.first_link_id,
+            M.last_link_id))
+    end
+    if tag == 0 then
+        return fail("management frame with tag 0 (no pair has it)")
+    end
+    root:add(F.op, tvb:range(0, 1), name)
+    root:add(F.link, tvb:range(1, 3))
+    root:add(F.pair_tag, tvb:range(4, 4))
+    return { kind = "link", text = string.format("%s tag %08x", name, tag) }, link
+end
+
+local function dissect_management(tvb, pinfo, tree)
+    local root = tree:add(dh2rt, tvb())
+    root:add(F.medium, tvb:range(0, 0), "can"):set_generated()
+    local hop, link = management_hop(tvb, root)
+    show(tvb, pinfo, root, "can", link, nil, hop)
+    return true
+end
+
 local function dissect_can(tvb, pinfo, tree)
     local xtd = can_xtd_field()
     local raw_id = can_id_field()
     if xtd == nil or not xtd.value or raw_id == nil then
         return false
+    end
+    if raw_id.value == LAYOUT.management.id then
+        return dissect_management(tvb, pinfo, tree)
     end
     local id = parse_can_id(raw_id.value)
     local remembered = state.frames[pinfo.number]
@@ -695,11 +786,15 @@ local function dissect_can(tvb, pinfo, tree)
                 numbers[i] = tostring(n)
             end
             root:add(F.segment_frames, table.concat(numbers, ", ")):set_generated()
+            root:add(F.train_tag, remembered.tag):set_generated()
+            root:add(F.train_check, remembered.check):set_generated()
         end
         hop = dissect_payload(payload_tvb, root, remembered, "can", id.link, id.side)
         if remembered.frames ~= nil and hop.kind ~= "error" then
             hop.text = hop.text .. " (reassembled)"
         end
+    elseif remembered.lost == "refused" then
+        hop = { kind = "error", text = "", error = string.format("segment %d: %s", id.seq, LAYOUT.train.refused) }
     elseif remembered.lost then
         hop = { kind = "error", text = "", error = string.format("segment %d out of order: lost", id.seq) }
     else

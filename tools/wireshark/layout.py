@@ -3,6 +3,7 @@
 Nothing here restates a bit position: each field is found by probing the codec's public
 functions (:func:`~dh2rt.wire.can_frames.make_arbitration_id`,
 :meth:`~dh2rt.wire.frame.FrameCodec.encode`, :func:`~dh2rt.wire.frame.frame_kind`,
+:func:`~dh2rt.wire.can_frames.segment`, :func:`~dh2rt.wire.negotiation.encode_bus`,
 :func:`tools.serial_records.pack`) and then checked against a frame of every kind, so a
 change to the codec changes the generated dissector, or stops the generator with
 :class:`LayoutError`.
@@ -10,6 +11,7 @@ change to the codec changes the generated dissector, or stops the generator with
 
 from __future__ import annotations
 
+import zlib
 from functools import reduce
 from operator import or_
 from typing import Any
@@ -29,9 +31,10 @@ from dh2rt.wire.frame import (
     KeepAlive,
     frame_kind,
 )
+from dh2rt.wire.negotiation import FIRST_LINK_ID, LAST_LINK_ID, MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.wire.serial_framing import CRC_BYTES, DELIMITER
 from tools import serial_records
-from tools.decode import KINDS
+from tools.decode import KINDS, REFUSED
 
 #: A field of an integer: its lowest bit and its width in bits.
 BitField = dict[str, int]
@@ -63,7 +66,7 @@ def extract(value: int, field: BitField) -> int:
 _CAN_LIMITS = {
     "kind": max(FrameKind),
     "segment": can_frames.LAST,
-    "seq": can_frames.MAX_SEGMENTS - 1,
+    "seq": can_frames.SEQ_MODULUS - 1,
     "link_id": can_frames.MAX_LINK_ID,
     "side": 1,
 }
@@ -120,6 +123,43 @@ def _check_header(codec: FrameCodec, fields: dict[str, BitField]) -> None:
                 raise LayoutError(f"byte 0 of a {kind.name} frame through {sender} reads {got}")
 
 
+def train_layout() -> dict[str, Any]:
+    """A segment train's check, read off a train: CRC-32 of the tag byte and the payload,
+    little-endian, after the payload; segment i's seq is the tag plus i."""
+    payload = bytes((0xC0,)) + bytes(range(1, 12))
+    tag = 61
+    frames = can_frames.segment(payload, 1, 0, can_frames.CLASSIC_DATA, tag)
+    body = b"".join(f.data for f in frames)
+    check = body[len(payload) :]
+    seq = can_id_fields()["seq"]
+    seqs = [extract(f.arbitration_id, seq) for f in frames]
+    if body[: len(payload)] != payload or check != zlib.crc32(bytes((tag,)) + payload).to_bytes(len(check), "little"):
+        raise LayoutError("a segment train is not its payload, then CRC-32 of tag and payload, little-endian")
+    if seqs != [(tag + i) % can_frames.SEQ_MODULUS for i in range(len(frames))]:
+        raise LayoutError(f"a train with tag {tag} numbers its segments {seqs}")
+    return {
+        "check_bytes": len(check),
+        "seq_modulus": can_frames.SEQ_MODULUS,
+        "max_train": can_frames.MAX_TRAIN,
+        "refused": REFUSED,
+    }
+
+
+def management_layout() -> dict[str, Any]:
+    """Link negotiation's management frames: their arbitration id, and data of op (1 byte),
+    link id (3 bytes, big-endian) and tag (4 bytes, big-endian), checked against encode_bus."""
+    probe = BusMessage(BusOp.HOLD, 0x010203, 0x04050607)
+    if encode_bus(probe) != bytes((BusOp.HOLD, 1, 2, 3, 4, 5, 6, 7)):
+        raise LayoutError("a management frame is not op, big-endian link id, big-endian tag")
+    return {
+        "id": MANAGEMENT_ID,
+        "bytes": len(encode_bus(probe)),
+        "ops": {int(op): op.name for op in BusOp},
+        "first_link_id": FIRST_LINK_ID,
+        "last_link_id": LAST_LINK_ID,
+    }
+
+
 # -- the serial record -------------------------------------------------------------------
 
 
@@ -173,6 +213,7 @@ def wire_layout(profile: Profile) -> dict[str, Any]:
         "can": can_id_fields(),
         "segments": segments,
         "segment_names": {value: name for name, value in segments.items()},
-        "max_segments": can_frames.MAX_SEGMENTS,
+        "train": train_layout(),
+        "management": management_layout(),
         "serial": serial_layout(),
     }
