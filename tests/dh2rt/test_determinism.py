@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import random
 from pathlib import Path
 
@@ -107,7 +108,7 @@ def test_a_run_does_not_depend_on_the_order_modules_are_listed_in(
     from dh2rt.cli import main
 
     names = ["head", "neck", "spine", "hip", "tail"]
-    links = [f'"{a}.back <-> {b}.front"' for a, b in zip(names, names[1:], strict=False)]
+    links = [f'"{a}.back <-> {b}.front"' for a, b in itertools.pairwise(names)]
     traces = []
     for order in (names, [names[i] for i in (3, 0, 4, 2, 1)]):
         topology = tmp_path / f"{order[0]}.toml"
