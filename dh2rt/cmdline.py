@@ -10,7 +10,10 @@ module; none of them imports another's command module.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
+import os
 import signal
 import sys
 import time
@@ -23,7 +26,7 @@ from dh2rt.errors import OptionError, OutputError
 from dh2rt.events import Event, check_events, parse_event
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
-from dh2rt.runtime import CYCLE_PERIOD_S, s_to_ms
+from dh2rt.runtime import CYCLE_PERIOD_S, MAX_CYCLE_PERIOD_S, s_to_ms
 from dh2rt.topology import BUILTIN_NAMES, parse_spec
 from dh2rt.trace import TraceWriter
 
@@ -66,6 +69,8 @@ def add_run_options(p: argparse.ArgumentParser, program_required: bool = True) -
 
 #: The robot's CAN bus bit rate: every command's ``--bitrate`` default (module.toml's too).
 CAN_BITRATE = 1_000_000
+#: The bit rates a CAN bus may have (bit/s), nominal or CAN FD's data phase.
+BITRATES = (10_000, 12_000_000)
 
 
 def add_bus_arguments(
@@ -88,7 +93,7 @@ def add_bus_arguments(
     group.add_argument(
         "-b",
         "--bitrate",
-        type=int,
+        type=int_in(*BITRATES),
         default=CAN_BITRATE,
         help=f"the bus's bit rate in bit/s, where the interface sets one (default: {CAN_BITRATE})",
     )
@@ -100,11 +105,59 @@ def bus_options(ns: argparse.Namespace) -> dict[str, Any]:
     return {"interface": ns.interface, "channel": ns.channel, "bitrate": ns.bitrate}
 
 
+def float_in(low: float, high: float, *, low_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type``: a finite number from ``low`` (excluded when ``low_open``) to
+    ``high``. argparse turns a refusal into exit 2 naming the option
+    (``argument --cycle-ms: expected a number more than 0 and at most 60000, got 'nan'``)."""
+    bounds = f"{'more than' if low_open else 'from'} {low:g} {'and at most' if low_open else 'to'} {high:g}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value) or value > high or value < low or (low_open and value == low):
+            raise argparse.ArgumentTypeError(f"expected a number {bounds}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"  # what argparse says it expected, should it ever say so
+    return parse
+
+
+def int_in(low: int, high: int) -> Callable[[str], int]:
+    """An argparse ``type``: a whole number from ``low`` to ``high`` (exit 2 naming the option)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number {low}..{high}, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a whole number {low}..{high}, got {text!r}")
+        return value
+
+    parse.__name__ = "whole number"
+    return parse
+
+
+#: The longest cycle period any command accepts (ms).
+MAX_CYCLE_MS = s_to_ms(MAX_CYCLE_PERIOD_S)
+#: ``--cycle-ms``'s type: a finite period, more than 0 and at most MAX_CYCLE_MS.
+positive_finite_ms = float_in(0.0, MAX_CYCLE_MS, low_open=True)
+#: A probability option's type (``--frame-loss``): finite, 0 to 1.
+probability = float_in(0.0, 1.0)
+
+
 def add_cycle_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup, what: str) -> None:
     """``--cycle-ms``: the robot's cycle period in milliseconds (``ns.cycle_ms``; in seconds:
     :func:`dh2rt.runtime.ms_to_s`), whose default is the core's one (CYCLE_PERIOD_S)."""
     default = s_to_ms(CYCLE_PERIOD_S)
-    parser.add_argument("--cycle-ms", type=float, default=default, help=f"{what} (default: {default:g})")
+    parser.add_argument(
+        "--cycle-ms",
+        type=positive_finite_ms,
+        default=default,
+        help=f"{what}, more than 0 and at most {MAX_CYCLE_MS:g} (default: {default:g})",
+    )
 
 
 def load_program(path: Path) -> CompiledProgram:
@@ -150,7 +203,23 @@ def output_path(path: Path, option: str, suffixes: tuple[str, ...] = (), *, stdo
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{option} {path}: cannot create its folder ({exc.strerror or exc})") from None
+    check_writable(path, option)
     return path
+
+
+def check_writable(path: Path, option: str) -> None:
+    """Refuse (OutputError, exit 2) a file that cannot be written, before any work starts
+    rather than after a whole run: it is opened for appending (nothing it holds changes),
+    and removed again if this made it."""
+    existed = path.exists()
+    try:
+        with path.open("ab"):
+            pass
+    except OSError as exc:
+        raise OutputError(f"{option} {path}: cannot write it ({exc.strerror or exc})") from None
+    if not existed:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
 
 
 class Progress:

@@ -62,6 +62,10 @@ _CMP: dict[str, Callable[[Any, Any], bool]] = {
     ">=": operator.ge,
 }
 KNOWN_OPTIONS = ("max_hops",)
+#: The longest LocalTimer period a program may declare (``const ClockCycle``), in cycles:
+#: 33 minutes at 20 ms. A module keeps its receptor index per LocalTimer value, so memory
+#: and compile time grow with ClockCycle (linearly: dh2rt.matcher.build_index).
+MAX_CLOCK_CYCLE = 100_000
 
 
 def _div(a: int, b: int) -> int:
@@ -116,6 +120,15 @@ class _Compiler:
         if name in seen:
             raise self.fail(f"{kind} {name!r} is declared twice", span)
 
+    def first_span(self) -> SourceSpan:
+        """Where the program's declarations begin (a whole-program error points there)."""
+        p = self.p
+        for decls in (p.consts, p.options, p.variables, p.sensors, p.hormones, p.natives, p.receptors):
+            for d in decls:
+                if d.span is not None:
+                    return d.span
+        return SourceSpan(p.source, 1, 1)
+
     # ------------------------------------------------------------ declarations
 
     def declarations(self) -> None:
@@ -123,11 +136,13 @@ class _Compiler:
             self.unique("constant", c.name, self.consts, c.span)
             self.consts[c.name] = self.const_value(c.value, f"constant {c.name}")
         if "ClockCycle" not in self.consts:
-            raise self.fail("the program must declare `const ClockCycle = N` (cycles per LocalTimer period)", None)
+            raise self.fail(
+                "the program must declare `const ClockCycle = N` (cycles per LocalTimer period)", self.first_span()
+            )
         self.clock_cycle = self.consts["ClockCycle"]
-        if self.clock_cycle < 1:
+        if not 1 <= self.clock_cycle <= MAX_CLOCK_CYCLE:
             cc = next(c for c in self.p.consts if c.name == "ClockCycle")
-            raise self.fail(f"ClockCycle must be at least 1, got {self.clock_cycle}", cc.span)
+            raise self.fail(f"ClockCycle must be 1..{MAX_CLOCK_CYCLE}, got {self.clock_cycle}", cc.span)
         seen_opts: dict[str, int] = {}
         for o in self.p.options:
             self.unique("option", o.name, seen_opts, o.span)
@@ -634,7 +649,12 @@ def compile_program(program: ast.Program, profile: Profile = CONRO, *, indexed: 
     ``indexed=False`` files every receptor as a candidate in every state (the paper's
     "match every active receptor" loop): the same semantics, for measuring the index.
     """
-    return _Compiler(program, profile, indexed).compile()
+    try:
+        return _Compiler(program, profile, indexed).compile()
+    except RecursionError:  # a tree built in Python deeper than the text parser allows
+        raise ProgramCompileError(
+            f"{program.source}: a pattern or an expression is nested too deeply to compile"
+        ) from None
 
 
 def compile_source(text: str, file: str = "<string>", profile: Profile = CONRO) -> CompiledProgram:

@@ -208,15 +208,15 @@ def build_index(guards: Sequence[Guard], type_count: int, clock_cycle: int) -> R
 
 
 def _quiet_runs(row: list[tuple[int, ...]]) -> list[int | None]:
-    """For each timer value, the number of consecutive values (cyclically) with no candidate."""
+    """For each timer value, the number of consecutive values (cyclically) with no
+    candidate: one pass backwards over the row twice (linear in ClockCycle)."""
     n = len(row)
     if not any(row):
         return [None] * n
     out: list[int | None] = [0] * n
-    for k in range(n):
-        j = 0
-        while not row[(k + j) % n]:
-            j += 1
-        out[k] = j
+    run = 0
+    for k in range(2 * n - 1, -1, -1):  # the second lap carries runs across the wrap-around
+        run = 0 if row[k % n] else run + 1
+        if k < n:
+            out[k] = run
     return out
-

@@ -13,7 +13,7 @@ connector it arrived at (and send order within a link), never by module numberin
 
 from __future__ import annotations
 
-import random
+import hashlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -62,15 +62,25 @@ class CycleRecord:
 class PhaseDraw:
     """Where LocalTimer phases come from when none is given: the one rule of the in-process
     robot and of the HIL world (hil.world), so that a seed gives the same phases in both.
-    Phases are drawn from ``Random(seed)`` in boot order: every module at the start, in
-    module order, then each restart as it happens."""
+
+    A module's phase is drawn from the seed, the module's *name* and its life (0 at the
+    start, one more at each restart): a stable hash (BLAKE2b, not Python's salted ``hash``),
+    so that a run's result does not depend on the order its modules are listed in."""
 
     def __init__(self, seed: int) -> None:
-        self._rng = random.Random(seed)
+        self.seed = seed
+        self._lives: dict[str, int] = {}
 
-    def next(self, clock_cycle: int) -> int:
-        """The next module's phase: 0 .. ``clock_cycle`` - 1."""
-        return self._rng.randrange(clock_cycle)
+    def next(self, name: str, clock_cycle: int) -> int:
+        """The phase of module ``name``'s next life: 0 .. ``clock_cycle`` - 1."""
+        life = self._lives.get(name, 0)
+        self._lives[name] = life + 1
+        return self.phase(name, clock_cycle, life)
+
+    def phase(self, name: str, clock_cycle: int, life: int = 0) -> int:
+        """The phase of module ``name`` in its ``life``, the same in every process and run."""
+        digest = hashlib.blake2b(f"{self.seed}\0{name}\0{life}".encode(), digest_size=8).digest()
+        return int.from_bytes(digest, "big") % clock_cycle
 
 
 class Robot:
@@ -101,7 +111,7 @@ class Robot:
         if timer_phases is not None and len(timer_phases) != self.size:
             raise TopologyError(f"timer_phases has {len(timer_phases)} entries for {self.size} modules")
         self.engines: list[Engine | None] = [
-            self._boot(None if timer_phases is None else timer_phases[m]) for m in range(self.size)
+            self._boot(m, None if timer_phases is None else timer_phases[m]) for m in range(self.size)
         ]
         #: The order modules are stepped in; results never depend on it (tested).
         self.step_order: list[int] = list(range(self.size))
@@ -143,9 +153,9 @@ class Robot:
         for link in topology.links:
             self.dock(link.a, link.a_conn, link.b, link.b_conn)
 
-    def _boot(self, phase: int | None = None) -> Engine:
+    def _boot(self, module: int, phase: int | None = None) -> Engine:
         if phase is None:
-            phase = self.phase_draw.next(self.program.clock_cycle)
+            phase = self.phase_draw.next(self.topology.names[module], self.program.clock_cycle)
         return Engine(self.program, timer_phase=phase, natives=self._natives_used)
 
     # ------------------------------------------------------------ the physical world
@@ -256,7 +266,7 @@ class Robot:
     def restart(self, module: int) -> None:
         """The module boots again with a fresh state; it and its neighbours sense the links."""
         self.kill(module)
-        e = self._boot()
+        e = self._boot(module)
         self.engines[module] = e
         for name, value in self.sensed.get(module, {}).items():
             e.set_sensor(name, value)  # the module's surroundings did not restart

@@ -72,6 +72,7 @@ from dh2rt.wire.frame import FrameCodec, Hello, program_digest
 
 __all__ = [
     "CYCLE_PERIOD_S",
+    "MAX_CYCLE_PERIOD_S",
     "SILENCE_CYCLES",
     "Driver",
     "LinkObserver",
@@ -86,6 +87,9 @@ __all__ = [
 #: people type them in milliseconds (``--cycle-ms``, ``period_ms``): the two functions below
 #: are the one conversion between them.
 CYCLE_PERIOD_S = 0.02
+#: The longest cycle period anything accepts (s): a module sleeps up to a period at a time,
+#: and a minute is already far from any robot's rhythm (``--cycle-ms``, ``period_ms``).
+MAX_CYCLE_PERIOD_S = 60.0
 
 
 def ms_to_s(ms: float) -> float:

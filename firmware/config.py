@@ -9,6 +9,7 @@ value typed nowhere is the same at every hop: launcher, world, module process, r
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -17,12 +18,21 @@ from typing import Any
 from dh2rt.errors import KeyFileError, ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
 from dh2rt.runtime import CYCLE_PERIOD_S as CYCLE_PERIOD_S  # the core's one default, re-exported
+from dh2rt.runtime import MAX_CYCLE_PERIOD_S as MAX_CYCLE_PERIOD_S
 from dh2rt.signed_image import check_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from drivers.dxl_table import MODEL_XM430_W350
 
 #: Seconds a module exchanges Hellos before cycle 0 when it is not told when to start.
 HANDSHAKE_S = 1.0
+#: The longest handshake a config may ask for (s).
+MAX_HANDSHAKE_S = 600.0
+#: The longest liveness bound (cycles) a config may set: a link silent this long is lost.
+MAX_SILENCE_CYCLES = 10_000
+#: The most of anything counted in cycles a config may set (cycles, trial and status cycles).
+MAX_CYCLES = 1_000_000_000
+#: The fastest UART or servo bus a config may name (baud).
+MAX_BAUD = 12_000_000
 #: Cycles between two status reports of a module to its world.
 STATUS_EVERY = 10
 #: The modules' body in the loop: PyBullet joints through emulated Dynamixel servos (the
@@ -144,10 +154,14 @@ class ModuleConfig:
     def __post_init__(self) -> None:
         if self.driver not in DRIVERS:
             raise ModuleConfigError(f"config driver {self.driver!r}: expected one of {', '.join(DRIVERS)}")
-        if self.cycle_period <= 0:
-            raise ModuleConfigError(f"config cycle_period {self.cycle_period}: must be positive")
-        if self.silence_cycles < 1:
-            raise ModuleConfigError(f"config silence_cycles {self.silence_cycles}: must be 1 or more")
+        if not (math.isfinite(self.cycle_period) and 0 < self.cycle_period <= MAX_CYCLE_PERIOD_S):
+            raise ModuleConfigError(
+                f"config cycle_period {self.cycle_period}: must be more than 0 and at most {MAX_CYCLE_PERIOD_S:g} s"
+            )
+        if not (math.isfinite(self.handshake) and 0 <= self.handshake <= MAX_HANDSHAKE_S):
+            raise ModuleConfigError(f"config handshake {self.handshake}: must be 0 to {MAX_HANDSHAKE_S:g} s")
+        if not 1 <= self.silence_cycles <= MAX_SILENCE_CYCLES:
+            raise ModuleConfigError(f"config silence_cycles {self.silence_cycles}: must be 1..{MAX_SILENCE_CYCLES}")
         if self.status_every < 1:
             raise ModuleConfigError(f"config status_every {self.status_every}: must be 1 or more")
         if self.cycles is not None and self.cycles < 0:

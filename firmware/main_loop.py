@@ -39,9 +39,10 @@ as JSON lines on stdout (``ready``, ``status`` every ``status_every`` cycles, ``
 ``effect`` (at the end of the cycle a native asked it in), ``log``, ``error``, and ``final``
 at exit). A malformed command is refused with
 a log report naming the field. SIGTERM and SIGINT end the loop cleanly with a final report.
-Exit codes: 0 after a clean stop (a signal, or the end of a run of ``[hil] cycles``), 1
+Exit codes: 0 after a clean stop (SIGTERM, or the end of a run of ``[hil] cycles``), 1
 after a failure while running, 2 for a config that is wrong or names something that is not
-there (a program image, a bus, a port).
+there (a program image, a bus, a port, a device: ``--check-config`` names each one), 130 after
+Ctrl-C (SIGINT), once the module has wound down as it does for SIGTERM.
 """
 
 from __future__ import annotations
@@ -65,9 +66,12 @@ from typing import IO, TYPE_CHECKING, Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
+from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
+from dh2rt.transport.base import PortEnd
 from dh2rt.transport.registry import open_transport
+from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
@@ -627,6 +631,34 @@ def load_config(text: str) -> ModuleConfig:
     return load_toml(Path(text))
 
 
+def missing_devices(config: ModuleConfig, profile: Profile = CONRO) -> list[str]:
+    """Every device file the config needs that is not there, each named by its module.toml
+    key: the serial ports of the links, the servo port, the connectors' channels (UART and
+    contact pin) and a SocketCAN interface. Empty: all there (whether they work is the run's
+    to find out). ``--check-config`` and a module on its own refuse a config with any."""
+    wanted: list[tuple[str, str]] = []
+    for c, end in sorted(config.attach.items()):
+        if isinstance(end, PortEnd):
+            wanted.append((f"[transport.connectors] {profile.connector_name(c)}", end.url))
+    if config.servo_port:
+        wanted.append(("[servos] port", config.servo_port))
+    for c, spec in sorted(config.connector_channels.items()):
+        wanted.append((f"[connectors] {profile.connector_name(c)} device", spec.device))
+        if spec.contact is not None:
+            wanted.append((f"[connectors] {profile.connector_name(c)} contact", spec.contact))
+    kind, options = parse_transport_spec(config.transport)
+    interface = config.bus_options.get("interface")
+    channel = config.bus_options.get("channel") if kind == "can" else options.get("channel")
+    if (kind == "socketcan" or interface == "socketcan") and channel:
+        wanted.append(("[transport] channel", f"/sys/class/net/{channel}"))
+    elif kind == "can" and channel and channel.startswith("/"):  # slcan and the like: a serial adapter
+        wanted.append(("[transport] channel", channel))
+    # a pyserial URL (loop://, socket://...) is no file: only paths are looked for
+    return [
+        f"{where}: {path}: no such device" for where, path in wanted if "://" not in path and not Path(path).exists()
+    ]
+
+
 def describe(config: ModuleConfig) -> str:
     """What a config sets up, one line each (``--check-config``); nothing is written."""
     source = "image"
@@ -678,11 +710,26 @@ def settle_heap() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C before the module's own handler is in place
+        print("dh2rt module: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     lean_process()
     args = list(sys.argv[1:] if argv is None else argv)
     ns = plain_arguments(args) or build_parser().parse_args(args)
     try:
         config = load_config(ns.config)
+        if ns.check_config or config.control == "none":
+            # on its own, a module refuses what is not there before it starts anything
+            missing = missing_devices(config)
+            if missing:
+                for line in missing:
+                    print(f"dh2rt module: {ns.config}: {line}", file=sys.stderr)
+                return 2
         if ns.check_config:
             print(f"{ns.config}: ok\n" + describe(config))
             return 0
@@ -704,10 +751,8 @@ def _run_controlled(config: ModuleConfig) -> int:
         report(Failure(f"bad config: {exc}"))
         print(f"dh2rt module: {exc}", file=sys.stderr)
         return 2
-    _stop_on_signals(host)
     threading.Thread(target=_read_commands, args=(sys.stdin, commands, report), daemon=True).start()
-    settle_heap()
-    return host.serve()
+    return _serve_until_signalled(host)
 
 
 def _run_alone(config: ModuleConfig) -> int:
@@ -726,7 +771,6 @@ def _run_alone(config: ModuleConfig) -> int:
         log(Failure(f"cannot start: {exc}"))
         print(f"dh2rt module: {exc}", file=sys.stderr)
         return 2
-    _stop_on_signals(host)
     origin = host.program_status()
     where = (
         f" from slot {origin['slot']} (version {origin['version']}{', on trial' if origin['trial'] else ''})"
@@ -734,23 +778,36 @@ def _run_alone(config: ModuleConfig) -> int:
         else ""
     )
     log(Log(f"started: module {config.label}: program {host.program.name} (sha256 {host.program.hash[:16]}){where}"))
-    settle_heap()
     try:
-        return host.serve()
+        return _serve_until_signalled(host)
     finally:
         if stream is not sys.stderr:
             stream.close()
 
 
-def _stop_on_signals(host: ModuleHost) -> None:
-    def on_signal(_sig: int, _frame: FrameType | None) -> None:
+#: The exit code after Ctrl-C (SIGINT), as every dh2rt command's; SIGTERM is a clean stop (0).
+EXIT_INTERRUPTED = 130
+
+
+def _serve_until_signalled(host: ModuleHost) -> int:
+    """Serve until done, SIGTERM (a clean stop: the host's code) or SIGINT (Ctrl-C: 130
+    once the module has wound down, unless it failed)."""
+    interrupted: list[int] = []
+
+    def on_signal(sig: int, _frame: FrameType | None) -> None:
+        if sig == signal.SIGINT:
+            interrupted.append(sig)
         host.stop_event.set()
         # one stop request is enough: a second signal while the module winds down (closing its
         # links, writing its final status) must not kill it with its work half done
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    settle_heap()
+    code = host.serve()
+    return EXIT_INTERRUPTED if interrupted and code == 0 else code
 
 
 if __name__ == "__main__":

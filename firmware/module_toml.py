@@ -68,6 +68,7 @@ each of its modules with a file like the one a robot's module boots with.
 
 from __future__ import annotations
 
+import math
 import random
 import tomllib
 from collections.abc import Mapping
@@ -82,7 +83,18 @@ from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from drivers.dxl_table import MODEL_NAMES
-from firmware.config import DEFAULTS, MAX_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
+from firmware.config import (
+    DEFAULTS,
+    MAX_BAUD,
+    MAX_CYCLE_PERIOD_S,
+    MAX_CYCLES,
+    MAX_HANDSHAKE_S,
+    MAX_SERVO_LATENCY_MS,
+    MAX_SILENCE_CYCLES,
+    STAND_INS,
+    ChannelSpec,
+    ModuleConfig,
+)
 
 IMAGE_NAME = "program.img"
 #: What a flash directory that holds a program has (firmware.flash.slots): the state record,
@@ -135,19 +147,22 @@ class _Table:
             raise self.fail(key, f"expected one of {', '.join(choices)}, got {value!r}")
         return value
 
-    def get_int(self, key: str, default: int | None, low: int, high: int | None = None) -> int | None:
+    def get_int(self, key: str, default: int | None, low: int, high: int) -> int | None:
         value = self.data.get(key, default)
         if value is None:
             return None
-        top = "" if high is None else str(high)
-        if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
-            raise self.fail(key, f"expected an integer {low}..{top}, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise self.fail(key, f"expected an integer {low}..{high}, got {value!r}")
         return value
 
-    def get_number(self, key: str, default: float, positive: bool = True) -> float:
+    def get_number(self, key: str, default: float, high: float, positive: bool = True) -> float:
+        """A finite number up to ``high``: more than 0 (``positive``), else 0 or more
+        (TOML's ``nan`` and ``inf`` are numbers too, and refused here)."""
         value = self.data.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or (positive and value <= 0):
-            raise self.fail(key, f"expected a {'positive ' if positive else ''}number, got {value!r}")
+        number = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+        if not number or value > high or value < 0 or (positive and value == 0):
+            bounds = f"a positive number at most {high:g}" if positive else f"a number from 0 to {high:g}"
+            raise self.fail(key, f"expected {bounds}, got {value!r}")
         return float(value)
 
     def get_bool(self, key: str, default: bool) -> bool:
@@ -236,18 +251,20 @@ def _program(t: _Table, base: Path) -> dict[str, Any]:
         "flash": str(flash),
         "trust": tuple(trust),
         "allow_unsigned": allow_unsigned,
-        "trial_cycles": t.get_int("trial_cycles", DEFAULTS.trial_cycles, 0),
+        "trial_cycles": t.get_int("trial_cycles", DEFAULTS.trial_cycles, 0, MAX_CYCLES),
     }
 
 
 def _cycle(t: _Table) -> dict[str, Any]:
     t.only("period_ms", "silence_cycles", "handshake_s", "timer_phase")
     out: dict[str, Any] = {
-        "cycle_period": ms_to_s(t.get_number("period_ms", s_to_ms(DEFAULTS.cycle_period))),
-        "silence_cycles": t.get_int("silence_cycles", DEFAULTS.silence_cycles, 1),
-        "handshake": t.get_number("handshake_s", DEFAULTS.handshake, positive=False),
+        "cycle_period": ms_to_s(
+            t.get_number("period_ms", s_to_ms(DEFAULTS.cycle_period), s_to_ms(MAX_CYCLE_PERIOD_S))
+        ),
+        "silence_cycles": t.get_int("silence_cycles", DEFAULTS.silence_cycles, 1, MAX_SILENCE_CYCLES),
+        "handshake": t.get_number("handshake_s", DEFAULTS.handshake, MAX_HANDSHAKE_S, positive=False),
     }
-    phase = t.get_int("timer_phase", None, 0)
+    phase = t.get_int("timer_phase", None, 0, MAX_CYCLES)
     out["timer_phase"] = random.SystemRandom().randrange(1 << 16) if phase is None else phase
     return out
 
@@ -266,7 +283,7 @@ def _transport(t: _Table, base: Path, profile: Profile) -> dict[str, Any]:
         raise t.fail("kind", f"missing: one of {', '.join(TRANSPORT_KINDS)}")
     if kind == "serial":
         t.only("kind", "connectors", "baud")
-        baud = t.get_int("baud", 115_200, 1) or 115_200
+        baud = t.get_int("baud", 115_200, 1, MAX_BAUD) or 115_200
         ports = t.table("connectors", required=True)
         attach: dict[int, LinkEnd] = {}
         for key, value in ports.data.items():
@@ -279,7 +296,7 @@ def _transport(t: _Table, base: Path, profile: Profile) -> dict[str, Any]:
             device = one.get_str("device")
             if device is None:
                 raise one.fail("device", "missing")
-            attach[c] = PortEnd(device, one.get_int("baud", baud, 1) or baud)
+            attach[c] = PortEnd(device, one.get_int("baud", baud, 1, MAX_BAUD) or baud)
         return {"transport": "serial", "attach": attach}
     t.only("kind", "interface", "channel", "bitrate", "fd", "data_bitrate", "links")
     out: dict[str, Any] = {"attach": _links(t.table("links"), profile)}
@@ -321,9 +338,8 @@ def _channels(t: _Table, profile: Profile) -> dict[int, ChannelSpec]:
         device = one.get_str("device")
         if device is None:
             raise one.fail("device", "missing: the UART (or the emulation's pty) of this connector's channel")
-        out[c] = ChannelSpec(
-            device, one.get_str("contact"), one.get_bool("active_low", True), one.get_int("baud", 115_200, 1) or 115_200
-        )
+        baud = one.get_int("baud", 115_200, 1, MAX_BAUD) or 115_200
+        out[c] = ChannelSpec(device, one.get_str("contact"), one.get_bool("active_low", True), baud)
     return out
 
 
@@ -359,7 +375,7 @@ def _servos(t: _Table, base: Path) -> dict[str, Any]:
     return {
         "servo_port": port,
         "servo_ids": (dof1, dof2),
-        "servo_baud": t.get_int("baud", DEFAULTS.servo_baud, 9600),
+        "servo_baud": t.get_int("baud", DEFAULTS.servo_baud, 9600, MAX_BAUD),
         "servo_model": _model(t),
         "servo_latency_ms": _latency(t),
         "driver": "none",
@@ -370,7 +386,7 @@ def _sensors(t: _Table, profile: Profile) -> dict[str, Any]:
     """``[sensors]``: how often the servos are read as sensors, and the stand-in's fixed
     readings of sensors with no device (each a sensor of the profile, within its range)."""
     t.only("servo_every", "stand_in")
-    out: dict[str, Any] = {"servo_sensor_every": t.get_int("servo_every", 1, 1)}
+    out: dict[str, Any] = {"servo_sensor_every": t.get_int("servo_every", 1, 1, MAX_CYCLES)}
     stand_in = t.table("stand_in")
     values: dict[str, int] = {}
     for name, value in stand_in.data.items():
@@ -389,10 +405,7 @@ def _latency(t: _Table) -> float | None:
     """``latency_ms``: the adapter's latency timer (None: dynamixel-sdk's 16 ms)."""
     if "latency_ms" not in t.data:
         return None
-    value = t.get_number("latency_ms", 0.0)
-    if value > MAX_SERVO_LATENCY_MS:
-        raise t.fail("latency_ms", f"expected at most {MAX_SERVO_LATENCY_MS:g} ms, got {value!r}")
-    return float(value)
+    return t.get_number("latency_ms", 0.0, MAX_SERVO_LATENCY_MS)
 
 
 def _model(t: _Table) -> int | None:
@@ -415,7 +428,7 @@ def _log(t: _Table, base: Path) -> dict[str, Any]:
     log_file = None if target is None or target.name == "-" else str(target)
     return {
         "log_file": log_file,
-        "status_every": t.get_int("status_every", 50, 1),
+        "status_every": t.get_int("status_every", 50, 1, MAX_CYCLES),
         "status_file": None if status is None else str(status),
         "control": "none",
     }
@@ -427,10 +440,10 @@ def _hil(t: _Table, profile: Profile) -> dict[str, Any]:
     t.only("control", "module", "life", "trace", "cycles", "attach")
     out: dict[str, Any] = {
         "control": t.get_str("control", "stdio", ("stdio", "none")),
-        "module": t.get_int("module", 0, 0),
-        "life": t.get_int("life", 0, 0),
+        "module": t.get_int("module", 0, 0, MAX_CYCLES),
+        "life": t.get_int("life", 0, 0, MAX_CYCLES),
         "trace": t.get_bool("trace", False),
-        "cycles": t.get_int("cycles", None, 0),
+        "cycles": t.get_int("cycles", None, 0, MAX_CYCLES),
     }
     if "attach" in t.data:
         out["attach"] = _links(t.table("attach"), profile)

@@ -34,14 +34,17 @@ from typing import IO, Any
 
 from dh2rt.bundled import compile_bundled
 from dh2rt.cmdline import (
+    BITRATES,
     CAN_BITRATE,
     EXIT_FAIL,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
+    TRACE_SUFFIXES,
     add_bus_arguments,
     add_cycle_argument,
     add_run_options,
+    int_in,
     output_path,
 )
 from dh2rt.compiler import compile_file
@@ -52,7 +55,7 @@ from dh2rt.signed_image import read_private_key
 from dh2rt.topology import parse_spec
 from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from firmware.config import DEFAULT_STAND_IN, DEFAULTS, STAND_INS
+from firmware.config import DEFAULT_STAND_IN, DEFAULTS, MAX_CYCLES, MAX_SILENCE_CYCLES, STAND_INS
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
 from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash_event
 from hil.hardware_map import HardwareMap, load_hardware_map
@@ -91,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     can = add_bus_arguments(p, group_title="--transport can: any python-can bus")
     can.add_argument("--fd", action="store_true", help="CAN FD frames (up to 64 data bytes)")
-    can.add_argument("--data-bitrate", type=int, help="CAN FD's data phase bitrate")
+    can.add_argument("--data-bitrate", type=int_in(*BITRATES), help="CAN FD's data phase bitrate")
     p.add_argument(
         "--hardware-map",
         type=Path,
@@ -99,11 +102,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="real ports per module (TOML): servo port and ids, a UART per connector, a CAN channel; "
         "see docs/firmware.md",
     )
-    p.add_argument("--module-count", type=int, default=8, help="modules of the default snake:N (default: 8)")
+    p.add_argument(
+        "--module-count",
+        type=int,
+        default=8,
+        help=f"modules of the default snake:N (default: 8); at most {MODULES_PER_CORE} per core of this machine, "
+        f"and fewer when its memory or open-file limit cannot hold that many ({max_modules()[0]} here)",
+    )
     add_cycle_argument(p, "cycle period in ms")
     p.add_argument(
         "--silence-cycles",
-        type=int,
+        type=int_in(1, MAX_SILENCE_CYCLES),
         default=DEFAULTS.silence_cycles,
         help=f"liveness bound in cycles (default: {DEFAULTS.silence_cycles})",
     )
@@ -120,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     view = p.add_argument_group("with --stand-in pybullet, as dh2rt run --sim pybullet")
     view.add_argument(
         "--sensor-every",
-        type=int,
+        type=int_in(1, MAX_CYCLES),
         default=1,
         metavar="N",
         help="push each module its IMU, infrared and contact readings from physics every N world cycles "
@@ -235,15 +244,18 @@ def _main(argv: list[str] | None) -> int:
     try:
         if ns.module_count < 1:
             raise OptionError(f"--module-count {ns.module_count}: must be 1 or more")
+        check_module_count(ns.module_count, "--module-count")
         if ns.cycles < 0:
             raise OptionError(f"--cycles {ns.cycles}: must be 0 or more")
-        if ns.cycle_ms <= 0:
-            raise OptionError(f"--cycle-ms {ns.cycle_ms}: must be positive")
-        if ns.silence_cycles < 1:
-            raise OptionError(f"--silence-cycles {ns.silence_cycles}: must be 1 or more")
+        # output files are checked before anything runs, not found unwritable after the run
+        if ns.trace is not None:
+            ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES)
+        if ns.log is not None:
+            ns.log = output_path(ns.log, "--log")
         program = compile_file(str(ns.program)) if ns.program is not None else compile_bundled("caterpillar.dh2")
         spec = ns.topology or f"snake:{ns.module_count}"
         topology = parse_spec(spec, program.profile)
+        check_module_count(topology.size, f"--topology {ns.topology}" if ns.topology else "--module-count")
         if ns.topology and any(a.startswith("--module-count") for a in args) and topology.size != ns.module_count:
             raise OptionError(
                 f"--topology {ns.topology} has {topology.size} modules but --module-count is {ns.module_count}"
@@ -294,6 +306,42 @@ def _main(argv: list[str] | None) -> int:
         _err("--transport udp: refusing to send multicast outside a loopback-only network namespace")
         return EXIT_USAGE
     return _run(ns, program, topology, events, hardware)
+
+
+#: The most modules the launcher starts per core of this machine: each is a process (or a
+#: thread) that must keep its cycle period, and the world serves them all from one process.
+MODULES_PER_CORE = 32
+#: What one module may take at most of the machine: open files (its pipes, ports, pty pairs
+#: and bus sockets, on both ends) and memory (MB resident: a module process is about 30 MB).
+FILES_PER_MODULE = 16
+MB_PER_MODULE = 64
+
+
+def max_modules() -> tuple[int, str]:
+    """The most modules this machine can run, and what bounds it: MODULES_PER_CORE per core,
+    the open-file limit, the memory available."""
+    bounds = [(MODULES_PER_CORE * (os.cpu_count() or 1), f"{MODULES_PER_CORE} per core")]
+    try:
+        import resource
+
+        files = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+        if files != resource.RLIM_INFINITY:
+            bounds.append((max(1, (files - 64) // FILES_PER_MODULE), f"{FILES_PER_MODULE} open files each (ulimit -n)"))
+    except (ImportError, OSError, ValueError):  # no resource module (Windows): not bounded by it
+        pass
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // (1 << 20)
+        bounds.append((max(1, free // MB_PER_MODULE), f"{MB_PER_MODULE} MB of free memory each"))
+    except (ValueError, OSError, AttributeError):  # not a POSIX sysconf: not bounded by it
+        pass
+    return min(bounds)
+
+
+def check_module_count(count: int, option: str) -> None:
+    """Refuse (exit 2) more modules than this machine can run (:func:`max_modules`)."""
+    most, why = max_modules()
+    if count > most:
+        raise OptionError(f"{option}: {count} modules; this machine can run at most {most} ({why})")
 
 
 def stand_in_for(chosen: str | None, hardware: HardwareMap | None) -> str:

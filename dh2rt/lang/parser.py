@@ -19,6 +19,11 @@ from dh2rt.lang import ast
 
 #: How deeply parentheses, `not`s and signs may nest in one pattern or expression.
 MAX_NESTING = 100
+#: How many binary operators (``and``, ``or``, ``+``, ``-``, ``*``, ``/``, ``%``) one
+#: declaration, receptor pattern or action may hold: with MAX_NESTING this
+#: bounds how deep a program's trees are, so that every later stage (compiling, the image,
+#: a module's boot) handles them within Python's recursion limit.
+MAX_OPERATORS = 256
 
 _TOKEN_RE = re.compile(
     r"""
@@ -94,6 +99,7 @@ class Parser:
         self.i = 0
         self.including = (*_including, file)
         self.depth = 0  # parentheses, `not`s and signs open around the current token
+        self.operators = 0  # binary operators so far in the current declaration or action
 
     # ------------------------------------------------------------ token helpers
 
@@ -112,6 +118,18 @@ class Parser:
         self.depth += 1
         if self.depth > MAX_NESTING:
             raise self.error(f"nested more than {MAX_NESTING} levels deep", tok)
+
+    def operator(self, tok: Token) -> SourceSpan:
+        """One more binary operator in the current declaration or action (its span);
+        refused past MAX_OPERATORS, naming where the one too many is."""
+        self.operators += 1
+        if self.operators > MAX_OPERATORS:
+            raise self.error(
+                f"more than {MAX_OPERATORS} operators in one pattern or expression: "
+                "split it (a variable, a constant, another receptor)",
+                tok,
+            )
+        return self.span(tok)
 
     def error(self, message: str, tok: Token | None = None) -> ProgramSyntaxError:
         return ProgramSyntaxError(message, self.span(tok))
@@ -171,6 +189,7 @@ class Parser:
 
     def parse_into(self, d: _Decls) -> None:
         while self.tok.kind != "eof":
+            self.operators = 0
             if self.accept("program"):
                 d.name = self.ident("a program name").text
             elif self.accept("include"):
@@ -258,6 +277,7 @@ class Parser:
         while not self.accept("}"):
             if self.tok.kind == "eof":
                 raise self.error(f"receptor {name.text}: expected '}}' to close its actions, found end of file")
+            self.operators = 0
             actions.append(self.action())
             self.accept(";")
         return ast.Receptor(name.text, pattern, tuple(actions), status, self.span(name))
@@ -267,13 +287,15 @@ class Parser:
     def pattern(self) -> ast.Pattern:
         left = self.and_pattern()
         while tok := self.accept("or"):
-            left = ast.Or(left, self.and_pattern(), self.span(tok))
+            sp = self.operator(tok)
+            left = ast.Or(left, self.and_pattern(), sp)
         return left
 
     def and_pattern(self) -> ast.Pattern:
         left = self.not_pattern()
         while tok := self.accept("and"):
-            left = ast.And(left, self.not_pattern(), self.span(tok))
+            sp = self.operator(tok)
+            left = ast.And(left, self.not_pattern(), sp)
         return left
 
     def not_pattern(self) -> ast.Pattern:
@@ -438,7 +460,8 @@ class Parser:
         while self.at("+", "-"):
             tok = self.tok
             self.i += 1
-            left = ast.BinOp(tok.text, left, self.term(), self.span(tok))  # type: ignore[arg-type]
+            sp = self.operator(tok)
+            left = ast.BinOp(tok.text, left, self.term(), sp)  # type: ignore[arg-type]
         return left
 
     def term(self) -> ast.Expr:
@@ -446,7 +469,8 @@ class Parser:
         while self.at("*", "/", "%"):
             tok = self.tok
             self.i += 1
-            left = ast.BinOp(tok.text, left, self.unary(), self.span(tok))  # type: ignore[arg-type]
+            sp = self.operator(tok)
+            left = ast.BinOp(tok.text, left, self.unary(), sp)  # type: ignore[arg-type]
         return left
 
     def unary(self) -> ast.Expr:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,13 @@ def files(tmp: Path) -> dict[str, Path]:
         "misspelled.toml": b'modules = 3\n[[link]]\nlinks = ["0.back <-> 1.front"]\n',
         "latin1.toml": b"modules = 2 # \xe9\n",
         "empty.toml": b"modules = []\n",
+        # a flat sum of 1,000 terms and a 10,000-term `and`: refused at the operator one too many
+        "sum.dh2": ("program s\nconst ClockCycle = 4\nconst X = " + " + ".join(["1"] * 1_000) + "\n").encode(),
+        "and.dh2": (
+            "program a\nconst ClockCycle = 4\nreceptor r when " + " and ".join(["LocalTimer == 0"] * 10_000) + " { }\n"
+        ).encode(),
+        "noclock.dh2": b"program n\n\nhormone X\nreceptor r when H == X { DOF1(10) }\n",
+        "hugeclock.dh2": b"program h\nconst ClockCycle = 10000000\n",
     }
     for name, data in out.items():
         (tmp / name).write_bytes(data)
@@ -62,6 +70,11 @@ CASES = [
     (["run", CATERPILLAR, "--sim", "pybullet", "--plot", "{tmp}/x.gif"], ["--plot", "x.gif", ".png"]),
     (["run", CATERPILLAR, "--record", "{tmp}/x.gif"], ["--record", "--sim pybullet"]),
     (["run", CATERPILLAR, "--cycles", "-1"], ["--cycles"]),
+    (["check", "{sum.dh2}"], ["sum.dh2:3:1037:", "more than 256 operators"]),
+    (["check", "{and.dh2}"], ["and.dh2:3:5153:", "more than 256 operators"]),
+    (["check", "{noclock.dh2}"], ["noclock.dh2:3:9:", "const ClockCycle = N"]),
+    (["check", "{hugeclock.dh2}"], ["hugeclock.dh2:2:7:", "ClockCycle must be 1..100000"]),
+    (["run", CATERPILLAR, "--trace", "/proc/no-such-dir/t.jsonl"], ["--trace", "t.jsonl"]),
 ]
 
 
@@ -128,7 +141,8 @@ def test_python_api_names_unknown_connectors() -> None:
 
 def test_long_source_lines_are_shown_around_the_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     prog = tmp_path / "long.dh2"
-    prog.write_text("program p\nconst ClockCycle = 4\nconst X = " + "1 + " * 500 + "?\n")
+    # 200 operators (800 characters on the line): within the bound on operators per expression
+    prog.write_text("program p\nconst ClockCycle = 4\nconst X = " + "1 + " * 200 + "?\n")
     assert main(["check", str(prog)]) == 2
     err = capsys.readouterr().err
     source, caret = err.splitlines()[1:3]
@@ -143,10 +157,30 @@ def test_long_source_lines_are_shown_around_the_error(tmp_path: Path, capsys: py
         (["--transport", "serial", "--bit-error", "2"], ["--bit-error 2.0", "probability"]),
         (["--transport", "inproc", "--cycles", "50", "--event", "80:kill:m1"], ["80:kill:m1", "last cycle is 49"]),
         (["--transport", "inproc", "--event", "5:cut:m0.front", "--cycles", "20"], ["5:cut:m0.front", "nothing"]),
+        (["--transport", "inproc", "--cycle-ms", "nan"], ["--cycle-ms", "'nan'", "at most 60000"]),
+        (["--transport", "inproc", "--cycle-ms", "inf"], ["--cycle-ms", "'inf'"]),
+        (["--transport", "inproc", "--cycle-ms", "1e12"], ["--cycle-ms", "'1e12'"]),
+        (["--transport", "inproc", "--cycle-ms", "0"], ["--cycle-ms", "more than 0"]),
+        (["--transport", "inproc", "--module-count", "100000"], ["--module-count", "100000", "at most"]),
+        (["--transport", "inproc", "--topology", "snake:100000"], ["--topology snake:100000", "at most"]),
+        (["--transport", "inproc", "--frame-loss", "nan"], ["--frame-loss nan", "probability"]),
+        (["--transport", "inproc", "--silence-cycles", "0"], ["--silence-cycles", "1..10000"]),
+        (["--transport", "inproc", "--sensor-every", "-3"], ["--sensor-every"]),
+        (["--transport", "can", "-i", "virtual", "-c", "x", "--bitrate", "nan"], ["--bitrate", "'nan'"]),
+        (["--transport", "inproc", "--trace", "{tmp}"], ["--trace", "folder"]),
+        (["--transport", "inproc", "--trace", "/proc/no-such-dir/t.jsonl"], ["--trace", "cannot"]),
+        (["--transport", "inproc", "--trace", "{tmp}/t.txt"], ["--trace", ".jsonl"]),
+        (["--transport", "inproc", "--log", "/proc/no-such-dir/run.log"], ["--log", "cannot"]),
     ],
 )
-def test_launcher_careless_input(argv: list[str], words: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+def test_launcher_careless_input(
+    argv: list[str], words: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Refused before any work starts: no module, no world (the run would take seconds)."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    started = time.monotonic()
     assert main(argv) == 2
+    assert time.monotonic() - started < 10
     err = capsys.readouterr().err
     for word in words:
         assert word in err, (word, err)

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from dh2rt.compiler import compile_program, compile_source
-from dh2rt.errors import ProgramCompileError
+from dh2rt.errors import ProgramCompileError, ProgramSyntaxError
 from dh2rt.lang.parser import parse
 from dh2rt.matcher import Guard
 from dh2rt.profile import CONRO
 from dh2rt.program import ReceptorStatus
+
+ROOT = Path(__file__).resolve().parents[2]
 
 SOURCE = """program c
 const ClockCycle = 12
@@ -70,3 +74,59 @@ def test_semantic_errors_name_the_culprit(extra: str, words: str) -> None:
     with pytest.raises(ProgramCompileError, match=words) as info:
         compile_source(SOURCE + extra + "\n", "c.dh2")
     assert str(info.value).startswith("c.dh2:11:")
+
+
+# ---------------------------------------------------------------- the bounds on program size
+
+
+def test_expressions_as_long_and_deep_as_the_parser_allows_compile_load_and_run() -> None:
+    """MAX_OPERATORS operators and MAX_NESTING parentheses at once: every stage (compile, the
+    image, a module's boot from it, the robot's cycles) handles the deepest tree the parser
+    lets through."""
+    from dh2rt.compiler import load_image
+    from dh2rt.lang.parser import MAX_NESTING, MAX_OPERATORS
+    from dh2rt.robot import Robot
+    from dh2rt.topology import parse_spec
+
+    terms = " + ".join(["LocalTimer"] * (MAX_OPERATORS + 1))
+    value = "(" * MAX_NESTING + terms + ")" * MAX_NESTING
+    pattern = " and ".join(["LocalTimer == 0"] * (MAX_OPERATORS + 1))
+    source = f"program deep\nconst ClockCycle = 4\nvar x\nreceptor r when {pattern} {{ V.x = {value} }}\n"
+    booted = load_image(compile_source(source, "deep.dh2").image)
+    robot = Robot(booted, parse_spec("snake:2", booted.profile))
+    robot.run(8)
+    with pytest.raises(ProgramSyntaxError, match="more than"):
+        compile_source(source.replace(" { V.x", " and true { V.x"), "deep.dh2")
+
+
+def test_compile_time_grows_linearly_with_clock_cycle() -> None:
+    """Ten times the ClockCycle costs less than twenty times the compile time (it was
+    quadratic in the receptor index's quiet runs)."""
+    import time
+
+    caterpillar = (ROOT / "examples" / "caterpillar.dh2").read_text()
+
+    def seconds(clock_cycle: int) -> float:
+        source = caterpillar.replace("const ClockCycle = 40", f"const ClockCycle = {clock_cycle}")
+        best = float("inf")
+        for _ in range(3):
+            started = time.perf_counter()
+            compile_source(source, "caterpillar.dh2")
+            best = min(best, time.perf_counter() - started)
+        return best
+
+    small, large = seconds(4_000), seconds(40_000)
+    assert large < 20 * small, (small, large)
+
+
+def test_clock_cycle_has_an_upper_bound() -> None:
+    from dh2rt.compiler import MAX_CLOCK_CYCLE
+
+    compile_source(f"program p\nconst ClockCycle = {MAX_CLOCK_CYCLE}\n", "p.dh2")
+    with pytest.raises(ProgramCompileError, match=f"p.dh2:2:7: ClockCycle must be 1..{MAX_CLOCK_CYCLE}"):
+        compile_source(f"program p\nconst ClockCycle = {MAX_CLOCK_CYCLE + 1}\n", "p.dh2")
+
+
+def test_a_missing_clock_cycle_is_named_at_the_first_declaration() -> None:
+    with pytest.raises(ProgramCompileError, match=r"p.dh2:3:5: the program must declare `const ClockCycle = N`"):
+        compile_source("program p\n\nvar x\nreceptor r { DOF1(1) }\n", "p.dh2")

@@ -85,9 +85,9 @@ def test_too_many_parameters() -> None:
     assert "9 parameters; the limit is 8" in err.message
 
 
-def test_missing_clock_cycle_names_the_file() -> None:
-    err = error_of("hormone X\n", "nofile.dh2")
-    assert str(err).startswith("nofile.dh2: ") and "ClockCycle" in str(err)
+def test_missing_clock_cycle_names_the_file_line_and_column() -> None:
+    err = error_of("hormone X\n", "nofile.dh2")  # where the declarations begin: the first one
+    assert str(err).startswith("nofile.dh2:1:9: ") and "ClockCycle" in str(err)
 
 
 def test_include_errors_name_the_included_file(tmp_path: object) -> None:

@@ -103,6 +103,15 @@ BAD = [
     (INPROC + "[servos]\nbaud = 57600\n", "", "[servos] baud: only with a servo port"),
     (INPROC + "[cycle]\nperiod_ms = 0\n", "", "[cycle] period_ms: expected a positive number"),
     (INPROC + "[cycle]\nsilence_cycles = true\n", "", "[cycle] silence_cycles: expected an integer"),
+    (INPROC + "[cycle]\nperiod_ms = nan\n", "", "[cycle] period_ms: expected a positive number at most 60000"),
+    (INPROC + "[cycle]\nperiod_ms = inf\n", "", "[cycle] period_ms: expected a positive number"),
+    (INPROC + "[cycle]\nperiod_ms = 1e12\n", "", "[cycle] period_ms: expected a positive number"),
+    (INPROC + "[cycle]\nhandshake_s = nan\n", "", "[cycle] handshake_s: expected a number from 0 to 600"),
+    (INPROC + "[cycle]\nhandshake_s = inf\n", "", "[cycle] handshake_s: expected a number from 0"),
+    (INPROC + "[cycle]\nhandshake_s = -1\n", "", "[cycle] handshake_s: expected a number from 0"),
+    (INPROC + "[cycle]\nsilence_cycles = 100000000\n", "", "[cycle] silence_cycles: expected an integer 1..10000"),
+    (INPROC + '[servos]\nport = "/dev/ttyUSB0"\nlatency_ms = nan\n', "", "[servos] latency_ms: expected a positive"),
+    (INPROC + "[sensors]\nservo_every = 10000000000\n", "", "[sensors] servo_every: expected an integer 1.."),
     (INPROC + "[log]\nstatus_every = 0\n", "", "[log] status_every: expected an integer 1.."),
     (INPROC + 'colour = "red"\n', "", "[transport] colour: unknown key"),
     (INPROC + "[cycles]\n", "", "cycles: unknown key"),
@@ -130,10 +139,13 @@ def test_a_flash_without_a_program_says_how_to_write_one(tmp_path: Path) -> None
 
 
 def test_check_config_says_what_it_sets_up(tmp_path: Path) -> None:
+    adapter, servos = tmp_path / "ttyACM0", tmp_path / "ttyUSB0"  # the devices, there (see below)
+    adapter.touch()
+    servos.touch()
     body = (
-        '[transport]\nkind = "can"\ninterface = "slcan"\nchannel = "/dev/ttyACM0"\nbitrate = 1000000\n'
+        f'[transport]\nkind = "can"\ninterface = "slcan"\nchannel = "{adapter}"\nbitrate = 1000000\n'
         "[transport.links]\nback = { link_id = 4, side = 0 }\n"
-        '[servos]\nport = "/dev/ttyUSB0"\ndof1_id = 3\ndof2_id = 4\nmodel = "XM430-W210"\n'
+        f'[servos]\nport = "{servos}"\ndof1_id = 3\ndof2_id = 4\nmodel = "XM430-W210"\n'
     )
     proc = run_module(module_dir(tmp_path, "spine0", body), "--check-config")
     assert proc.returncode == 0, proc.stderr
@@ -141,6 +153,45 @@ def test_check_config_says_what_it_sets_up(tmp_path: Path) -> None:
         "program caterpillar" in proc.stdout and "interface=slcan" in proc.stdout and "bitrate=1000000" in proc.stdout
     )
     assert "back: BusEnd(link_id=4, side=0)" in proc.stdout and "ids (3, 4)" in proc.stdout
+
+
+def test_check_config_names_every_missing_device(tmp_path: Path) -> None:
+    """A device the config needs and that is not there is found by --check-config (exit 2,
+    each named by its key), and a module on its own refuses to start without it."""
+    there = tmp_path / "ttyAMA1"
+    there.touch()
+    body = (
+        f'[transport]\nkind = "serial"\n[transport.connectors]\nfront = "{there}"\nback = "/dev/no-such-uart"\n'
+        '[servos]\nport = "/dev/no-such-servos"\n'
+    )
+    config = module_dir(tmp_path, "m", body)
+    for args in (("--check-config",), ()):
+        proc = run_module(config, *args)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        assert "[transport.connectors] back: /dev/no-such-uart: no such device" in proc.stderr
+        assert "[servos] port: /dev/no-such-servos: no such device" in proc.stderr
+        assert str(there) not in proc.stderr and "Traceback" not in proc.stderr
+    channels = module_dir(
+        tmp_path, "c", '[transport]\nkind = "virtual"\n[connectors]\nfront = { device = "/dev/no-such-ir", '
+        'contact = "/sys/class/gpio/no-such-pin/value" }\n'
+    )  # fmt: skip
+    proc = run_module(channels, "--check-config")
+    assert proc.returncode == 2
+    assert "[connectors] front device: /dev/no-such-ir" in proc.stderr
+    assert "[connectors] front contact: /sys/class/gpio/no-such-pin/value" in proc.stderr
+
+
+def test_ctrl_c_ends_a_module_with_130_after_winding_down(tmp_path: Path) -> None:
+    config = module_dir(tmp_path, "solo", INPROC + "[log]\nstatus_every = 5\n")
+    proc = start_module(config)
+    assert proc.stderr is not None
+    for line in proc.stderr:  # cycling (its handlers in place) once it reports a status
+        if '"status"' in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    code, lines = stop(proc, signalled=True)
+    assert code == 130
+    assert lines[-1]["event"] == "final" and lines[-1]["failed"] is False
 
 
 def test_sigterm_stops_cleanly_with_a_final_status(tmp_path: Path) -> None:
