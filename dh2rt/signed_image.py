@@ -186,6 +186,17 @@ def pack(program_image: bytes, version: int, private_key: bytes) -> bytes:
     return signed_part + _sign(private_key, signed_part)
 
 
+def is_image_file(path: Path) -> bool:
+    """True when the file ``path`` starts as an image does (signed or not): what a command
+    that takes a ``.dh2`` source tells apart before it compiles bytes as text."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(PROGRAM_MAGIC))
+    except OSError:
+        return False
+    return head.startswith((PROGRAM_MAGIC, MAGIC))
+
+
 def parse(data: bytes) -> SignedImage:
     """Read an image's fields without checking its signature. Raises SignedImageError,
     naming the field and its offset, for bytes that are no image or are cut short."""
