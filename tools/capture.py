@@ -10,8 +10,9 @@ it is a terminal; a summary line at the end.
 The output is checked before the bus is opened, by the rule every command follows
 (:func:`dh2rt.output_paths.check_output`): an existing capture is kept unless ``--force``.
 python-can's ``virtual`` bus lives inside one process, so a capture of it from this command
-would wait for ever for frames no other process can send: it is refused (the launcher's
-``--capture`` records a virtual bus from inside the run).
+would wait for ever for frames no other process can send: it is refused, unless another bus
+of the same process has the channel open (a test's sender; the launcher's ``--capture``
+records a virtual bus from inside the run).
 
 Exit codes: 0 ok, 2 bad input (an output path or a bus that cannot be opened; the message
 names it), 130 Ctrl-C (the file closed whole first: what was captured is readable).
