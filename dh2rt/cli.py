@@ -57,6 +57,7 @@ from dh2rt.compiler import load_image
 from dh2rt.errors import DH2Error, ImageError, KeyFileError, OptionError, OutputError, ProgramError
 from dh2rt.lint import lint
 from dh2rt.natives import STANDARD_NATIVES
+from dh2rt.output_paths import check_output
 from dh2rt.plugins import COMMAND_GROUP, CORE_COMMANDS, SIMULATOR_GROUP, Simulator, registered
 from dh2rt.profile import CONRO
 from dh2rt.signed_image import (
@@ -64,6 +65,7 @@ from dh2rt.signed_image import (
     Verdict,
     describe_key_id,
     examine,
+    is_image_file,
     key_id,
     pack,
     parse,
@@ -128,6 +130,7 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
     )
     image.add_argument("program", type=Path, nargs="?", help="a .dh2 file")
     image.add_argument("-o", "--output", type=Path, help="image file to write (- for standard output)")
+    image.add_argument("--force", action="store_true", help="write -o over a capture or a key that is there")
     image.add_argument("--sign", type=Path, metavar="KEY", help="sign the image with this private key (dh2rt keys new)")
     image.add_argument(
         "--version",
@@ -282,13 +285,18 @@ def cmd_image(ns: argparse.Namespace) -> int:
         err("--sign KEY and --version N go together: a signed image carries its program version")
         return EXIT_USAGE
     try:
+        output = check_output(ns.output, "-o", stdout=True, force=ns.force)
+        if is_image_file(ns.program):
+            raise OutputError(f"PROGRAM {ns.program}: is a program image already, not a .dh2 source (--inspect it)")
         cp = load_program(ns.program)
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)
         return EXIT_USAGE
+    except OutputError as exc:
+        err(str(exc))
+        return EXIT_USAGE
     try:
         data, described = _image_bytes(cp.image, ns.sign, ns.program_version)
-        output = output_path(ns.output, "-o", stdout=True)
         if output == STDOUT:
             sys.stdout.buffer.write(data)
             sys.stdout.flush()

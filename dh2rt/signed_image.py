@@ -196,6 +196,17 @@ def signed_part(program_image: bytes, version: int, public: bytes) -> bytes:
     return header + body
 
 
+def is_image_file(path: Path) -> bool:
+    """True when the file ``path`` starts as an image does (signed or not): what a command
+    that takes a ``.dh2`` source tells apart before it compiles bytes as text."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(PROGRAM_MAGIC))
+    except OSError:
+        return False
+    return head.startswith((PROGRAM_MAGIC, MAGIC))
+
+
 def parse(data: bytes) -> SignedImage:
     """Read an image's fields without checking its signature. Raises SignedImageError,
     naming the field and its offset, for bytes that are no image or are cut short."""

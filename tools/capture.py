@@ -7,13 +7,21 @@ link type 227) or any format python-can writes (``.log`` candump -L, ``.blf``, `
 it, so that the capture decodes with nothing else. Progress (frames, frames/s) on stderr when
 it is a terminal; a summary line at the end.
 
-Exit codes: 0 ok (Ctrl-C ends a capture normally), 2 bad input (an output path or a bus that
-cannot be opened; the message names it).
+The output is checked before the bus is opened, by the rule every command follows
+(:func:`dh2rt.output_paths.check_output`): an existing capture is kept unless ``--force``.
+python-can's ``virtual`` bus lives inside one process, so a capture of it from this command
+would wait for ever for frames no other process can send: it is refused, unless another bus
+of the same process has the channel open (a test's sender; the launcher's ``--capture``
+records a virtual bus from inside the run).
+
+Exit codes: 0 ok, 2 bad input (an output path or a bus that cannot be opened; the message
+names it), 130 Ctrl-C (the file closed whole first: what was captured is readable).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -21,9 +29,23 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, add_bus_arguments, bus_options, err, load_program, output_path
-from dh2rt.errors import OptionError, ProgramError
+from dh2rt.cmdline import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, add_bus_arguments, bus_options, err
+from dh2rt.errors import CaptureError, OptionError, ProgramError
+from dh2rt.output_paths import check_output
 from tools.capture_sink import SUFFIXES, FileSink
+from tools.reading import interruptible, program_file
+
+
+def nobody_else_on(interface: str, channel: str) -> bool:
+    """True for python-can's ``virtual`` bus on a channel no other bus of this process has
+    open: a virtual bus exists only inside one process, so nothing could ever be sent on it
+    (always so when ``dh2rt capture`` runs as a command of its own)."""
+    if interface != "virtual":
+        return False
+    from can.interfaces import virtual
+
+    with virtual.channels_lock:
+        return not virtual.channels.get(channel)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,10 +58,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_bus_arguments(p, required=True)
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--count", type=int, help="stop after this many frames")
-    p.add_argument("--program", type=Path, help="the .dh2 program the robot runs: its image goes with the capture")
+    p.add_argument(
+        "--program", type=Path, help="the .dh2 program the robot runs, or its image: the image goes with the capture"
+    )
+    p.add_argument("--force", action="store_true", help="overwrite an existing capture")
     return p
 
 
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -47,13 +73,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:
         return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
     try:
-        path = output_path(ns.output, "-o", SUFFIXES)
+        path = check_output(ns.output, "-o", SUFFIXES, force=ns.force)
+        if nobody_else_on(ns.interface, ns.channel):
+            raise OptionError(
+                f"-i {ns.interface}: python-can's virtual bus exists only inside the process that opens it, "
+                "so this command would record nothing, for ever; capture a loop run with the launcher's "
+                "--capture (dh2rt --transport virtual --capture FILE), or a bus other processes share "
+                "(socketcan, udp_multicast in a network namespace, a CAN adapter)"
+            )
         if ns.count is not None and ns.count < 1:
             raise OptionError(f"--count {ns.count}: must be 1 or more")
-        if ns.duration is not None and ns.duration <= 0:
-            raise OptionError(f"--duration {ns.duration}: must be positive")
-        programs = [load_program(ns.program).image] if ns.program else []
-    except OptionError as exc:
+        if ns.duration is not None and not (math.isfinite(ns.duration) and ns.duration > 0):
+            raise OptionError(f"--duration {ns.duration}: must be a positive number of seconds")
+        programs = [program_file(ns.program).image] if ns.program else []
+    except (OptionError, CaptureError) as exc:
         err(str(exc))
         return EXIT_USAGE
     except ProgramError as exc:
@@ -71,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     deadline = None if ns.duration is None else started + ns.duration
     progress = sys.stderr.isatty()
     stop: list[int] = []
-    # Ctrl-C ends a capture normally (its file closed and whole); only the main thread can
+    # Ctrl-C ends a capture (its file closed and whole, then exit 130); only the main thread can
     # take signals, so a capture run from another thread stops by duration or count
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, lambda signum, _f: stop.append(signum)) if main_thread else None
@@ -97,4 +130,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     if progress:
         sys.stderr.write("\r" + " " * 40 + "\r")
     print(f"{path}: {count} frames in {elapsed:.1f} s" + (" (interrupted)" if stop else ""))
-    return EXIT_OK
+    return EXIT_INTERRUPTED if stop else EXIT_OK

@@ -22,6 +22,7 @@ from typing import BinaryIO, NamedTuple
 
 from dh2rt.errors import CaptureError, DecodeError
 from dh2rt.lang.image import MAGIC as IMAGE_MAGIC
+from dh2rt.output_paths import shown_path
 from tools import serial_records
 from tools.pcap import CAN_EFF_FLAG, LINKTYPE_CAN_SOCKETCAN
 from tools.pcapng import LINKTYPE_USER0, PcapngReader
@@ -60,9 +61,8 @@ _SOCKETCAN_HEAD = struct.Struct(">IB")  # the id with its flags, the data length
 
 
 def _read_pcapng(path: Path) -> Iterator[Record]:
-    _check_exists(path)
     new = tuple.__new__  # CanRecord(...) without its Python-level __new__: this runs for every frame
-    with path.open("rb") as fh:
+    with _open(path) as fh:
         reader = PcapngReader(fh, path)
         reader.read_header()
         for packet in reader:
@@ -91,22 +91,23 @@ def _read_pcapng(path: Path) -> Iterator[Record]:
 def capture_programs(path: Path) -> list[bytes]:
     """The program images a capture carries: in a pcapng's section header, or in the sidecar."""
     if path.suffix.lower() == ".pcapng":
-        if not path.exists():
-            raise CaptureError(f"{path}: no such capture file")
-        with path.open("rb") as fh:
+        with _open(path) as fh:
             reader = PcapngReader(fh, path)
             reader.read_header()
             return [c for c in reader.comments if c.startswith(IMAGE_MAGIC)]
+    _check_exists(path)
     sidecar = sidecar_path(path)
-    if not sidecar.exists():
-        return []
     try:
+        if not sidecar.exists():
+            return []
         doc = json.loads(sidecar.read_text(encoding="utf-8"))
         if doc.get("format") != SIDECAR_FORMAT:
             raise ValueError(f"format is {doc.get('format')!r}, expected {SIDECAR_FORMAT!r}")
         return [str(p["image"]).encode("ascii") for p in doc["programs"]]
     except (ValueError, KeyError, TypeError, AttributeError, UnicodeError) as exc:
         raise CaptureError(f"{sidecar}: not a dh2rt programs file ({exc})") from None
+    except OSError as exc:
+        raise CaptureError(f"{shown_path(sidecar)}: cannot be read ({exc.strerror or exc})") from None
 
 
 def sidecar_path(path: Path) -> Path:
@@ -139,8 +140,18 @@ def read_can(path: Path) -> Iterator[CanRecord]:
 
 
 def _check_exists(path: Path) -> None:
-    if not path.exists():
-        raise CaptureError(f"{path}: no such capture file")
+    """Raise CaptureError unless ``path`` is a file that can be read (no traceback for a name
+    too long, a folder or a file not to be read)."""
+    _open(path).close()
+
+
+def _open(path: Path) -> BinaryIO:
+    try:
+        return path.open("rb")
+    except FileNotFoundError:
+        raise CaptureError(f"{shown_path(path)}: no such capture file") from None
+    except OSError as exc:
+        raise CaptureError(f"{shown_path(path)}: cannot be read as a capture ({exc.strerror or exc})") from None
 
 
 def _unknown_format(path: Path) -> Iterator[CanRecord]:
@@ -151,8 +162,7 @@ def _unknown_format(path: Path) -> Iterator[CanRecord]:
 
 
 def _read_pcap(path: Path) -> Iterator[CanRecord]:
-    _check_exists(path)
-    with path.open("rb") as fh:
+    with _open(path) as fh:
         yield from _pcap_records(fh, path)
 
 
@@ -199,7 +209,7 @@ def _read_python_can(path: Path) -> Iterator[CanRecord]:
     _check_exists(path)
     if path.suffix.lower() == ".blf":
         # python-can's BLF reader leaves the file open when the header is wrong: look first
-        with path.open("rb") as fh:
+        with _open(path) as fh:
             if fh.read(4) != b"LOGG":
                 raise CaptureError(f"{path}: offset 0: not a BLF file (no LOGG signature)")
 

@@ -57,12 +57,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, TRACE_SUFFIXES, add_cycle_argument, err
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, TRACE_SUFFIXES, add_cycle_argument, err
 from dh2rt.errors import CaptureError, IncomparableInputs, ProgramError, TraceError
 from dh2rt.profile import Profile
 from dh2rt.runtime import ms_to_s
 from tools.decode import Hop
-from tools.reading import PROGRAM_HELP, open_capture
+from tools.reading import PROGRAM_HELP, interruptible, open_capture
 from tools.trace_reading import TraceRecord, read_trace
 
 #: Cycles of leeway at the end of a run (see the module docs), by default.
@@ -471,6 +471,7 @@ def read_run(path: Path, program: Path | None) -> Run:
         raise CaptureError(f"{exc} (read as a capture: a trace's name ends in {names})") from None
 
 
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -490,9 +491,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (TraceError, CaptureError, IncomparableInputs) as exc:
         err(str(exc))
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        err("interrupted")
-        return EXIT_INTERRUPTED
     _print(ns, results, divergences, a, b)
     return EXIT_FAIL if divergences else EXIT_OK
 

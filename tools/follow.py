@@ -18,7 +18,9 @@ ends are one module comes from the traffic alone (:mod:`tools.topology_rebuild`:
 forwarded, frames sent in one burst, hormones answered), so this is what the capture shows,
 not a module's name; each module is visited once.
 
-Exit codes: 0 found and followed, 1 no such hormone in the capture, 2 bad input.
+Exit codes: 0 found and followed, 1 the program's hormone is not in the capture (none sent
+there, on that link, at or after that time), 2 bad input (HORMONE malformed or not one of the
+program's, named with the reason), 130 Ctrl-C.
 """
 
 from __future__ import annotations
@@ -30,10 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
-from dh2rt.errors import CaptureError
+from dh2rt.errors import CaptureError, OptionError
 from dh2rt.hormone import Path as HormonePath
 from tools.decode import Hop
-from tools.reading import PROGRAM_HELP, options_and_capture
+from tools.reading import PROGRAM_HELP, interruptible, options_and_capture
 from tools.topology_rebuild import Rebuilt, Traffic, rebuild
 
 
@@ -145,6 +147,7 @@ def _lines(step: Step, max_hops: int, names: Sequence[str], out: list[str]) -> N
         out.append(f"{indent}  ended: at the module it reached (bound there, or no link to go on)")
 
 
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="dh2rt follow", description="Follow one hormone through a capture, hop by hop, and say where it ended."
@@ -167,11 +170,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ns, capture = started
     program = capture.program
     try:
+        wanted = capture.hormone(ns.hormone, "HORMONE")
         hops = [h for h in capture.hops() if h.hormone]
-    except CaptureError as exc:
+    except (CaptureError, OptionError) as exc:
         err(str(exc))
         return EXIT_USAGE
-    root = follow(hops, ns.hormone, ns.at, ns.link)
+    root = follow(hops, wanted, ns.at, ns.link)
     if root is None:
         where = "" if ns.link is None else f" on link {ns.link}"
         err(f"{ns.capture}: no {ns.hormone} sent{where} at or after {ns.at} s")

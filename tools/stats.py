@@ -22,7 +22,7 @@ from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError
 from tools.capture_reader import CanRecord, Record, read_records
 from tools.decode import decode
-from tools.reading import PROGRAM_HELP, options_and_capture
+from tools.reading import PROGRAM_HELP, interruptible, options_and_capture
 
 #: Frame sizes are summed in numpy blocks of this many frames.
 BLOCK = 65536
@@ -85,11 +85,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("capture", type=Path, help="a pcapng or pcap, or a python-can log")
     p.add_argument("--program", type=Path, help=PROGRAM_HELP)
-    p.add_argument("--bitrate", type=int, default=1_000_000, help="CAN bus bitrate in bit/s (default: 1000000)")
-    p.add_argument("--baud", type=int, default=115_200, help="serial links' baud rate (default: 115200)")
+    p.add_argument(
+        "--bitrate", type=positive_int, default=1_000_000, help="CAN bus bitrate in bit/s (default: 1000000)"
+    )
+    p.add_argument("--baud", type=positive_int, default=115_200, help="serial links' baud rate (default: 115200)")
     return p
 
 
+def positive_int(text: str) -> int:
+    """A rate the load is divided by: a whole number above 0 (argparse names the option)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{value}: must be 1 or more (a rate the load is divided by)")
+    return value
+
+
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     started = options_and_capture(parser, argv)

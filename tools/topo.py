@@ -34,12 +34,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError, DH2Error, TopologyError, TraceError
 from dh2rt.liveness import SILENCE_CYCLES
+from dh2rt.output_paths import check_output
 from dh2rt.profile import Profile
 from tools.decode import Hop
-from tools.reading import PROGRAM_HELP, options_and_capture
+from tools.reading import PROGRAM_HELP, interruptible, options_and_capture
 from tools.topology_rebuild import (
     Alignment,
     Disagreement,
@@ -83,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     started = options_and_capture(build_parser(), argv)
     if isinstance(started, int):
@@ -99,9 +101,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CaptureError, TraceError, DH2Error, ValueError) as exc:
         err(str(exc))
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        err("interrupted")
-        return EXIT_INTERRUPTED
     try:
         if ns.json:
             print(json.dumps(to_json(rebuilt, profile, compared)))
@@ -118,8 +117,8 @@ def _check_options(ns: argparse.Namespace) -> None:
             raise ValueError(f"{option} {value}: must be a positive number of milliseconds")
     if ns.silence_cycles < 1:
         raise ValueError(f"--silence-cycles {ns.silence_cycles}: must be at least 1")
-    if ns.png_dir is not None and ns.png_dir.exists() and not ns.png_dir.is_dir():
-        raise ValueError(f"--png-dir {ns.png_dir}: is a file; name a folder")
+    if ns.png_dir is not None:
+        check_output(ns.png_dir, "--png-dir", folder=True)  # before the rebuild: the rule every output follows
 
 
 def _ms(value: float | None) -> float | None:

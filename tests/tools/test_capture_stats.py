@@ -44,8 +44,12 @@ def test_capture_records_what_the_bus_carries(
     payload = codec.encode(2, Hormone("N", (7,)))
     can_id = make_arbitration_id(0, SINGLE, 0, 4, 1)
 
+    # the sender's bus is open before the capture starts: a virtual bus nobody else in the
+    # process has open is refused (nothing could ever be sent on it)
+    bus = can.Bus(interface="virtual", channel=channel)
+
     def send() -> None:
-        with can.Bus(interface="virtual", channel=channel) as bus:
+        with bus:
             time.sleep(0.3)  # let the capture open its bus first
             for _ in range(25):
                 bus.send(can.Message(arbitration_id=can_id, data=payload, is_extended_id=True))

@@ -209,7 +209,9 @@ def test_no_link_traffic_is_bad_input(tmp_path: Path, capsys: pytest.CaptureFixt
 # ----------------------------------------------------------------------------- the command
 
 
-def test_the_command_prints_draws_and_writes_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_command_prints_draws_and_writes_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     capture = snake(4, down={1: range(50, 100)}).write(tmp_path / "snake.pcap")
     assert main([str(capture), "--program", str(CATERPILLAR)]) == 0
     out = capsys.readouterr().out
@@ -224,8 +226,9 @@ def test_the_command_prints_draws_and_writes_json(tmp_path: Path, capsys: pytest
         {"medium": "can", "link": 1, "side": 0, "connector": "back"},
     ]
     pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)  # a missing folder is made inside the current one (docs/capture.md, output files)
     pictures = tmp_path / "pictures"
-    assert main([str(capture), "--program", str(CATERPILLAR), "--png-dir", str(pictures)]) == 0
+    assert main([str(capture), "--program", str(CATERPILLAR), "--png-dir", "pictures"]) == 0
     written = sorted(pictures.iterdir())
     assert [p.name for p in written] == ["topo-000.png", "topo-001.png"]
     assert all(p.read_bytes().startswith(b"\x89PNG") for p in written)

@@ -6,8 +6,13 @@ link end by the digest its Hellos carry, as ``dh2rt dump`` does); with ``--progr
 named; with neither it is the generic ``tools/wireshark/dh2rt.lua`` (hormones as
 ``#INDEX``). ``--check`` compares the committed generic file with what this writes.
 
+``-o`` follows the output rule of every command (:func:`dh2rt.output_paths.check_output`):
+checked before any work; a capture or a key there is kept unless ``--force``; a folder
+outside the current one is not made.
+
 Exit codes: 0 ok, 1 ``--check`` found the committed file out of date, 2 bad input (a program
-that does not compile, a capture with no program image).
+that does not compile, a capture with no program image, an output that cannot be written),
+130 Ctrl-C.
 """
 
 from __future__ import annotations
@@ -17,10 +22,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err, load_program
-from dh2rt.errors import CaptureError, ProgramError
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
+from dh2rt.errors import CaptureError, OutputError, ProgramError
+from dh2rt.output_paths import STDOUT, check_output
 from dh2rt.program import CompiledProgram
-from tools.reading import open_capture
+from tools.reading import interruptible, open_capture, program_file
 from tools.wireshark.generate import dissector, template
 
 
@@ -36,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--program", type=Path, action="append", help="name hormones with this .dh2 program (repeatable)"
     )
     p.add_argument("-o", "--output", type=Path, help="write here (default: standard output)")
+    p.add_argument("--force", action="store_true", help="write -o over a capture or a key that is there")
     p.add_argument(
         "--check", action="store_true", help="exit 1 unless the committed generic dh2rt.lua is what this writes"
     )
@@ -46,7 +53,7 @@ def programs_for(ns: argparse.Namespace) -> tuple[CompiledProgram, ...]:
     """The programs the options name; raises ProgramError or CaptureError."""
     if ns.capture is not None:
         return open_capture(ns.capture).programs
-    return tuple(load_program(path) for path in ns.program or ())
+    return tuple(program_file(path) for path in ns.program or ())
 
 
 def check_committed() -> int:
@@ -58,6 +65,7 @@ def check_committed() -> int:
     return EXIT_OK
 
 
+@interruptible
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         ns = build_parser().parse_args(argv)
@@ -66,15 +74,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     if ns.check:
         return check_committed()
     try:
+        output = STDOUT if ns.output is None else check_output(ns.output, "-o", stdout=True, force=ns.force)
         text = dissector(programs_for(ns))
     except ProgramError as exc:
         print(exc.render(), file=sys.stderr)  # noqa: T201 - a command's error output
         return EXIT_USAGE
-    except CaptureError as exc:
+    except (CaptureError, OutputError) as exc:
         err(str(exc))
         return EXIT_USAGE
-    if ns.output is None or str(ns.output) == "-":
+    if output == STDOUT:
         sys.stdout.write(text)
-    else:
-        ns.output.write_text(text, encoding="utf-8")
+        return EXIT_OK
+    try:
+        output.write_text(text, encoding="utf-8")
+    except OSError as exc:  # checked above; a disk full or a folder removed since
+        err(f"-o {output}: {exc.strerror or exc}")
+        return EXIT_USAGE
     return EXIT_OK
