@@ -10,10 +10,8 @@ module; none of them imports another's command module.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
-import os
 import signal
 import sys
 import time
@@ -22,8 +20,9 @@ from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.compiler import compile_file
-from dh2rt.errors import OptionError, OutputError
+from dh2rt.errors import OptionError
 from dh2rt.events import Event, check_events, parse_event
+from dh2rt.output_paths import check_output
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.runtime import CYCLE_PERIOD_S, MAX_CYCLE_PERIOD_S, s_to_ms
@@ -183,43 +182,15 @@ TRACE_SUFFIXES = (".jsonl", ".ndjson")
 PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 
 
-def output_path(path: Path, option: str, suffixes: tuple[str, ...] = (), *, stdout: bool = False) -> Path:
-    """The one rule for every output file a command writes (``--trace``, ``--record``,
-    ``--plot``, ``-o``): ``-`` means standard output where ``stdout`` allows it; a file's
-    suffix must be one of ``suffixes`` (the format written), when given; missing parent
-    folders are created. Raises OutputError (exit 2) naming the option and the file."""
-    if path == STDOUT:
-        if stdout:
-            return path
-        raise OutputError(f"{option} -: this output cannot go to standard output; name a file")
-    if path.is_dir():
-        raise OutputError(f"{option} {path}: is a folder; name a file")
-    if suffixes and path.suffix.lower() not in suffixes:
-        raise OutputError(
-            f"{option} {path}: the file is written as {suffixes[0][1:].upper()}; "
-            f"give it a name ending in {' or '.join(suffixes)}"
-        )
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{option} {path}: cannot create its folder ({exc.strerror or exc})") from None
-    check_writable(path, option)
-    return path
-
-
-def check_writable(path: Path, option: str) -> None:
-    """Refuse (OutputError, exit 2) a file that cannot be written, before any work starts
-    rather than after a whole run: it is opened for appending (nothing it holds changes),
-    and removed again if this made it."""
-    existed = path.exists()
-    try:
-        with path.open("ab"):
-            pass
-    except OSError as exc:
-        raise OutputError(f"{option} {path}: cannot write it ({exc.strerror or exc})") from None
-    if not existed:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
+def output_path(
+    path: Path, option: str, suffixes: tuple[str, ...] = (), *, stdout: bool = False, force: bool = False
+) -> Path:
+    """Every output file a command writes (``--trace``, ``--record``, ``--plot``, ``--capture``,
+    ``-o``) goes by the one rule of :func:`dh2rt.output_paths.check_output`, checked before
+    any work starts: ``-`` is standard output where ``stdout`` allows it, the suffix is one of
+    ``suffixes`` when given, the file is writable, an existing capture or key is kept unless
+    ``force``, and no folder is made outside the current one. Raises OutputError (exit 2)."""
+    return check_output(path, option, suffixes, stdout=stdout, force=force)
 
 
 class Progress:

@@ -143,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="record every frame on the robot's links: .pcapng (CAN and serial, the program inside; "
         "open it with dh2rt dump or Wireshark), or on a bus .pcap, .log (candump -L), .blf, .asc",
     )
+    p.add_argument("--force", action="store_true", help="write --capture over a capture that is there")
     p.add_argument(
         "--key",
         type=Path,
@@ -283,7 +284,7 @@ def _main(argv: list[str] | None) -> int:
         check_hardware(hardware, kind, events)
         check_views(ns)
         if ns.capture is not None:
-            ns.capture = output_path(ns.capture, "--capture", CAPTURE_SUFFIXES)
+            ns.capture = output_path(ns.capture, "--capture", CAPTURE_SUFFIXES, force=ns.force)
             check_capture(ns.capture, kind, serial_ok=ns.capture.suffix.lower() == ".pcapng")
             if hardware is not None and any(h.can_channel for h in hardware.modules.values()):
                 raise OptionError(

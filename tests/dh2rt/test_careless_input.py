@@ -93,12 +93,19 @@ def test_careless_input_exits_2_naming_the_culprit(
     assert "Traceback" not in err
 
 
-def test_outputs_create_missing_folders_and_dash_is_stdout(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    image = tmp_path / "missing" / "dir" / "x.img"
+def test_outputs_create_missing_folders_inside_the_current_one_and_dash_is_stdout(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    outside = tmp_path / "elsewhere" / "t.jsonl"  # no folder is made outside the current one unasked
+    assert main(["run", CATERPILLAR, "--cycles", "3", "--trace", str(outside)]) == 2
+    assert "does not exist" in capsys.readouterr().err and not outside.parent.exists()
+    image = Path("missing") / "dir" / "x.img"
     assert main(["image", CATERPILLAR, "-o", str(image)]) == 0
     assert image.exists()
     capsys.readouterr()
-    trace = tmp_path / "new" / "t.jsonl"
+    trace = Path("new") / "t.jsonl"
     assert main(["run", CATERPILLAR, "--cycles", "3", "--trace", str(trace)]) == 0
     assert len(trace.read_text().splitlines()) == 3 * 8
     capsys.readouterr()
@@ -168,9 +175,10 @@ def test_long_source_lines_are_shown_around_the_error(tmp_path: Path, capsys: py
         (["--transport", "inproc", "--sensor-every", "-3"], ["--sensor-every"]),
         (["--transport", "can", "-i", "virtual", "-c", "x", "--bitrate", "nan"], ["--bitrate", "'nan'"]),
         (["--transport", "inproc", "--trace", "{tmp}"], ["--trace", "folder"]),
-        (["--transport", "inproc", "--trace", "/proc/no-such-dir/t.jsonl"], ["--trace", "cannot"]),
+        (["--transport", "inproc", "--trace", "/proc/no-such-dir/t.jsonl"], ["--trace", "does not exist"]),
+        (["--transport", "inproc", "--trace", "/proc/t.jsonl"], ["--trace", "/proc/t.jsonl"]),
         (["--transport", "inproc", "--trace", "{tmp}/t.txt"], ["--trace", ".jsonl"]),
-        (["--transport", "inproc", "--log", "/proc/no-such-dir/run.log"], ["--log", "cannot"]),
+        (["--transport", "inproc", "--log", "/proc/no-such-dir/run.log"], ["--log", "does not exist"]),
     ],
 )
 def test_launcher_careless_input(
