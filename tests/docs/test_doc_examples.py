@@ -45,6 +45,7 @@ FENCE = re.compile(r"^(\s*)```(\S*)\s*$")
 DIRECTIVE = re.compile(r"^\s*<!--\s*(no-test|needs|long|file)\s*(?::\s*(.*?))?\s*-->\s*$")
 EXIT_COMMENT = re.compile(r"#.*\bexit (\d+)\s*$")
 EXIT_SHOWN = re.compile(r"^\[(\d+)\]$")
+LAUNCHER_RUN = re.compile(r"^(\$ )?dh2rt(\s*$|\s+#|\s+--transport)", re.MULTILINE)
 
 
 @dataclass(frozen=True)
@@ -252,6 +253,8 @@ def cases() -> list[object]:
         for block in steps(doc):
             if block.is_example:
                 marks = [pytest.mark.long] if "long" in block.directives else []
+                if LAUNCHER_RUN.search("\n".join(block.body)):
+                    marks.append(pytest.mark.realtime)  # modules in real time: skipped where time stalls
                 found.append(pytest.param(block, id=block.name, marks=marks))
     return found
 
