@@ -164,7 +164,7 @@ class World:
         self.seed = seed
         # the same LocalTimer phases as the in-process Robot with this seed
         self.phase_draw = PhaseDraw(seed)
-        self.phases = [self.phase_draw.next(name, program.clock_cycle) for name in topology.names]
+        self.phases = [self.phase_draw.next(program.clock_cycle) for _ in topology.names]
         self.cycle_period = cycle_period
         self.cycles = cycles
         self.trace = trace
@@ -706,7 +706,7 @@ class World:
         if self.reaches is not None:  # a new life holds nothing: what a motion wants is sent again
             self.reaches.holding.pop(module, None)
             self.reaches.docking_sent.pop(module, None)
-        self._spawn(module, self.cycles, self.phase_draw.next(self.topology.names[module], self.program.clock_cycle))
+        self._spawn(module, self.cycles, self.phase_draw.next(self.program.clock_cycle))
         deadline = time.monotonic() + 30
         while not self.views[module].ready and time.monotonic() < deadline:
             self.poll(0.02)
