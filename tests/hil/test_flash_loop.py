@@ -28,6 +28,7 @@ from dh2rt.signed_image import pack
 from dh2rt.topology import parse_spec
 from dh2rt.wire.transfer import Outcome
 from firmware.flash.cable import FlashResult
+from hil.pace import Baseline
 from hil.world import World, module_pids
 from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
 from tests.hil.processes import alive
@@ -37,7 +38,7 @@ NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
 ORDER = "ABCD"  # the body receptors' order in the program: the last one that fires sets DOF1
 N = 8
 HOP = 3  # periods a hormone may take over one serial hop
-LATE = 0.25  # periods a cycle may start late on a machine that keeps time
+LATE = 0.25  # periods a cycle may start late; more if a bare loop here is later (hil.pace)
 AFTER = 150  # cycles every module runs the new program before the run ends
 WAIT = 240.0  # seconds the rollout and the confirmations may take on a loaded machine
 
@@ -155,12 +156,13 @@ def switch_instants(run: Run) -> dict[int, float]:
 
 
 @pytest.mark.realtime
-def test_one_agreed_switch_cycle_and_table_i_hop_by_hop(rollout: Run) -> None:
+def test_one_agreed_switch_cycle_and_table_i_hop_by_hop(rollout: Run, timer_baseline: Baseline) -> None:
     # one agreed cycle: modules keep no common clock, so each switches at its own first cycle
     # boundary at or after the agreed instant; those boundaries lie within one period (and a
     # module started late by the machine lies a little after)
     at = switch_instants(rollout)
-    assert max(at.values()) - min(at.values()) <= 1.0 + LATE, {m: round(t, 2) for m, t in at.items()}
+    late = max(LATE, timer_baseline.allowance_s() / PERIOD)
+    assert max(at.values()) - min(at.values()) <= 1.0 + late, {m: round(t, 2) for m, t in at.items()}
     emitted = head_emissions(rollout.records)
     switch = rollout.switched[0]
     assert {b - a for a, b in itertools.pairwise(emitted) if b < switch} == {10}
