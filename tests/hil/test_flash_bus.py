@@ -25,6 +25,7 @@ import pytest
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
 from hil.pace import PACE, Baseline
 from tests.hil.flashing import PERIOD, caterpillar, namespace_problem, switches
+from tests.marks import sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 8
@@ -32,7 +33,11 @@ CYCLES = 700
 LATE = 0.25  # periods a cycle may start late; more if a bare loop here is later (hil.pace)
 
 
-@pytest.fixture(scope="module", params=["virtual", "udp"])
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
+@pytest.fixture(scope="module", params=sweep(["virtual", "udp"]))
 def bus_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     transport = str(request.param)
     if transport == "udp" and (problem := namespace_problem()) is not None:

@@ -32,6 +32,7 @@ from hil.pace import Baseline
 from hil.world import World, module_pids
 from tests.hil.flashing import PERIOD, PROGRAM, caterpillar, flash_through_cable, run_world, switches
 from tests.hil.processes import alive
+from tests.marks import sweep
 
 TABLE_I = {"A": -45.0, "B": -45.0, "C": 45.0, "D": 45.0}
 NEXT = {"A": "B", "B": "C", "C": "D", "D": "A"}
@@ -41,6 +42,10 @@ HOP = 3  # periods a hormone may take over one serial hop
 LATE = 0.25  # periods a cycle may start late; more if a bare loop here is later (hil.pace)
 AFTER = 150  # cycles every module runs the new program before the run ends
 WAIT = 240.0  # seconds the rollout and the confirmations may take on a loaded machine
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def settled(world: World) -> bool:
@@ -78,7 +83,7 @@ class Run:
     pids: list[int]
 
 
-@pytest.fixture(scope="module", params=[0, 3], ids=["seed0", "seed3"])
+@pytest.fixture(scope="module", params=sweep([0, 3]), ids=["seed0", "seed3"])
 def rollout(request: pytest.FixtureRequest) -> Run:
     seed = int(request.param)
     old, new = compile_file(str(PROGRAM)), caterpillar(20)

@@ -35,6 +35,10 @@ N = 8
 PERIOD_MS = 20
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def launch(transport: str, cycles: int, tmp_path: Path, *extra: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Run the launcher as a subprocess; its JSON summary and merged trace.
 

@@ -17,9 +17,14 @@ from dh2rt import cli
 from dh2rt.transport.can_bus import socketcan_problem
 from hil import launcher
 from hil.pace import PACE
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = Path(sys.executable).parent / "dh2rt"
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def _no_vcan0() -> None:
@@ -178,6 +183,7 @@ def test_udp_refuses_outside_a_loopback_only_namespace(capsys: pytest.CaptureFix
     assert "refusing" in capsys.readouterr().err
 
 
+@LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_legs_to_snake_physics.py)
 def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """Effects from module processes: the world carries out reach_and_dock on serial links.
 
