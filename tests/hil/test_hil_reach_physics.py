@@ -27,7 +27,7 @@ from hil.pace import PACE
 from hil.world import World
 from sim.reach import DEFAULT_TIMEOUT
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
-from tests.marks import LONG, sweep
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, LEFT = 1, 3
@@ -99,7 +99,8 @@ def test_a_latch_needs_the_faces_aligned_in_physics() -> None:
         world.stop()
 
 
-@pytest.mark.parametrize(("seed", "at"), sweep([(0, "m4"), (1, "m0")]))
+@LONG  # whole reconfigurations by motion in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
+@pytest.mark.parametrize(("seed", "at"), [(0, "m4"), (1, "m0")])
 def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pytest.CaptureFixture[str]) -> None:
     """snake_to_t on snake:8 with the PyBullet stand-in: the head's front is bent to m5's left
     by the modules' own servos and latches within tolerance; m2 releases its back; the T."""

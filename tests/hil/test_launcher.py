@@ -203,6 +203,7 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
     assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
 
 
+@LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
 def test_snake_to_t_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """reach_dock and release from module processes: the world carries them out on serial
     links, and the 8-module snake ends as the T (a head, the stem's tail and the bar's)."""
