@@ -1,11 +1,11 @@
-# dh2rt: `make demo` runs the main job, `make test` runs every check.
+# dh2rt: `make demo` runs the main job, `make test` runs every check, `make test-long` the long sweeps.
 # Both create .venv and install what they need on a machine that has only Python 3.11.
 PY ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-dev
 
-.PHONY: demo test bench lint typecheck contracts clean venv
+.PHONY: demo test test-long bench lint typecheck contracts clean venv
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -22,14 +22,27 @@ demo: $(STAMP)
 	$(BIN)/dh2rt demo
 	$(BIN)/dh2rt --transport serial --module-count 8 --cycles 300
 
+# Tests that keep no real time run on two xdist workers; then the ones marked realtime (modules
+# running in real time, timing judged against a bare loop: tests/conftest.py) run serially,
+# with no CPU-bound test beside them.
+CPU_TESTS := $(BIN)/python -m pytest -q -n 2
+REALTIME_TESTS := $(BIN)/python -m pytest -q -p no:xdist
+
 # tshark checks the Wireshark dissector (tests/tools/test_wireshark.py); installed here when
 # missing and we are root, otherwise that test skips and says why
 test: $(STAMP)
 	@command -v tshark >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends tshark >/dev/null || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends tshark >/dev/null) || echo "tshark is not installed: tests/tools/test_wireshark.py will skip"
-	$(BIN)/python -m pytest -q
+	$(CPU_TESTS) -m "not realtime and not long"
+	$(REALTIME_TESTS) -m "realtime and not long"
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/lint-imports
+
+# The sweeps that make test keeps one case of: many seeds, whole reconfigurations in the loop.
+# pytest exits 5 when a group selects no test: that group is empty, not failed.
+test-long: $(STAMP)
+	$(CPU_TESTS) -m "long and not realtime" || [ $$? = 5 ]
+	$(REALTIME_TESTS) -m "long and realtime" || [ $$? = 5 ]
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

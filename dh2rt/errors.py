@@ -45,7 +45,7 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── RecordError (ValueError)        a recording parameter or sample is malformed
     │   └── GaitError (ValueError)          a gait parameter is out of range
     ├── HilError (RuntimeError)             hardware-in-the-loop tooling failed
-    │   ├── MachineTooSlow                  this machine keeps no real time (hil.pace; tests skip)
+    │   ├── MachineTooSlow                  a bare loop kept no period hil.pace may stretch to (a failure)
     │   ├── HilWorldError                   the loop's world cannot start or drive its modules
     │   ├── EmulatorError                   an emulator (servos, contacts) was misused
     │   │   └── ContactEmulatorError        a connector unknown, doubled, or touching two
@@ -276,8 +276,8 @@ class HilError(DH2Error, RuntimeError):
 
 
 class MachineTooSlow(HilError):
-    """The machine keeps no real time, or kept no loop period the tests tried (hil.pace): no
-    verdict on dh2rt (the test suite turns it into a skip that says so)."""
+    """Even a bare sleep loop kept no loop period hil.pace may stretch to: the test that met it
+    fails, saying what the bare loop measured (no test is skipped for a slow machine)."""
 
 
 class HilWorldError(HilError):

@@ -12,8 +12,10 @@ route on it, and refuses when it cannot.
 
 Exit codes: 0 ok; 1 the run went wrong (a module failed, a receptor faulted, an actuator
 fault was still in force at the end, a link was lost on a clean link, or a module missed its
-cycle period in more than LATE_SHARE of its cycles: each is named on stderr); 2 bad input or
-transport unavailable; 130 interrupted. The whole log goes to a file the summary names.
+cycle period in more than LATE_SHARE of its cycles: each is named on stderr); 3 the same, when
+some module started more than LATE_SHARE of its cycles late (EXIT_TOO_SLOW: hil.pace reads
+it); 2 bad input or transport unavailable; 130 interrupted. The whole log goes to a file the
+summary names.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
 from types import FrameType
@@ -533,12 +536,20 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         for line in wrong:
             _err(line)
         _err(f"the run went wrong in {len(wrong)} way(s); the whole log is in {log_path}")
-        return EXIT_FAIL
+        return EXIT_TOO_SLOW if any(_late_share(v.status) > LATE_SHARE for v in world.views) else EXIT_FAIL
     return EXIT_OK
 
 
 #: Share of a module's cycles that may start late before the run counts as gone wrong.
 LATE_SHARE = 0.10
+#: The exit code of a run that went wrong with modules that could not keep the period.
+EXIT_TOO_SLOW = 3
+
+
+def _late_share(status: Mapping[str, Any]) -> float:
+    """Share of its cycles a module (its status) started late (problems() names each)."""
+    c = status.get("counters", {})
+    return int(c.get("late_cycles", 0)) / max(1, int(c.get("cycles", 0)))
 
 
 def problems(world: World, events: list[Event], *, clean_links: bool) -> list[str]:
@@ -576,7 +587,7 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
     return out
 
 
-#: How a run's problems begin to say that modules could not keep the period (hil.pace reads it).
+#: How a run's problems begin to say that modules could not keep the period.
 TOO_SLOW = "this machine cannot keep"
 
 

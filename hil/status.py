@@ -69,6 +69,8 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 "DOF2": s.get("DOF2", 0.0),
                 "frames_per_s": v.frames_per_s,
                 "counters": c,
+                # how late its cycles started (p50, p99, max ms): tests judge timing with it
+                "lateness_ms": s.get("lateness_ms"),
                 "actuator_fault": s.get("actuator_fault"),
                 "last_fault": s.get("last_fault"),
                 "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),

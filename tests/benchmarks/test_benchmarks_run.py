@@ -9,11 +9,25 @@ from pathlib import Path
 
 import pytest
 
+from tests.marks import LONG
+
 ROOT = Path(__file__).resolve().parents[2]
 NAMES = sorted(p.stem for p in (ROOT / "benchmarks").glob("bench_*.py"))
+#: benchmarks whose quick run runs modules in real time: make test runs them serially
+REALTIME = {"bench_flash", "bench_footprint", "bench_hil", "bench_hil_reach", "bench_sense_latency",
+            "bench_sensor_push", "bench_servo"}  # fmt: skip
+#: quick runs of half a minute or more, of what other tests cover (the footprint's figures: the
+#: test below): make test-long runs them
+LONG_RUNS = {"bench_footprint", "bench_hil_reach", "bench_legs_to_snake", "bench_trips"}
 
 
-@pytest.mark.parametrize("name", NAMES)
+def quick_runs() -> list[object]:
+    """Each benchmark's name, marked realtime and long as the sets above say."""
+    marks = ((pytest.mark.realtime, REALTIME), (LONG, LONG_RUNS))
+    return [pytest.param(name, marks=[mark for mark, names in marks if name in names]) for name in NAMES]
+
+
+@pytest.mark.parametrize("name", quick_runs())
 def test_benchmark_quick_mode_ends_with_json(name: str) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", f"benchmarks.{name}", "--quick"], capture_output=True, text=True, cwd=ROOT, timeout=300
@@ -43,6 +57,7 @@ def test_decode_benchmark_reports_its_ratios_and_bus_hours() -> None:
         assert data[f"dump_{fmt}_frames_per_s"] > 0 and data[f"dump_{fmt}_bus_hours_per_min"] > 0
 
 
+@pytest.mark.realtime
 def test_footprint_benchmark_reports_each_figure_against_its_bare_loop() -> None:
     """Issue 10: 8 dh2rt modules on serial links against 8 bare pyserial loops in the same run;
     every figure with its baseline, ratio and target verdict (the figures are not asserted)."""

@@ -254,7 +254,7 @@ def cases() -> list[object]:
             if block.is_example:
                 marks = [pytest.mark.long] if "long" in block.directives else []
                 if LAUNCHER_RUN.search("\n".join(block.body)):
-                    marks.append(pytest.mark.realtime)  # modules in real time: skipped where time stalls
+                    marks.append(pytest.mark.realtime)  # modules in real time: run serially
                 found.append(pytest.param(block, id=block.name, marks=marks))
     return found
 

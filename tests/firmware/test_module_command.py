@@ -30,6 +30,10 @@ from tools.reading import open_capture
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def signer(tmp_path: Path) -> tuple[bytes, Path]:
     """A signing key of this test's (made once), and its public key file."""
     key = tmp_path / "signer.key"

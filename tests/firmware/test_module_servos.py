@@ -8,6 +8,8 @@ import queue
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from dh2rt.compiler import compile_file
 from drivers.dxl_table import GOAL_POSITION, deg_to_ticks
 from drivers.recording import RecordingDriver
@@ -17,6 +19,10 @@ from firmware.main_loop import ModuleHost
 from hil.servo_emulator import ServoEmulator
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def serve(config: dict[str, Any]) -> list[dict[str, Any]]:

@@ -34,6 +34,10 @@ receptor tipped when S.roll > 45 { DOF1(-20); V.at = S.pos1; keep_alive() }
 """
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def config(**kw: Any) -> dict[str, Any]:
     image = compile_source(SOURCE, "reach.dh2").image
     return {"module": 0, "image": image.hex(), "transport": "inproc:sensors", "cycle_period": 0.01, "trace": True, **kw}

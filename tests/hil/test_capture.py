@@ -34,6 +34,10 @@ MODULES = 4
 CYCLES = 120
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def launch(transport: str, tmp_path: Path, *extra: str) -> tuple[int, dict[str, Any], str, Path, Path]:
     capture, trace = tmp_path / f"{transport}.pcapng", tmp_path / f"{transport}.jsonl"
     cmd = [

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from hil.pace import PACE
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 #: 8 module processes, 16 emulated servos and PyBullet share 2 cores here: 40 ms cycles keep
@@ -26,6 +27,10 @@ CYCLE_MS = 40
 SILENCE = 6
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def launch(transport: str, tmp_path: Path, run: int) -> tuple[int, dict[str, Any], str]:
     cmd = [
         sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", "8",
@@ -37,6 +42,7 @@ def launch(transport: str, tmp_path: Path, run: int) -> tuple[int, dict[str, Any
 
 
 @pytest.mark.slow
+@LONG  # three runs of each transport: a soak (the default body in the loop: test_launcher.py)
 @pytest.mark.parametrize("transport", ["virtual", "inproc", "serial"])
 def test_three_clean_runs_in_a_row(transport: str, tmp_path: Path) -> None:
     for run in range(3):

@@ -24,16 +24,21 @@ import pytest
 
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
 from hil.netns import namespace_problem
-from hil.pace import PACE
+from hil.pace import PACE, Baseline
 from tests.hil.flashing import PERIOD, caterpillar, switches
+from tests.marks import sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 8
 CYCLES = 700
-LATE = 0.25  # periods a cycle may start late on a machine that keeps time
+LATE = 0.25  # periods a cycle may start late; more if a bare loop here is later (hil.pace)
 
 
-@pytest.fixture(scope="module", params=["virtual", "udp"])
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
+@pytest.fixture(scope="module", params=sweep(["virtual", "udp"]))
 def bus_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     transport = str(request.param)
     if transport == "udp" and (problem := namespace_problem()) is not None:
@@ -78,11 +83,12 @@ def test_the_wave_goes_on_at_the_new_period_on_the_bus(bus_run: dict[str, Any]) 
 
 
 @pytest.mark.realtime
-def test_the_switch_is_agreed_within_a_period_on_the_bus(bus_run: dict[str, Any]) -> None:
+def test_the_switch_is_agreed_within_a_period_on_the_bus(bus_run: dict[str, Any], timer_baseline: Baseline) -> None:
     switched = switches(bus_run["summary"]["log"])
     period = PACE.ms(round(PERIOD * 1000)) / 1000  # the period the run that counts kept
     at = {}
     for m, cycle in switched.items():
         (rec,) = [r for r in bus_run["records"] if r["module"] == m and r["cycle"] == cycle]
         at[m] = rec["t"] / period
-    assert max(at.values()) - min(at.values()) <= 1.0 + LATE, {m: round(t - min(at.values()), 2) for m, t in at.items()}
+    late = max(LATE, timer_baseline.allowance_s() / period)
+    assert max(at.values()) - min(at.values()) <= 1.0 + late, {m: round(t - min(at.values()), 2) for m, t in at.items()}

@@ -15,6 +15,9 @@ from dh2rt.signed_image import new_private_key, pack, read_private_key, write_ke
 from hil.pace import PACE
 from tests.hil.flashing import caterpillar
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
 
 def _image(tmp_path: Path, key: bytes, version: int, clock_cycle: int = 20) -> Path:
     path = tmp_path / f"v{version}.img"

@@ -31,10 +31,15 @@ from tests.hil.flashing import (
     tick_until,
     versions,
 )
+from tests.marks import sweep
 
 N = 4
 VICTIM = 2
 WAIT = 120.0
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def watch(world: World, until: Callable[[], object], seconds: float = WAIT) -> bool:
@@ -46,7 +51,7 @@ def new_world(seed: int, trial_cycles: int = 100) -> World:
                  cycles=100_000, stand_in="recording", trial_cycles=trial_cycles)  # fmt: skip
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", sweep([0, 1]))
 def test_killed_while_staging_boots_the_old_program_and_finishes_from_its_neighbours(seed: int) -> None:
     world = new_world(seed)
     flash = world.workdir / f"m{VICTIM}" / "flash"
@@ -83,7 +88,7 @@ def test_killed_while_staging_boots_the_old_program_and_finishes_from_its_neighb
         world.stop()
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", sweep([0, 1]))
 def test_killed_during_its_trial_reverts(seed: int) -> None:
     # a long trial, so that the victim is surely killed before it confirms
     world = new_world(seed, trial_cycles=100_000)

@@ -34,6 +34,10 @@ WAIT = 40.0
 LEFT = 3
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 @pytest.fixture(scope="module")
 def robot() -> Iterator[World]:
     with running_snake("virtual", N, seed=1, wait=WAIT) as world:

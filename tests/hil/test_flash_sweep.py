@@ -19,10 +19,14 @@ from dh2rt import cli
 from dh2rt.signed_image import pack, read_private_key, write_key_pair
 from hil.pace import PACE
 from tests.hil.flashing import caterpillar, switches
+from tests.marks import sweep
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
-@pytest.mark.parametrize("seed", [0, 5])
-@pytest.mark.parametrize("at", [40, 50, 60, 70])
+@pytest.mark.parametrize("seed", sweep([0, 5]))
+@pytest.mark.parametrize("at", sweep([40, 50, 60, 70]))
 def test_a_rollout_at_any_phase_of_the_clock_cycle(
     at: int, seed: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

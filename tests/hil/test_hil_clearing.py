@@ -15,11 +15,14 @@ import re
 import time
 from pathlib import Path
 
+import pytest
+
 from dh2rt.compiler import compile_file
 from dh2rt.events import parse_event
 from dh2rt.profile import CONRO
 from dh2rt.topology import parse_spec
 from hil.world import World
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
@@ -27,6 +30,11 @@ FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 BEHIND_M = 0.12
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
+@LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_clearing.py)
 def test_the_robot_crawls_clear_of_a_dead_foot_in_the_loop() -> None:
     program = compile_file(str(ROOT / "examples" / "legs_to_snake.dh2"))
     dragon = parse_spec("dragon")

@@ -27,6 +27,7 @@ from hil.pace import PACE
 from hil.world import World
 from sim.reach import DEFAULT_TIMEOUT
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, LEFT = 1, 3
@@ -45,6 +46,10 @@ native reach_dock(path, mine, theirs)
 receptor tail_calls when T == T2 and H == GO { emit CALL via front }
 receptor head_reaches when T == T1 and H == CALL as p { reach_dock(p, Front, Left) }
 """
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def _summary(out: str) -> dict[str, Any]:
@@ -94,6 +99,7 @@ def test_a_latch_needs_the_faces_aligned_in_physics() -> None:
         world.stop()
 
 
+@LONG  # whole reconfigurations by motion in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
 @pytest.mark.parametrize(("seed", "at"), [(0, "m4"), (1, "m0")])
 def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pytest.CaptureFixture[str]) -> None:
     """snake_to_t on snake:8 with the PyBullet stand-in: the head's front is bent to m5's left
@@ -132,6 +138,7 @@ def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pyte
     assert len(order) == 2 and "docked" in log[order[0]]
 
 
+@LONG  # a whole reach in the loop (in physics: tests/sim)
 def test_a_reach_that_cannot_latch_gives_up_and_links_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

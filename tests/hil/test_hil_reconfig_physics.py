@@ -34,6 +34,7 @@ from dh2rt.topology import parse_spec
 from hil.pace import PACE
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from tests.dh2rt.test_snake_to_quadruped import QUAD_LINKS, QUAD_TYPES
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 #: World cycles the loop runs snake_to_quadruped for: in one process the two robots formed
@@ -43,6 +44,10 @@ QUAD_CYCLES = 4200
 #: (asking module, connector), (target module, connector) of the four latches, in order.
 QUAD_DOCKS = [(("m0", "front"), ("m7", "left")), (("m1", "front"), ("m8", "left")),
               (("m2", "front"), ("m7", "right")), (("m3", "front"), ("m8", "right"))]  # fmt: skip
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def _summary(out: str) -> dict[str, Any]:
@@ -97,6 +102,7 @@ LONG_LOOP = pytest.mark.skipif(
 )
 
 
+@LONG  # whole reconfigurations in the loop: make test-long (with DH2RT_LONG_LOOP=1)
 @LONG_LOOP
 def test_snake_becomes_quadruped_and_snake_by_motion_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """snake_to_quadruped on snake:9, QSS at m4 (seed 0): the four latches by motion, in order,
@@ -140,6 +146,7 @@ LONG_LOOP_LEGS = pytest.mark.skipif(
 )
 
 
+@LONG
 @LONG_LOOP_LEGS
 def test_first_foot_comes_to_the_tail_by_its_own_gaits_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """legs_to_snake on dragon, LTS at spine0 (seed 0): the winning foot lets go of the body,

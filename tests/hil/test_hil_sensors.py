@@ -32,6 +32,7 @@ from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology, parse_spec
 from hil.world import World, module_pids
 from tests.hil.processes import alive
+from tests.marks import sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 PERIOD = 0.02
@@ -62,6 +63,10 @@ const ClockCycle = 4
 sensor ir_front, ir_front_align, ir_back, ir_back_align
 receptor idle { keep_alive() }
 """
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def run_world(world: World, events: list[Any], until: Any = None, timeout: float = 60.0) -> None:
@@ -95,7 +100,8 @@ SENSE_CYCLES = 2
 
 
 @pytest.mark.parametrize(
-    ("at", "who", "seed"), [(8, "m1", 0), (17, "m0", 1), (23, "m2", 2), (31, "m1", 3), (40, "m0", 4), (12, "m2", 5)]
+    ("at", "who", "seed"),
+    sweep([(8, "m1", 0), (17, "m0", 1), (23, "m2", 2), (31, "m1", 3), (40, "m0", 4), (12, "m2", 5)]),
 )
 def test_a_sense_event_reaches_s_in_the_named_module_and_its_program_reacts(
     alarm: CompiledProgram, at: int, who: str, seed: int
@@ -202,7 +208,7 @@ def loose(n: int) -> Topology:
     return Topology(CONRO, tuple(f"m{i}" for i in range(n)), (), "loose")
 
 
-@pytest.mark.parametrize(("roll", "seed"), [(90.0, 0), (-90.0, 1), (180.0, 2)])
+@pytest.mark.parametrize(("roll", "seed"), sweep([(90.0, 0), (-90.0, 1), (180.0, 2)]))
 def test_a_module_rolled_over_reads_its_roll_in_its_process(watch: CompiledProgram, roll: float, seed: int) -> None:
     world = World(watch, parse_spec("snake:1"), "serial", seed=seed, cycles=200, trace=True, stand_in="pybullet")
     assert world.physics is not None
@@ -279,7 +285,7 @@ def test_a_program_that_reads_one_of_a_pair_gets_only_that_one(tmp_path: Path) -
     assert all(r["sensors"]["ir_front_align"] <= 5 for r in records if r["module"] == 1 and r["cycle"] >= 1)
 
 
-@pytest.mark.parametrize(("gap_mm", "seed"), [(30.0, 0), (70.0, 3)])
+@pytest.mark.parametrize(("gap_mm", "seed"), sweep([(30.0, 0), (70.0, 3)]))
 def test_facing_connectors_read_their_distance_in_their_processes(gap_mm: float, seed: int) -> None:
     still = compile_source(STILL, "still.dh2")
     world = World(still, loose(2), "serial", seed=seed, cycles=120, trace=True, stand_in="pybullet", sensor_every=2)

@@ -18,9 +18,14 @@ from dh2rt.transport.can_bus import socketcan_problem
 from hil import launcher
 from hil.netns import NETNS_ENV
 from hil.pace import PACE
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = Path(sys.executable).parent / "dh2rt"
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def _no_vcan0() -> None:
@@ -179,6 +184,7 @@ def test_udp_refuses_outside_a_loopback_only_namespace(capsys: pytest.CaptureFix
     assert "refusing" in capsys.readouterr().err
 
 
+@LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_legs_to_snake_physics.py)
 def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """Effects from module processes: the world carries out reach_and_dock on serial links.
 
@@ -198,6 +204,7 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
     assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
 
 
+@LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
 def test_snake_to_t_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[str]) -> None:
     """reach_dock and release from module processes: the world carries them out on serial
     links, and the 8-module snake ends as the T (a head, the stem's tail and the bar's)."""

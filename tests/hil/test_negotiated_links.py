@@ -26,9 +26,14 @@ from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from hil.netns import in_namespace, namespace_problem
 from hil.pace import PACE
 from hil.world import World
+from tests.marks import sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 LINE = re.compile(r"^(m\d+): link (negotiated|given up): connector (\d+)(?: is link (\d+) side ([01]))?$")
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def negotiations(log: list[str]) -> list[tuple[str, str, int, int | None, int | None]]:
@@ -77,7 +82,7 @@ def test_twenty_docks_at_once_on_one_bus_get_distinct_links() -> None:
     assert summary["frames"]["unaccounted"] == 0
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", sweep([0, 1]))
 def test_undock_and_redock_get_a_fresh_link_and_a_restarted_module_rejoins(seed: int) -> None:
     code, summary, err = launch(
         "--transport", "virtual", "--module-count", "5", "--cycles", "320", "--cycle-ms", "20", "--seed", str(seed),

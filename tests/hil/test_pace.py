@@ -1,28 +1,29 @@
-"""hil.pace: a loop run the machine could not keep is made again at twice the period, and the
-longer period holds for every later run; any other failure is returned as it is."""
+"""hil.pace: a loop run the launcher calls too slow is judged against a bare sleep loop at the
+same period. If the bare loop kept it, the run counts (and fails); if not, the period is
+stretched by the factor the bare loop needs, for every later run too; past the cap the pace
+raises MachineTooSlow. Any other failure is returned as it is."""
 
 from __future__ import annotations
 
 import sys
-import time
 
 import pytest
 
 from dh2rt.errors import MachineTooSlow
 from hil import launcher
 from hil import pace as pace_module
-from hil.launcher import TOO_SLOW
-from hil.pace import MAX_FACTOR, LoopPace
+from hil.launcher import EXIT_TOO_SLOW
+from hil.pace import MAX_FACTOR, Baseline, LoopPace, measure
 
-#: A launcher stand-in that keeps any period of at least 50 ms and says, as the launcher
-#: does, that it cannot keep a shorter one; it prints the period it was given.
+#: A launcher stand-in whose modules keep any period of at least 50 ms and which exits as the
+#: launcher does when they cannot keep a shorter one; it prints the period it was given.
 KEEPS_50_MS = (
     "import sys\n"
     "ms = float(sys.argv[sys.argv.index('--cycle-ms') + 1]) if '--cycle-ms' in sys.argv else 20.0\n"
     "print(ms)\n"
     "if ms < 50:\n"
-    f"    print('dh2rt: module m0 started 40% of its cycles late: {TOO_SLOW} ' + str(ms), file=sys.stderr)\n"
-    "    sys.exit(1)\n"
+    "    print('dh2rt: module m0 started 40% of its cycles late', file=sys.stderr)\n"
+    f"    sys.exit({EXIT_TOO_SLOW})\n"
 )
 
 
@@ -30,36 +31,58 @@ def stand_in(*args: str) -> list[str]:
     return [sys.executable, "-c", KEEPS_50_MS, *args]
 
 
-#: the real-time probe itself (the fixture below stands in for it)
-PROBE = pace_module.realtime_problem
+def bare_loop(late_ms: float, share: float) -> Baseline:
+    """A bare loop's lateness: ``share`` of 100 cycles ``late_ms`` late, the rest on time."""
+    late = round(share * 100)
+    return Baseline(0.0, tuple(sorted([0.0] * (100 - late) + [late_ms / 1000] * late)))
 
 
-@pytest.fixture(autouse=True)
-def keeps_time(monkeypatch: pytest.MonkeyPatch) -> None:
-    """These tests are about the pace's doubling: the machine is taken to keep time."""
-    monkeypatch.setattr(pace_module, "realtime_problem", lambda: None)
+def machine(monkeypatch: pytest.MonkeyPatch, late_ms: float, share: float) -> list[float]:
+    """Make every bare loop the pace measures late as ``bare_loop`` says; the periods (s) measured."""
+    asked: list[float] = []
+
+    def fake(period_s: float) -> Baseline:
+        asked.append(period_s)
+        return Baseline(period_s, bare_loop(late_ms, share).late_s)
+
+    monkeypatch.setattr(pace_module, "measure", fake)
+    return asked
 
 
-def test_a_period_the_machine_cannot_keep_is_doubled_until_it_can_and_stays_doubled() -> None:
+def test_a_period_the_bare_loop_cannot_keep_is_stretched_and_stays(monkeypatch: pytest.MonkeyPatch) -> None:
+    asked = machine(monkeypatch, late_ms=30, share=0.3)  # 30 ms stalls: 60 ms periods (late past 30 ms) are kept
     pace = LoopPace()
     proc = pace.run(stand_in("--cycle-ms", "15"), text=True, timeout=30)
-    assert proc.returncode == 0 and float(proc.stdout) == 60.0 and pace.factor == 4 == MAX_FACTOR
+    assert proc.returncode == 0 and float(proc.stdout) == 60.0 and pace.factor == 4
+    assert asked == [0.015]
     # the next run starts at the learned pace, the default period stretched too
     assert float(pace.run(stand_in("--cycle-ms", "30"), text=True, timeout=30).stdout) == 120.0
     assert float(pace.run(stand_in(), text=True, timeout=30).stdout) == 80.0
-    assert pace.ms(20) == 80.0 and pace.given_up is None
+    assert pace.ms(20) == 80.0 and asked == [0.015]
 
 
-def test_other_failures_and_periods_beyond_the_cap_are_returned_as_they_are() -> None:
+def test_a_run_too_slow_where_the_bare_loop_kept_the_period_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    machine(monkeypatch, late_ms=30, share=0.05)  # the bare loop is late in 5% of cycles: it kept 15 ms
     pace = LoopPace()
-    failing = pace.run([sys.executable, "-c", "import sys; sys.exit(3)", "--cycle-ms", "1"], timeout=30)
-    assert failing.returncode == 3 and pace.factor == 1
-    with pytest.raises(MachineTooSlow, match=f"up to {MAX_FACTOR}x .*{TOO_SLOW} 4.0"):
-        pace.run(stand_in("--cycle-ms", "1"), text=True, timeout=30)  # 4 ms at most: never kept
-    assert pace.factor == MAX_FACTOR
-    # from then on the session's loop runs are not made at all, even one the machine would keep
-    with pytest.raises(MachineTooSlow, match="kept no period"):
-        pace.run(stand_in("--cycle-ms", "50"), text=True, timeout=30)
+    proc = pace.run(stand_in("--cycle-ms", "15"), text=True, timeout=30)
+    assert proc.returncode == EXIT_TOO_SLOW and float(proc.stdout) == 15.0 and pace.factor == 1
+    assert "started 40% of its cycles late" in proc.stderr
+    assert "a bare loop at 15 ms started 5% of 100 cycles late" in proc.stderr and "dh2rt is too slow" in proc.stderr
+
+
+def test_a_bare_loop_that_needs_more_than_the_cap_raises(monkeypatch: pytest.MonkeyPatch) -> None:
+    machine(monkeypatch, late_ms=1000, share=0.5)  # stalls of a second, every other cycle
+    pace = LoopPace()
+    with pytest.raises(MachineTooSlow, match=f"more than {MAX_FACTOR}x"):
+        pace.run(stand_in("--cycle-ms", "15"), text=True, timeout=30)
+    assert pace.factor == 1
+
+
+def test_other_failures_are_returned_as_they_are_without_measuring(monkeypatch: pytest.MonkeyPatch) -> None:
+    asked = machine(monkeypatch, late_ms=30, share=0.3)
+    pace = LoopPace()
+    failing = pace.run([sys.executable, "-c", "import sys; sys.exit(4)", "--cycle-ms", "1"], timeout=30)
+    assert failing.returncode == 4 and pace.factor == 1 and asked == []
 
 
 def test_the_launcher_in_this_process_is_paced_and_its_errors_pass_through(capsys: pytest.CaptureFixture[str]) -> None:
@@ -68,20 +91,15 @@ def test_the_launcher_in_this_process_is_paced_and_its_errors_pass_through(capsy
     assert "--module-count 0" in capsys.readouterr().err and pace.factor == 1
 
 
-def test_a_machine_that_keeps_no_time_runs_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(pace_module, "realtime_problem", lambda: "sleeps ended 480 ms late (p99)")
-    with pytest.raises(MachineTooSlow, match="480 ms late"):
-        LoopPace().run([sys.executable, "-c", "raise SystemExit(7)"], timeout=30)
+def test_the_baseline_judges_as_the_launcher_does() -> None:
+    b = Baseline(0.02, bare_loop(late_ms=15, share=0.2).late_s)  # late past 10 ms in a fifth of cycles
+    assert b.share_late() == 0.2 and not b.kept() and b.stretch() == 2  # late past 20 ms: never
+    assert Baseline(0.02, bare_loop(late_ms=15, share=0.1).late_s).kept()
+    assert b.allowance_s() == pytest.approx(3 * 0.015 + 0.001)  # three times the p99, plus a millisecond
+    assert "started 20% of 100 cycles late" in b.describe() and "15.0 ms (worst)" in b.describe()
 
 
-def test_the_real_time_probe_measures_sleeps(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = PROBE.__wrapped__  # measured afresh, not the session's cached answer
-    # a clock read twice per sleep: 6 ms apart is 1 ms late (kept); 35 ms apart is 30 ms late
-    monkeypatch.setattr(time, "sleep", lambda s: None)
-    ticks = iter(range(10**6))
-    monkeypatch.setattr(time, "monotonic", lambda: next(ticks) * 0.006)
-    assert real() is None
-    ticks = iter(range(10**6))
-    monkeypatch.setattr(time, "monotonic", lambda: next(ticks) * 0.035)
-    why = real()
-    assert why is not None and "late by 30.0 ms (median)" in why and "p99" in why
+def test_the_bare_loop_measures_its_own_lateness() -> None:
+    b = measure(0.005, seconds=0.1)  # at least 60 cycles, whatever the length asked for
+    assert b.period_s == 0.005 and len(b.late_s) == 60
+    assert all(x >= 0 for x in b.late_s) and list(b.late_s) == sorted(b.late_s)

@@ -25,6 +25,10 @@ from tests.hil.slcan_emulator import SlcanBusEmulator
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def launch(*args: str, timeout: float = 120) -> tuple[int, dict[str, Any], str]:
     cmd = [sys.executable, "-m", "hil.launcher", "--json", *args]
     proc = PACE.run(cmd, text=True, timeout=timeout, cwd=ROOT)

@@ -14,6 +14,9 @@ from firmware.control import Exited
 from hil.world import World
 from tests.hil.flashing import PERIOD, PROGRAM
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
 
 @pytest.mark.parametrize("transport", ["inproc", "serial"])
 def test_a_previous_lifes_end_read_late_does_not_end_the_new_life(transport: str) -> None:

@@ -15,6 +15,10 @@ from hil.pace import PACE
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The bin/ folder of a fresh venv holding dh2rt's wheel (no extras: the core alone)."""

@@ -28,6 +28,7 @@ from dh2rt.topology import parse_spec
 from sim.conro import CENTRE
 from sim.crawl import back_off, creep, turn
 from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
+from tests.marks import sweep
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 #: A program that holds every joint where it is: only the motions move.
@@ -141,7 +142,7 @@ def test_the_foot_creeps_while_the_tail_squares_and_they_dock(
         run.close()
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", sweep([0, 1, 2]))
 def test_without_the_creep_the_straight_tail_cannot_reach(seed: int) -> None:
     """A chain lying straight cannot lengthen: with the foot still, the tail gives up about
     30 mm away (measured 29.8 to 31.3 mm, 2 and 3 hops, seeds 0 to 2) and links nothing."""
@@ -155,7 +156,7 @@ def test_without_the_creep_the_straight_tail_cannot_reach(seed: int) -> None:
         run.close()
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", sweep([0, 1, 2]))
 @pytest.mark.parametrize("leg", ["left_leg1", "right_leg1"])
 def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -> None:
     """The first round with a rear foot (the program's feet win front first). Measured with

@@ -23,6 +23,7 @@ from dh2rt.wire.can_frames import segment
 from dh2rt.wire.frame import FrameCodec
 from hil import launcher
 from hil.pace import PACE
+from tests.marks import sweep
 from tools.diff import main
 from tools.pcap import CapturedFrame, write_pcap
 
@@ -32,6 +33,10 @@ CYCLES = 120
 Record = dict[str, Any]
 #: an arrival as (hormone, at, from, path)
 Arrived = tuple[str, str, str, list[list[str]]]
+
+
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 def in_process(path: Path, seed: int) -> Path:
@@ -89,7 +94,7 @@ def with_arrivals(records: list[Record], module: int) -> list[Record]:
 # ------------------------------------------------------------------ the in-process robot and the loop
 
 
-@pytest.mark.parametrize("seed", [1, 4])
+@pytest.mark.parametrize("seed", sweep([1, 4]))
 def test_a_clean_loop_run_agrees_with_the_in_process_robot(
     seed: int, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -31,6 +31,10 @@ HEAD, FRONT = 0, 1  # the head's front connector is free: the cable goes there
 WAIT = 60.0  # seconds a rollout, or a status report, may take on a loaded machine
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def bench_robot() -> AbstractContextManager[World]:
     """A snake of N module processes on serial links, started and running; always stopped."""
     return running_snake("serial", N, wait=WAIT)

@@ -20,6 +20,10 @@ from tools.pcap import CapturedFrame, write_pcap
 SOURCE = "program flood\nconst ClockCycle = 4\nhormone Y\nhormone Z(n: int)\n"
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 def flood_capture(tmp_path: Path) -> tuple[Path, Path]:
     program_path = tmp_path / "flood.dh2"
     program_path.write_text(SOURCE)

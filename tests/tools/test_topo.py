@@ -41,6 +41,10 @@ PHASES = (0.0, 0.006, 0.012, 0.018)  # where in the cycle each module sends: apa
 # ----------------------------------------------------------------------------- made-up robots
 
 
+#: modules run in real time here: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
+
+
 @dataclass
 class MadeUp:
     """A made-up robot: modules (their link ends as (connector, link, side)), each sending
