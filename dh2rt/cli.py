@@ -388,6 +388,10 @@ def _print_program(signed: SignedImage) -> bool:
 
 def cmd_keys(output: Path) -> int:
     """``dh2rt keys new -o KEY``: a new key pair, never over an existing file."""
+    taken = [p for p in (output, output.with_name(output.name + ".pub")) if p.exists()]
+    if taken:  # a key is never overwritten: there is no --force for it
+        err(f"-o {output}: {taken[0]} exists; a key is never overwritten (remove it first)")
+        return EXIT_USAGE
     try:
         output = output_path(output, "-o")
         kid = write_key_pair(output)

@@ -331,6 +331,7 @@ def test_a_key_pair_file_is_private_and_never_overwritten(tmp_path: Path) -> Non
 @pytest.fixture
 def keyfile(tmp_path: Path) -> Path:
     path = tmp_path / "keys" / "signer"
+    path.parent.mkdir()  # a folder outside the current one is not made unasked
     assert main(["keys", "new", "-o", str(path)]) == 0
     return path
 

@@ -250,12 +250,17 @@ def skip_reason(block: Block) -> str | None:
 def cases() -> list[object]:
     found: list[object] = []
     for doc in DOCS:
+        # a block runs the doc's earlier blocks first (in each xdist worker that takes one),
+        # so it is real time once it or one of them runs modules in real time: run serially
+        launcher_before = False
         for block in steps(doc):
+            launcher_here = bool(LAUNCHER_RUN.search("\n".join(block.body)))
             if block.is_example:
                 marks = [pytest.mark.long] if "long" in block.directives else []
-                if LAUNCHER_RUN.search("\n".join(block.body)):
-                    marks.append(pytest.mark.realtime)  # modules in real time: run serially
+                if launcher_here or launcher_before:
+                    marks.append(pytest.mark.realtime)
                 found.append(pytest.param(block, id=block.name, marks=marks))
+            launcher_before |= launcher_here and runs_by_default(block)
     return found
 
 
