@@ -679,12 +679,14 @@ class Rollout(Node):
         self._spread(commit.image, flood)
 
     def _mid_cycle(self, at: float) -> float:
-        """The middle of this module's cycle at or after ``at`` (``at`` itself until two
-        ticks have measured the period)."""
-        if self._last_tick is None or self._period is None:
+        """The middle of this module's cycle at or after ``at``, on its cycle grid (``at``
+        itself until three ticks have measured it)."""
+        grid = self._grid()
+        if grid is None:
             return at
-        k = max(0, math.ceil((at - self._last_tick) / self._period - 0.5))
-        return self._last_tick + (k + 0.5) * self._period
+        start, period = grid
+        k = max(0, math.ceil((at - start) / period - 0.5))
+        return start + (k + 0.5) * period
 
     def _maybe_switch(self) -> None:
         job = self._job
