@@ -243,6 +243,8 @@ class RolloutHost:
         """Check and write the image on the writer's thread (fsyncs: see the module docs);
         the verdict goes to the Rollout at the next input."""
         self.stages += 1
+        if self.flash.acceptable(data):  # checked again as it is written; passed on meanwhile
+            self._do(self.rollout.verified(self.rt.clock()))
         self.writer.submit(
             lambda: self.flash.stage(data, hold=True), lambda staged, error: self._staged(data, staged, error)
         )
