@@ -20,9 +20,11 @@ host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
   four) go to :class:`FlashWriter`, a thread of their own, in order, not on the cycle's path:
   an fsync takes 5 to 50 ms on a shared disk, and eight modules staging within a few cycles
   of each other held their cycles past their neighbours' liveness bound (links lost at the
-  staging cycles in ``benchmarks/bench_flash.py``). The flash's verdict reaches the Rollout
-  at the host's next input (a frame, a Hello, a cycle start); the switch waits for the
-  writes before it;
+  staging cycles in ``benchmarks/bench_flash.py``). The image is checked first
+  (``Flash.acceptable``, no write) and the Rollout told ``verified``, so the last segment goes
+  on while the flash writes; the flash's result (``staged``) reaches the Rollout at the
+  host's next input (a frame, a Hello, a cycle start); the switch waits for the writes
+  queued before it;
 * each cycle it gives the runtime's liveness the digests the Rollout tolerates (the switch
   window), and its Hellos state the running program's version.
 
@@ -240,8 +242,9 @@ class RolloutHost:
         self._said = (name, at)
 
     def _stage(self, data: bytes) -> None:
-        """Check and write the image on the writer's thread (fsyncs: see the module docs);
-        the verdict goes to the Rollout at the next input."""
+        """Check the image here (the Rollout passes it on once it passes), then check and
+        write it on the writer's thread (fsyncs: see the module docs); the flash's result goes
+        to the Rollout at the next input."""
         self.stages += 1
         if self.flash.acceptable(data):  # checked again as it is written; passed on meanwhile
             self._do(self.rollout.verified(self.rt.clock()))
