@@ -267,7 +267,8 @@ class FlashEvents:
         if r.failure is not None:
             return r.failure
         short = [row for row in self.rows(ev) if row.outcome not in _RUNS_IT]
-        named = ", ".join(f"{row.module} {row.outcome}" for row in short[:3])
+        # named as every report names a module: by its path (the world's name beside it)
+        named = ", ".join(f"{row.path or '(no path)'} [{row.module}] {row.outcome}" for row in short[:3])
         return f"not committed: {named}" + (f" and {len(short) - 3} more" if len(short) > 3 else "")
 
     def module_index(self, ev: FlashEvent, path: tuple[tuple[int, int], ...]) -> int | None:

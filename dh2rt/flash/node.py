@@ -7,7 +7,9 @@ and :class:`dh2rt.flash.flasher.Flasher` (the entry point).
 
 from __future__ import annotations
 
+import itertools
 import math
+import statistics
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable
@@ -55,6 +57,10 @@ class Flood:
     sent: dict[int, tuple[int, int]] = field(default_factory=dict)  # connector -> (tick last sent, sends)
 
 
+#: Ticks :meth:`Node._grid` reads the cycle grid from.
+GRID_TICKS = 16
+
+
 # ---------------------------------------------------------------------------------------------
 # What modules and the entry point share
 
@@ -80,12 +86,30 @@ class Node(ABC):
         self._now = 0.0
         self._last_tick: float | None = None  # ``now`` of the last tick
         self._period: float | None = None  # measured between the last two ticks
+        self._ticks: deque[float] = deque(maxlen=GRID_TICKS)  # the last ticks, for :meth:`_grid`
+        self._leaving: float | None = None  # the host's clock as it handles this input (receive)
         self._shared_tokens = 0
         self._shared_free_at = -math.inf
         self._rotation = 0
         self._floods: dict[bytes, Flood] = {}
         self._actions: list[Action] = []
         self._check_budget()
+
+    def _grid(self) -> tuple[float, float] | None:
+        """This node's cycle grid from its recent ticks: a cycle start on it near the last tick,
+        and the period (None until three ticks). The period is the median interval and the
+        start the least delayed tick's, both robust against a cycle the machine held up: the
+        last interval alone, extrapolated over the commit margin's dozen cycles, put the
+        "middle of the cycle" anywhere in it."""
+        ticks = list(self._ticks)
+        if len(ticks) < 3:
+            return None
+        period = statistics.median(b - a for a, b in itertools.pairwise(ticks))
+        if period <= 0:
+            return None
+        last = ticks[-1]
+        late = min((t - last + period / 2) % period - period / 2 for t in ticks)
+        return last + late, period
 
     def _check_budget(self) -> None:
         largest = max(self.segment_size + 6, LARGEST_CONTROL)
@@ -101,9 +125,13 @@ class Node(ABC):
 
     # -- a received frame ----------------------------------------------------------------------
 
-    def receive(self, connector: int, data: bytes, now: float) -> list[Action]:
-        """A transfer frame received through ``connector`` (``now``: when it arrived)."""
+    def receive(self, connector: int, data: bytes, now: float, leaving: float | None = None) -> list[Action]:
+        """A transfer frame received through ``connector`` (``now``: when it arrived;
+        ``leaving``: the host's clock as it handles it, when later, which is when the frames
+        this input sends leave: a COMMIT passed on states the time left from then, else each
+        hop would add the time its module took to read the frame to the instant)."""
         self._now = now
+        self._leaving = leaving
         self.counters.frames_in += 1
         try:
             sender, message = decode(data)
@@ -114,7 +142,10 @@ class Node(ABC):
         if not port.linked or port.remote != sender:
             self._link(port, sender)
         self._dispatch(port, sender, message)
-        return self._finish()
+        try:
+            return self._finish()
+        finally:
+            self._leaving = None
 
     @abstractmethod
     def _port(self, connector: int) -> Port:
@@ -142,6 +173,7 @@ class Node(ABC):
         if self._last_tick is not None and now > self._last_tick:
             self._period = now - self._last_tick
         self._last_tick = now
+        self._ticks.append(now)
         self._shared_tokens = self.pacing.budget
         for port in self._ports.values():
             port.tokens = self.pacing.budget
@@ -321,6 +353,8 @@ class Node(ABC):
         """The COMMIT as it leaves: the time left from now, or (a host that reads its links
         once a cycle and sends at the tick) from the tick, whichever is later."""
         leaves = max(self._now, self._last_tick if self._last_tick is not None else self._now)
+        if self._leaving is not None:
+            leaves = max(leaves, self._leaving)
         return Commit(image, max(0, round((flood.at - leaves) * 1e6)), flood.hops)
 
     def _on_commit_ack(self, port: Port, ack: CommitAck) -> None:

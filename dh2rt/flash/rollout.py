@@ -275,6 +275,17 @@ class Rollout(Node):
             self._refuse(job, verdict, reason)
         return self._finish()
 
+    def verified(self, now: float) -> list[Action]:
+        """The host's flash found the image of the outstanding :class:`Stage` acceptable
+        (signature, trust, version) and is writing it; :meth:`staged` follows once it is
+        written. The last segment may go on meanwhile: the neighbours need the verdict, not
+        this module's fsyncs (which took 1 to 2 cycles a hop in the loop)."""
+        self._now = now
+        job = self._job
+        if job is not None and job.role is Role.STAGING:
+            job.store.released = True
+        return self._finish()
+
     def tick(self, now: float) -> list[Action]:
         """Once per cycle, at its start: the switch (first), retransmissions, stalls,
         commits, reports; then whatever this cycle's budget lets out."""
@@ -679,12 +690,14 @@ class Rollout(Node):
         self._spread(commit.image, flood)
 
     def _mid_cycle(self, at: float) -> float:
-        """The middle of this module's cycle at or after ``at`` (``at`` itself until two
-        ticks have measured the period)."""
-        if self._last_tick is None or self._period is None:
+        """The middle of this module's cycle at or after ``at``, on its cycle grid (``at``
+        itself until three ticks have measured it)."""
+        grid = self._grid()
+        if grid is None:
             return at
-        k = max(0, math.ceil((at - self._last_tick) / self._period - 0.5))
-        return self._last_tick + (k + 0.5) * self._period
+        start, period = grid
+        k = max(0, math.ceil((at - start) / period - 0.5))
+        return start + (k + 0.5) * period
 
     def _maybe_switch(self) -> None:
         job = self._job

@@ -16,6 +16,15 @@ host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
   and hands the staged image back to the Rollout), and ``Switch``: ``Flash.start_trial``
   and the new program in the running loop (``ModuleRuntime.switch_program``) at that very
   cycle start;
+* the flash's durable writes (``Persist``, ``DropPartial``, ``Stage``: each an fsync or
+  four) go to :class:`FlashWriter`, a thread of their own, in order, not on the cycle's path:
+  an fsync takes 5 to 50 ms on a shared disk, and eight modules staging within a few cycles
+  of each other held their cycles past their neighbours' liveness bound (links lost at the
+  staging cycles in ``benchmarks/bench_flash.py``). The image is checked first
+  (``Flash.acceptable``, no write) and the Rollout told ``verified``, so the last segment goes
+  on while the flash writes; the flash's result (``staged``) reaches the Rollout at the
+  host's next input (a frame, a Hello, a cycle start); the switch waits for the writes
+  queued before it;
 * each cycle it gives the runtime's liveness the digests the Rollout tolerates (the switch
   window), and its Hellos state the running program's version.
 
@@ -26,25 +35,84 @@ The trial itself (confirm after clean cycles, reject on a fault) stays the modul
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
-from collections import Counter
+import queue
+import threading
+import time
+from collections import Counter, deque
 from collections.abc import Callable, Iterable
+from typing import Any
 
 from dh2rt.compiler import load_image
 from dh2rt.errors import DH2Error, FlashError, SignedImageError
 from dh2rt.flash.pacing import Pacing
-from dh2rt.flash.rollout import Rollout
+from dh2rt.flash.reports import describe_path
+from dh2rt.flash.rollout import Role, Rollout
 from dh2rt.flash.values import Action, Declined, DropPartial, ImageInfo, Partial, Persist, Program, Send, Stage, Switch
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import parse as parse_image
 from dh2rt.wire.frame import Hello
 from dh2rt.wire.transfer import image_id
-from firmware.flash.slots import PARTIAL_IMAGE, PARTIAL_INFO, Boot, Flash, replace_file
+from firmware.flash.slots import PARTIAL_IMAGE, PARTIAL_INFO, Boot, Flash, Staged, replace_file
 
 #: What the module host does at the switch: run this program (booted from the flash).
 OnSwitch = Callable[[CompiledProgram, Boot], None]
+
+
+class FlashWriter:
+    """The flash's writes in a thread of their own, in the order given (see the module docs).
+
+    :meth:`submit` queues ``work``; once it ran, ``then(result, error)`` is kept for
+    :meth:`collect`, which the host calls on its own thread: the Rollout is never touched from
+    the writer's. :meth:`flush` waits for everything queued (the switch needs the staged image
+    on the flash). ``threaded()`` false (a runtime on a virtual clock, which the tests step:
+    its time does not pass while the disk works): ``work`` runs at once, in the caller's
+    thread, its follow-up at the next :meth:`collect` as with the thread."""
+
+    def __init__(self, threaded: Callable[[], bool] = lambda: True) -> None:
+        self.threaded = threaded
+        self._jobs: queue.Queue[tuple[Callable[[], Any], Callable[[Any, BaseException | None], None] | None]] = (
+            queue.Queue()
+        )
+        self._done: deque[tuple[Callable[[Any, BaseException | None], None], Any, BaseException | None]] = deque()
+        self._thread: threading.Thread | None = None
+
+    def submit(self, work: Callable[[], Any], then: Callable[[Any, BaseException | None], None] | None = None) -> None:
+        if not self.threaded() and self._jobs.unfinished_tasks == 0:
+            self._finish(work, then)
+            return
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="dh2rt-flash-writer", daemon=True)
+            self._thread.start()
+        self._jobs.put((work, then))
+
+    def collect(self) -> None:
+        """Run the follow-ups of the writes done (on the caller's thread)."""
+        while self._done:
+            then, result, error = self._done.popleft()
+            then(result, error)
+
+    def flush(self) -> None:
+        """Wait for every write queued, then run their follow-ups."""
+        self._jobs.join()
+        self.collect()
+
+    def _run(self) -> None:
+        while True:
+            work, then = self._jobs.get()
+            self._finish(work, then)
+            self._jobs.task_done()
+
+    def _finish(self, work: Callable[[], Any], then: Callable[[Any, BaseException | None], None] | None) -> None:
+        try:
+            result, error = work(), None
+        except Exception as exc:  # handed to the host's thread, which decides
+            result, error = None, exc
+        if then is not None:
+            self._done.append((then, result, error))
 
 
 class RolloutHost:
@@ -88,6 +156,9 @@ class RolloutHost:
         )
         self.log: list[str] = []
         self.stages = 0
+        self.writer = FlashWriter(threaded=lambda: rt.clock is time.monotonic)
+        #: what the log said last of this module's name and switch instant
+        self._said: tuple[object, object] = (None, None)
         #: the staged image's program, loaded when it was staged: (its digest, the program)
         self._prepared: tuple[bytes, CompiledProgram] | None = None
         #: images refused at their offer, before a byte crossed (a rollback, a busy trial), by
@@ -103,31 +174,39 @@ class RolloutHost:
     # -- inputs from the runtime (LinkObserver) ---------------------------------------------
 
     def cycle_start(self, rt: ModuleRuntime, now: float) -> None:
+        self.writer.collect()
         self._do(self.rollout.tick(now))
         rt.liveness.tolerated = self.rollout.tolerated()
 
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
+        self.writer.collect()
         self._do(self.rollout.hello(connector, remote, hello.version, hello.digest, now))
 
     def link_down(self, connector: int, now: float) -> None:
+        self.writer.collect()
         self._do(self.rollout.link_down(connector, now))
 
     def attached(self, connector: int) -> None:
+        self.writer.collect()
         self._do(self.rollout.attach(connector, self.rt.clock()))
 
     def detached(self, connector: int) -> None:
+        self.writer.collect()
         self._do(self.rollout.detach(connector, self.rt.clock()))
 
     def on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
+        self.writer.collect()
         # when it arrived, not when it was read: a COMMIT's remaining time counts from then
-        self._do(self.rollout.receive(connector, payload, arrived))
+        self._do(self.rollout.receive(connector, payload, arrived, leaving=self.rt.clock()))
 
     # -- the trial, from the module host -----------------------------------------------------
 
     def confirmed(self) -> None:
+        self.writer.collect()
         self._do(self.rollout.confirmed(self.rt.clock()))
 
     def reverted(self, reason: str) -> None:
+        self.writer.collect()
         self._do(self.rollout.reverted(reason, self.rt.clock()))
 
     # -- actions ---------------------------------------------------------------------------
@@ -138,9 +217,9 @@ class RolloutHost:
                 case Send(connector, data):
                     self.rt.transport.send_raw(connector, data)
                 case Persist(info, offset, data):
-                    self._persist(info, offset, data)
+                    self.writer.submit(functools.partial(self._persist, info, offset, data))
                 case DropPartial():
-                    self._drop_partial()
+                    self.writer.submit(self._drop_partial)
                 case Stage(_, data):
                     self._stage(data)
                 case Switch(program):
@@ -148,15 +227,43 @@ class RolloutHost:
                 case Declined(version, verdict, reason):
                     self.declined[verdict] += 1
                     self._note(f"offer of version {version} refused ({verdict}): {reason}")
+        self._say_name_and_instant()
+
+    def _say_name_and_instant(self) -> None:
+        """Log this module's name (its path, as every report prints it) once an OFFER told
+        it, and the agreed switch instant (on CLOCK_MONOTONIC, as trace records' ``t``) once
+        a COMMIT did: what a reader of the logs needs to check the switch."""
+        name, at = self.rollout.name, self.rollout.switch_at
+        said_name, said_at = self._said
+        if name is not None and name != said_name:
+            self._note(f"named {describe_path(name, self.rt.program.profile.connector_name)}")
+        if at is not None and at != said_at:
+            self._note(f"switch agreed at t={at:.6f}")
+        self._said = (name, at)
 
     def _stage(self, data: bytes) -> None:
+        """Check the image here (the Rollout passes it on once it passes), then check and
+        write it on the writer's thread (fsyncs: see the module docs); the flash's result goes
+        to the Rollout at the next input."""
         self.stages += 1
-        try:
-            staged = self.flash.stage(data, hold=True)
-        except DH2Error as exc:  # a trial runs (the rollout declines BUSY before this)
-            self._note(f"image not staged: {exc}")
-            self._do(self.rollout.staged(False, "busy", str(exc), self.rt.clock()))
+        if self.flash.acceptable(data):  # checked again as it is written; passed on meanwhile
+            self._do(self.rollout.verified(self.rt.clock()))
+        self.writer.submit(
+            lambda: self.flash.stage(data, hold=True), lambda staged, error: self._staged(data, staged, error)
+        )
+
+    def _staged(self, data: bytes, staged: Staged | None, error: BaseException | None) -> None:
+        if self.rollout.role is not Role.STAGING:  # a newer image took its place meanwhile
+            self._note("an image written to the flash was given up for a newer one meanwhile")
             return
+        if error is not None:
+            if not isinstance(error, DH2Error):
+                raise error
+            # a trial runs (the rollout declines BUSY before this)
+            self._note(f"image not staged: {error}")
+            self._do(self.rollout.staged(False, "busy", str(error), self.rt.clock()))
+            return
+        assert staged is not None
         verdict = str(staged.verdict)
         if staged.accepted:
             self._note(f"image staged in slot {staged.slot}: waits for the switch")
@@ -170,6 +277,7 @@ class RolloutHost:
         self._do(self.rollout.staged(staged.accepted, verdict, staged.reason, self.rt.clock()))
 
     def _switch(self, program: Program) -> None:
+        self.writer.flush()  # the partial image dropped before the trial's boot is counted
         boot = self.flash.start_trial()
         if boot.digest != program.digest:
             raise FlashError(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")

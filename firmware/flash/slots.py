@@ -381,6 +381,12 @@ class Flash:
             raise FlashError(f"trial_cycles {cycles}: must be 0 or more")
         return self._install(data, self._state(), cycles, hold)
 
+    def acceptable(self, data: bytes) -> bool:
+        """Whether :meth:`stage` would take ``data`` now (its checks, without writing or
+        counting anything): a rollout passes an image on once this holds, while the flash
+        writes it."""
+        return not self.on_trial and self._refusal(examine(data, self.trust), self._state()) is None
+
     def _install(self, data: bytes, state: FlashState | None, cycles: int, hold: bool = False) -> Staged:
         """Write an image that passes its checks: on trial beside ``state``'s confirmed
         program, or confirmed at once into an empty flash (``state`` None)."""

@@ -752,3 +752,45 @@ def test_a_tampered_image_of_the_running_version_is_refused_as_tampered(images: 
     assert not flasher.succeeded
     head = {m.path: m for m in flasher.report()}[snake_path(0)]
     assert (head.outcome, head.verdict) == (Outcome.REFUSED, "tampered"), head
+
+
+def test_the_last_segment_goes_on_once_the_flash_verified_the_image(images: Images) -> None:
+    """A host whose flash writes the staged image in the background (the module program's
+    FlashWriter) says ``verified`` as soon as the checks pass: the last segment goes on then,
+    before ``staged``, and not before."""
+    module = Rollout([1, 2], Program.from_image(images.v1), pacing=SERIAL.pacing, segment_size=80)
+    info = ImageInfo(tw.image_id(images.v2), 2, len(images.v2), 80)
+    last = info.count - 1
+    sent: list[int] = []
+
+    def take(actions: list[Action]) -> list[Action]:
+        for a in actions:
+            if isinstance(a, Send) and a.connector == 2:
+                message = tw.decode(a.data).message
+                if isinstance(message, tw.Segment):
+                    sent.append(message.index)
+        return actions
+
+    for tick in range(3):
+        take(module.tick(tick * PERIOD))
+    v1 = Program.from_image(images.v1)
+    take(module.hello(2, 1, v1.version, v1.digest, 2 * PERIOD))
+    now = 2 * PERIOD + 0.001
+    take(module.receive(1, tw.encode(1, tw.Offer(2, info.image, info.length, 80, info.count, False, ())), now))
+    take(module.receive(2, tw.encode(1, tw.Request(info.image, 0, 8)), now))
+    stage: list[Action] = []
+    for i in range(info.count):
+        segment = tw.Segment(info.tag, i, images.v2[slice(*info.span(i))])
+        stage += [a for a in take(module.receive(1, tw.encode(1, segment), now)) if isinstance(a, Stage)]
+    assert stage and module.role == Role.STAGING
+    for tick in range(3, 6):
+        take(module.tick(tick * PERIOD))
+    assert sorted(set(sent)) == list(range(last)), sent  # every segment but the last
+    take(module.receive(2, tw.encode(1, tw.Ack(info.tag, last, 0)), 6 * PERIOD - 0.001))
+    assert last not in sent
+    take(module.verified(6 * PERIOD))
+    take(module.tick(6 * PERIOD + 0.001))
+    assert (last in sent, module.role) == (True, Role.STAGING), sent
+    take(module.staged(True, "ok", "", 7 * PERIOD))
+    after: Role | None = module.role
+    assert after is Role.STAGED

@@ -16,6 +16,7 @@ from typing import Any, TypeVar
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.flash.pacing import link_pacing
 from dh2rt.program import CompiledProgram
+from dh2rt.signed_image import pack, read_private_key, write_key_pair
 from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
@@ -32,6 +33,16 @@ FRONT = 1  # CONRO's front connector: the head's is free
 def caterpillar(clock_cycle: int) -> CompiledProgram:
     text = PROGRAM.read_text(encoding="utf-8")
     return compile_source(text.replace("const ClockCycle = 40", f"const ClockCycle = {clock_cycle}"))
+
+
+def robot_key_and_image(folder: Path, clock_cycle: int, version: int = 2) -> tuple[Path, Path]:
+    """A robot's signing key (``--key``) in ``folder`` and the caterpillar with ``clock_cycle``
+    signed with it at ``version`` (a flash event's IMAGE): their paths."""
+    key_file = folder / "robot.key"
+    write_key_pair(key_file)
+    image = folder / "cat2.simg"
+    image.write_bytes(pack(caterpillar(clock_cycle).image, version, read_private_key(key_file)))
+    return key_file, image
 
 
 def flash_through_cable(

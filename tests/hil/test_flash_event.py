@@ -13,7 +13,7 @@ import pytest
 from dh2rt import cli
 from dh2rt.signed_image import new_private_key, pack, read_private_key, write_key_pair
 from hil.pace import PACE
-from tests.hil.flashing import caterpillar
+from tests.hil.flashing import caterpillar, robot_key_and_image
 
 #: modules run in real time here: make test runs these serially (tests/conftest.py)
 pytestmark = pytest.mark.realtime
@@ -88,10 +88,7 @@ def test_the_docs_example_the_same_program_at_version_2_names_all_8_modules(
     """docs/flashing.md's example with the image unedited (issue 27): the program the robot
     runs, signed again at version 2. Every one of the 8 modules is in the report, with version
     2 and its SHA-256, and no link was lost to the rollout's loading."""
-    key_file = tmp_path / "robot.key"
-    write_key_pair(key_file)
-    image = tmp_path / "cat2.simg"
-    image.write_bytes(pack(caterpillar(40).image, 2, read_private_key(key_file)))
+    key_file, image = robot_key_and_image(tmp_path, 40)
     code = PACE.call(
         cli.main,
         ["--transport", "serial", "--module-count", "8", "--cycles", "600", "--cycle-ms", "20", "--seed", str(seed),
