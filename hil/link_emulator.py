@@ -28,7 +28,8 @@ Counting frames (:class:`LinkStats`): every frame sent into a link is counted on
 
 * ``frames_lost``: it never reached a reader: lost by ``frame_loss``, sent into an undocked
   link, on the line when the link was undocked or the emulator closed, due for a side whose
-  reader is gone (:meth:`LinkEmulator.reader_gone`: a killed module), or refused by a full pty;
+  reader is gone (:meth:`LinkEmulator.reader_gone`: a killed module) or, with ``await_open``,
+  that no module has opened yet (opening a port flushes it), or refused by a full pty;
 * written into the other side's pty, where the receiver's decoder sees the chunks its
   delimiters end (``frames_delivered``): a bit error or a lost byte that destroys the
   frame's delimiter joins it to the next chunk (``frames_merged``), one that makes a 0x00
@@ -167,9 +168,12 @@ class LinkEmulator(Closing):
         baudrate: float = 0.0,
         seed: int | None = None,
         tap: Tap | None = None,
+        await_open: bool = False,
     ) -> None:
         self.default = Impairments(frame_loss, byte_loss, bit_error, latency, jitter, baudrate)
         self.tap = tap
+        #: a side has no reader until its module opened it (see _opened)
+        self.await_open = await_open
         self._rng = random.Random(seed)
         self._lock = threading.Lock()
         self._links: dict[int, EmulatedLink] = {}
@@ -196,7 +200,7 @@ class LinkEmulator(Closing):
                 link_id = max(self._links, default=-1) + 1
             if link_id in self._links:
                 raise TransportError(f"link emulator: link {link_id} already exists")
-            sides = (_open_side(), _open_side())
+            sides = (_open_side(self.await_open), _open_side(self.await_open))
             link = EmulatedLink(link_id, sides, replace(self.default, **impairments), docked)
             self._links[link_id] = link
             for i, side in enumerate(sides):
@@ -251,12 +255,18 @@ class LinkEmulator(Closing):
     def reader_gone(self, path: str) -> None:
         """The module that opens ``path`` is dead (killed): the chunks left unread in its pty are
         read out and counted (``frames_unread``), and frames due for it from now on are lost
-        (``frames_lost``) until :meth:`reader_back`. A path of no link is ignored."""
+        (``frames_lost``) until :meth:`reader_back` (with ``await_open``: until a module opens
+        it again). A path of no link is ignored."""
         with self._lock:
             found = self._side(path)
             if found is not None:
-                found[1].reader_gone = True
-                self._read_out(*found)
+                link, side = found
+                side.reader_gone = True
+                self._read_out(link, side)
+                # what it wrote before it died goes on; a frame it did not finish is no frame
+                self._relay(link, link.sides.index(side), _read_all(side.master))
+                link.stats.bytes_discarded += len(side.pending)
+                side.pending.clear()
 
     def reader_back(self, path: str) -> None:
         """A module reads ``path`` again (a restart): frames are written to it again."""
@@ -334,29 +344,32 @@ class LinkEmulator(Closing):
     def _from_master(self, fd: int, data: bytes) -> None:
         with self._lock:
             entry = self._by_fd.get(fd)
-            if entry is None:
-                return
-            link, side_index = entry
-            if not link.docked:
-                link.stats.bytes_discarded += len(data)
-                self._lost_unrelayed(link, side_index, data)  # the capture shows them lost
-                return
-            side = link.sides[side_index]
-            target = link.sides[1 - side_index].master
-            side.pending += data
-            imp = link.impairments
-            now = time.monotonic()
-            for frame in self._frames(side.pending):
-                base = _base(frame)
-                link.stats.frames += base
-                side.counts.sent += base
-                if base and imp.frame_loss and self._rng.random() < imp.frame_loss:
-                    link.stats.frames_lost += 1
-                    self._tapped(link, side_index, frame, time.time(), lost=True)
-                    self._on_line(target, len(frame), now, imp)  # it took the line all the same
-                    continue
-                piece = _Piece(link.link_id, side_index, self._impair(link, frame, imp), base, time.time())
-                self._schedule(link, target, piece, now, imp)
+            if entry is not None:
+                self._relay(*entry, data)
+
+    def _relay(self, link: EmulatedLink, side_index: int, data: bytes) -> None:
+        """What a module at ``side_index`` wrote, cut into frames and sent on (under the lock)."""
+        if not link.docked:
+            link.stats.bytes_discarded += len(data)
+            self._lost_unrelayed(link, side_index, data)  # the capture shows them lost
+            return
+        side = link.sides[side_index]
+        target = link.sides[1 - side_index].master
+        side.pending += data
+        imp = link.impairments
+        now = time.monotonic()
+        for frame in self._frames(side.pending):
+            base = _base(frame)
+            self._opened(side, frame)
+            link.stats.frames += base
+            side.counts.sent += base
+            if base and imp.frame_loss and self._rng.random() < imp.frame_loss:
+                link.stats.frames_lost += 1
+                self._tapped(link, side_index, frame, time.time(), lost=True)
+                self._on_line(target, len(frame), now, imp)  # it took the line all the same
+                continue
+            piece = _Piece(link.link_id, side_index, self._impair(link, frame, imp), base, time.time())
+            self._schedule(link, target, piece, now, imp)
 
     def _lost_unrelayed(self, link: EmulatedLink, side_index: int, data: bytes) -> None:
         """Frames sent that never go on the line (an undocked link, the emulator closing)."""
@@ -364,10 +377,18 @@ class LinkEmulator(Closing):
         side.pending += data
         for frame in self._frames(side.pending):
             base = _base(frame)
+            self._opened(side, frame)
             link.stats.frames += base
             side.counts.sent += base
             link.stats.frames_lost += base
             self._tapped(link, side_index, frame, time.time(), lost=True)
+
+    def _opened(self, side: _Side, frame: bytes) -> None:
+        """With ``await_open``: a lone delimiter from a side is its module's first write after
+        opening its port (dh2rt's serial transport sends one on attach; the open flushed what
+        was in the pty before): from now on it reads. Frames due for it before were lost."""
+        if self.await_open and side.reader_gone and frame == b"\x00":
+            side.reader_gone = False
 
     def _lose_queued(self, which: Callable[[_Piece], bool]) -> None:
         """Take the pieces ``which`` picks off the line: their frames are lost (under the lock)."""
@@ -519,5 +540,5 @@ def _read_all(fd: int, *, nonblocking: bool = False) -> bytes:
     return bytes(out)
 
 
-def _open_side() -> _Side:
-    return _Side(*open_raw_pty())
+def _open_side(unopened: bool) -> _Side:
+    return _Side(*open_raw_pty(), reader_gone=unopened)

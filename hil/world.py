@@ -68,6 +68,7 @@ from dh2rt.runtime import CYCLE_PERIOD_S
 from dh2rt.topology import Topology
 from dh2rt.transport.base import LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
+from dh2rt.transport.inproc import inproc_bus
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
 from firmware.control import (
@@ -208,10 +209,12 @@ class World:
                 def tap(t: float, link: int, side: int, wire: bytes, lost: bool) -> None:
                     sink.serial_frame(t, link, side, wire, lost=lost)
 
-            # the infrared links carry bytes at the modules' baud rate (0: at once)
+            # the infrared links carry bytes at the modules' baud rate (0: at once); a port is
+            # read from when its module opened it (opening flushes it: frames before are lost)
             self.emulator = LinkEmulator(
-                frame_loss=frame_loss, bit_error=bit_error, baudrate=line_baud, seed=emulator_seed, tap=tap
-            )
+                frame_loss=frame_loss, bit_error=bit_error, baudrate=line_baud, seed=emulator_seed, tap=tap,
+                await_open=True,
+            )  # fmt: skip
         #: The modules' body: "recording" (each module records its commanded angles),
         #: "pybullet" (the full firmware path: Dynamixel servos emulated on ptys whose joints
         #: are PyBullet joints; see hil.physics_stand_in) or "none".
@@ -474,9 +477,6 @@ class World:
         v = self.views[module]
         if isinstance(rep, Ready):
             v.ready = True
-            if self.emulator is not None:  # it has opened its ports (which flushed them): read again
-                for path in self._ports_of[module]:
-                    self.emulator.reader_back(path)
         elif isinstance(rep, Status):
             status = {**rep.status, "targets": list(rep.targets) if rep.targets else None} if rep.final else rep.status
             v.heard(status, time.monotonic(), sample_rate=not rep.final)
@@ -802,6 +802,9 @@ class World:
         for key in _FRAME_TERMS:
             totals[key] += self.cable_frames.get(f"frames_{key}", 0)
         link = self.emulator.totals() if self.emulator is not None else LinkStats()
+        if self.kind == "inproc" and self._bus_channel:  # the in-process bus counts the same
+            bus = inproc_bus(self._bus_channel)
+            link.frames_lost, link.frames_unread = bus.lost, bus.unread
         totals["lost_on_link"] = link.frames_lost
         totals["unread"] = link.frames_unread
         totals["merged"] = link.frames_merged
@@ -810,11 +813,18 @@ class World:
         totals["unaccounted"] = totals["sent"] + totals["split"] - accounted
         return totals
 
+    @property
+    def frames_witnessed(self) -> bool:
+        """Whether a witness counts the frames no module can (sent to nobody, left unread):
+        the link emulator on serial links, the bus on ``inproc``. A CAN bus (and real serial
+        ports) has none: a frame sent to a link nobody holds any more is counted nowhere."""
+        return self.emulator is not None or self.kind == "inproc"
+
     def unaccounted_where(self) -> list[str]:
         """Where frames went uncounted (serial links: each module's and cable's own counts
         against what the link emulator carried from and into its ports); [] when they agree."""
         if self.emulator is None:
-            return [] if not self.frame_accounting()["unaccounted"] else [f"on the {self.kind} links (no emulator)"]
+            return [] if not self.frame_accounting()["unaccounted"] else [f"on the {self.kind} links"]
         out: list[str] = []
         for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
             counts = self._module_counts(m, v, earlier)

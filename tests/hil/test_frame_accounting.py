@@ -30,9 +30,11 @@ ROOT = Path(__file__).resolve().parents[2]
 ENDS = ("received", "corrupted", "dropped", "unhandled", "read_by_killed", "lost_on_link", "unread", "merged")
 
 
-def launch(tmp_path: Path, *args: str, modules: int = 6, cycles: int = 160) -> tuple[int, dict[str, Any], str]:
+def launch(
+    tmp_path: Path, *args: str, modules: int = 6, cycles: int = 160, transport: str = "serial"
+) -> tuple[int, dict[str, Any], str]:
     cmd = [
-        sys.executable, "-m", "hil.launcher", "--transport", "serial", "--module-count", str(modules),
+        sys.executable, "-m", "hil.launcher", "--transport", transport, "--module-count", str(modules),
         "--cycles", str(cycles), "--cycle-ms", "20", "--stand-in", "none", "--json",
         "--log", str(tmp_path / "run.log"), *args,
     ]  # fmt: skip
@@ -78,6 +80,16 @@ def test_a_cut_and_a_dock_add_up(tmp_path: Path) -> None:
     frames = summary["frames"]
     adds_up(frames)
     assert frames["lost_on_link"] > 0, frames  # sent into the undocked link until liveness noticed
+    assert code == 0, (summary["problems"], err[-2000:])
+
+
+def test_the_inproc_bus_counts_what_it_carried_into_nothing(tmp_path: Path) -> None:
+    code, summary, err = launch(
+        tmp_path, "--event", "40:cut:m1.back", "--event", "60:kill:m3", "--event", "100:restart:m3", transport="inproc"
+    )
+    frames = summary["frames"]
+    adds_up(frames)
+    assert frames["lost_on_link"] > 0, frames  # sent to the dead m3 until its neighbours noticed
     assert code == 0, (summary["problems"], err[-2000:])
 
 
