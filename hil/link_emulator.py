@@ -275,6 +275,16 @@ class LinkEmulator(Closing):
             if found is not None:
                 found[1].reader_gone = False
 
+    def new_sender(self, path: str) -> None:
+        """A new module is about to open ``path`` (a restart): bytes of a frame the dead one
+        did not finish writing are no frame, and must not join the new one's first."""
+        with self._lock:
+            found = self._side(path)
+            if found is not None:
+                link, side = found
+                link.stats.bytes_discarded += len(side.pending)
+                side.pending.clear()
+
     def _side(self, path: str) -> tuple[EmulatedLink, _Side] | None:
         for link in self._links.values():
             for side in link.sides:

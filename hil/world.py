@@ -372,6 +372,8 @@ class World:
         self._unreported[module] = False
         if self.emulator is not None:  # a new life's counts begin here
             self._ports_of[module].update(e.url for e in config.attach.values() if isinstance(e, PortEnd))
+            for path in self._ports_of[module]:
+                self.emulator.new_sender(path)
             self._life_start[module] = {p: self.emulator.side_counts(p) for p in self._ports_of[module]}
         self.lives[module] += 1
         with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
@@ -477,6 +479,9 @@ class World:
         v = self.views[module]
         if isinstance(rep, Ready):
             v.ready = True
+            if self.emulator is not None:  # its ports are open (if their first byte was not seen)
+                for path in self._ports_of[module]:
+                    self.emulator.reader_back(path)
         elif isinstance(rep, Status):
             status = {**rep.status, "targets": list(rep.targets) if rep.targets else None} if rep.final else rep.status
             v.heard(status, time.monotonic(), sample_rate=not rep.final)
@@ -723,7 +728,7 @@ class World:
         self.poll()  # what it said last (its final status, its end) is read before any next life
         self.views[module].alive = False
         # a killed process reports nothing more: the emulator counts what it read and sent
-        self._unreported[module] = not self.views[module].finished
+        self._unreported[module] = self.emulator is not None and not self.views[module].finished
         if self.emulator is not None:
             for path in self._ports_of[module]:
                 self.emulator.reader_gone(path)
@@ -889,6 +894,9 @@ class World:
             if h is not None:
                 h.end(grace=1.0)
         self.poll()
+        for m, v in enumerate(self.views):  # ended before it reported its counters: counted at its ports
+            if self.emulator is not None and self.handles[m] is not None and not v.finished and not v.killed:
+                self._unreported[m] = True
         if self.emulator is not None:  # what is left on the lines and in the ptys is counted
             self.emulator.close()
         if self.physics is not None:
