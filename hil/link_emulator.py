@@ -513,11 +513,12 @@ class LinkEmulator(Closing):
         receiver.counts.written += ends
         if ends > piece.base:
             stats.frames_split += ends - piece.base
-        elif ends < piece.base and refused:  # its delimiter never got into the full pty
+        elif ends < piece.base and (refused or not piece.data):  # never whole in the pty (full), or no byte left
             stats.frames_lost += piece.base - ends
         elif ends < piece.base:  # its delimiter destroyed: it joins the next chunk
             stats.frames_merged += piece.base - ends
-        self._tapped(link, piece.side, piece.data, piece.sent_at, lost=bool(piece.base) and not ends and bool(refused))
+        lost = bool(piece.base) and not ends and bool(refused or not piece.data)
+        self._tapped(link, piece.side, piece.data, piece.sent_at, lost=lost)
 
 
 def _base(frame: bytes) -> int:
