@@ -599,7 +599,10 @@ def frame_identity(f: dict[str, int]) -> str:
 
 
 #: What the summary says of frames a CAN bus run cannot account for (no witness on a bus).
-NO_WITNESS = "sent to links nobody held: a CAN bus has no witness that counts them"
+NO_WITNESS = (
+    "a bus has no witness of frames sent to a link nobody held, nor of what a killed module counted after its "
+    "last report"
+)
 
 
 #: How a run's problems begin to say that modules could not keep the period (hil.pace reads it).
