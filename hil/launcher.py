@@ -11,11 +11,11 @@ the launcher re-executes itself under ``unshare -rn`` with only loopback up and 
 route on it, and refuses when it cannot.
 
 Exit codes: 0 ok; 1 the run went wrong (a module failed, a receptor faulted, an actuator
-fault was still in force at the end, a link was lost on a clean link, or a module missed its
-cycle period in more than LATE_SHARE of its cycles: each is named on stderr); 3 the same, when
-some module started more than LATE_SHARE of its cycles late (EXIT_TOO_SLOW: hil.pace reads
-it); 2 bad input or transport unavailable; 130 interrupted. The whole log goes to a file the
-summary names.
+fault was still in force at the end, a link was lost on a clean link, a module missed its
+cycle period in more than LATE_SHARE of its cycles, or the frames do not add up (see
+World.frame_accounting): each is named on stderr); 3 the same, when some module started more
+than LATE_SHARE of its cycles late (EXIT_TOO_SLOW: hil.pace reads it); 2 bad input or
+transport unavailable; 130 interrupted. The whole log goes to a file the summary names.
 """
 
 from __future__ import annotations
@@ -579,12 +579,40 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
                 f"{LATE_SHARE:.0%}): {_suggest_period(world)}"
             )
     frames = world.frame_accounting()
-    if clean_links and not changes_links and frames["unaccounted"]:
+    # frames always add up (docs/hil.md, "Counting frames"): in every run with a witness of
+    # the frames sent to nobody; on a CAN bus, which has none, in runs whose links stay
+    if frames["unaccounted"] and (world.frames_witnessed or not changes_links):
+        where = world.unaccounted_where()
         out.append(
-            f"{frames['unaccounted']} frame(s) sent were counted nowhere: {frames['sent']} sent, "
-            f"{frames['received']} received, {frames['corrupted']} corrupted, {frames['dropped']} dropped"
+            f"{frames['unaccounted']} frame(s) unaccounted for: {frame_identity(frames)}"
+            + (f"; where: {'; '.join(where)}" if where else "")
         )
     return out
+
+
+def frame_identity(f: dict[str, int]) -> str:
+    """The run's frames as the identity they add up to (docs/hil.md, "Counting frames")."""
+    left = f"{f['sent']} sent" + (f" + {f['split']} split" if f["split"] else "")
+    right = [f"{f['received']} received", f"{f['corrupted']} corrupted", f"{f['dropped']} dropped"]
+    for key, what in (
+        ("unhandled", "unhandled"),
+        ("read_by_killed", "read by killed modules"),
+        ("lost_on_link", "lost on the links"),
+        ("unread", "unread"),
+        ("merged", "merged"),
+    ):
+        if f[key] or key == "lost_on_link":
+            right.append(f"{f[key]} {what}")
+    if f["unaccounted"]:
+        right.append(f"{f['unaccounted']} unaccounted")
+    return f"{left} = {' + '.join(right)}"
+
+
+#: What the summary says of frames a CAN bus run cannot account for (no witness on a bus).
+NO_WITNESS = (
+    "a bus has no witness of frames sent to a link nobody held, nor of what a killed module counted after its "
+    "last report"
+)
 
 
 #: How a run's problems begin to say that modules could not keep the period.
@@ -734,11 +762,10 @@ def _summary(
             totals[k] = totals.get(k, 0) + int(r["counters"].get(k, 0))
     out.write("totals: " + ", ".join(f"{k} {v}" for k, v in totals.items()) + "\n")
     f = world.frame_accounting()
-    out.write(
-        f"frames: {f['sent']} sent = {f['received']} received + {f['corrupted']} corrupted + {f['dropped']} dropped "
-        f"+ {f['lost_on_link']} lost on the links"
-        + (f" + {f['unaccounted']} unaccounted\n" if f["unaccounted"] else " (every frame accounted for)\n")
-    )
+    tail = " (every frame accounted for)"
+    if f["unaccounted"]:
+        tail = "" if world.frames_witnessed else f" ({NO_WITNESS})"
+    out.write(f"frames: {frame_identity(f)}{tail}\n")
     if world.physics is not None:
         faults = sum(1 for r in rows if r.get("actuator_fault"))
         out.write(

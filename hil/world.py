@@ -68,6 +68,7 @@ from dh2rt.runtime import CYCLE_PERIOD_S
 from dh2rt.topology import Topology
 from dh2rt.transport.base import LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
+from dh2rt.transport.inproc import inproc_bus
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
 from firmware.control import (
@@ -92,7 +93,7 @@ from firmware.control import (
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
 from hil.contact_emulator import ContactEmulator
 from hil.hardware_map import HardwareMap
-from hil.link_emulator import LinkEmulator
+from hil.link_emulator import LinkEmulator, LinkStats, SideCounts
 from hil.link_map import LinkMap
 from hil.status import ModuleView
 from hil.status import rows as status_rows
@@ -123,6 +124,7 @@ if TYPE_CHECKING:
 STEP_LEAD_S = 0.008
 #: The infrared links' line rate in the loop (bytes cross at 10 bits each): the modules' ports'.
 LINE_BAUD = 115_200
+
 
 class World:
     """Modules of ``topology`` running ``program`` over ``transport`` (see module docs)."""
@@ -207,10 +209,12 @@ class World:
                 def tap(t: float, link: int, side: int, wire: bytes, lost: bool) -> None:
                     sink.serial_frame(t, link, side, wire, lost=lost)
 
-            # the infrared links carry bytes at the modules' baud rate (0: at once)
+            # the infrared links carry bytes at the modules' baud rate (0: at once); a port is
+            # read from when its module opened it (opening flushes it: frames before are lost)
             self.emulator = LinkEmulator(
-                frame_loss=frame_loss, bit_error=bit_error, baudrate=line_baud, seed=emulator_seed, tap=tap
-            )
+                frame_loss=frame_loss, bit_error=bit_error, baudrate=line_baud, seed=emulator_seed, tap=tap,
+                await_open=True,
+            )  # fmt: skip
         #: The modules' body: "recording" (each module records its commanded angles),
         #: "pybullet" (the full firmware path: Dynamixel servos emulated on ptys whose joints
         #: are PyBullet joints; see hil.physics_stand_in) or "none".
@@ -271,6 +275,16 @@ class World:
         self.earlier_lives: list[dict[str, int]] = [{} for _ in range(topology.size)]
         #: frame counters of the programming cables' transports (the flasher's frames)
         self.cable_frames: dict[str, int] = {}
+        #: the emulator ports (pty paths) each module was given, the cables' flasher ends,
+        #: and each port's counts when the module's current life began (see frame_accounting)
+        self._ports_of: list[set[str]] = [set() for _ in range(topology.size)]
+        self._cable_paths: set[str] = set()
+        self._life_start: list[dict[str, SideCounts]] = [{} for _ in range(topology.size)]
+        #: modules whose current life was killed before it reported its counters: the link
+        #: emulator counts that life's frames (sent from its ports, read from them)
+        self._unreported = [False] * topology.size
+        #: frames of each module's earlier such lives, counted by the emulator: {"sent": n, "read": n}
+        self.killed_frames = [{"sent": 0, "read": 0} for _ in range(topology.size)]
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
         self.handles: list[ModuleHandle | None] = [None] * topology.size
@@ -295,7 +309,6 @@ class World:
         self._pending: list[tuple[int, Callable[[], None]]] = []  # (world cycle, effect)
         self._go_at: float | None = None
         self._closed = False
-        self._lost_on_link: int | None = None
         for lk in topology.links:
             self.link_map.add(lk.a, lk.a_conn, lk.b, lk.b_conn)
             if self.contacts is not None:
@@ -351,12 +364,22 @@ class World:
 
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
         config = replace(self.config(module, cycles, phase), life=self.lives[module])
+        v = self.views[module]
+        if self.lives[module] and self._unreported[module]:  # its counters died with it
+            for key, n in self._life_frames(module).items():
+                self.killed_frames[module][key] += n
+            v.status = {}
+        self._unreported[module] = False
+        if self.emulator is not None:  # a new life's counts begin here
+            self._ports_of[module].update(e.url for e in config.attach.values() if isinstance(e, PortEnd))
+            for path in self._ports_of[module]:
+                self.emulator.new_sender(path)
+            self._life_start[module] = {p: self.emulator.side_counts(p) for p in self._ports_of[module]}
         self.lives[module] += 1
         with deferred_interrupts():  # the handle is recorded before a Ctrl-C can land
             self.handles[module] = start_module(
                 config, self.reports, thread=self.threads, workdir=self.workdir, flash_image=self.signed_image
             )
-        v = self.views[module]
         if self.lives[module] > 1:  # a new life counts from 0: keep what the last one counted
             earlier = self.earlier_lives[module]
             for key, n in v.status.get("counters", {}).items():
@@ -456,6 +479,9 @@ class World:
         v = self.views[module]
         if isinstance(rep, Ready):
             v.ready = True
+            if self.emulator is not None:  # its ports are open (if their first byte was not seen)
+                for path in self._ports_of[module]:
+                    self.emulator.reader_back(path)
         elif isinstance(rep, Status):
             status = {**rep.status, "targets": list(rep.targets) if rep.targets else None} if rep.final else rep.status
             v.heard(status, time.monotonic(), sample_rate=not rep.final)
@@ -653,12 +679,13 @@ class World:
             raise HilWorldError(f"{self.where(module, connector)} is docked: a cable needs a free connector")
         self.cables_plugged += 1
         link = self.emulator.add_link(max(self.emulator.links, default=0) + CABLE_LINK_IDS)  # apart from the dock's
+        self._cable_paths.add(link.paths[1])
         self._send(module, Attach(connector, PortEnd(link.paths[0])))
         return link.link_id, link.paths[1]
 
     def count_cable(self, counters: LinkCounters) -> None:
         """Add a programming cable's transport counters (at its end) to the run's frames."""
-        for key in ("sent", "received", "corrupted", "dropped"):
+        for key in _FRAME_TERMS:
             name = f"frames_{key}"
             self.cable_frames[name] = self.cable_frames.get(name, 0) + int(getattr(counters, key))
 
@@ -700,6 +727,11 @@ class World:
             h.proc.wait(5)
         self.poll()  # what it said last (its final status, its end) is read before any next life
         self.views[module].alive = False
+        # a killed process reports nothing more: the emulator counts what it read and sent
+        self._unreported[module] = self.emulator is not None and not self.views[module].finished
+        if self.emulator is not None:
+            for path in self._ports_of[module]:
+                self.emulator.reader_gone(path)
 
     def restart(self, module: int) -> None:
         self.kill(module)
@@ -736,6 +768,9 @@ class World:
     def _send(self, module: int, cmd: Command) -> None:
         h = self.handles[module]
         if h is not None and self.views[module].alive:
+            if self.emulator is not None and isinstance(cmd, Attach) and isinstance(cmd.end, PortEnd):
+                self._ports_of[module].add(cmd.end.url)  # a new port's counts begin in this life
+                self._life_start[module].setdefault(cmd.end.url, self.emulator.side_counts(cmd.end.url))
             h.send(cmd)
 
     def run_events(self, events: Iterable[Event], applied: set[int]) -> None:
@@ -753,30 +788,91 @@ class World:
         return status_rows(self.views)
 
     def frame_accounting(self) -> dict[str, int]:
-        """Where every frame went, counted where it happened: sent by the modules' transports;
-        received, corrupted (failed COBS/CRC) or dropped (over-long) by their decoders; lost
-        on a serial link by the emulator. ``unaccounted`` is what none of those counted (0 on a
-        run whose modules stopped together and read their neighbours' last frames)."""
-        totals = {"sent": 0, "received": 0, "corrupted": 0, "dropped": 0, "lost_on_link": 0}
-        for v, earlier in zip(self.views, self.earlier_lives, strict=True):
-            c = v.status.get("counters", {})
-            for key in ("sent", "received", "corrupted", "dropped"):
-                totals[key] += int(c.get(f"frames_{key}", 0)) + earlier.get(f"frames_{key}", 0)
-        for key in ("sent", "received", "corrupted", "dropped"):
+        """Where every frame went, each term counted where it happened (docs/hil.md, "Counting
+        frames"): ``sent + split = received + corrupted + dropped + unhandled + read_by_killed
+        + lost_on_link + unread + merged``. The modules' transports (and the cables') count
+        what they sent and what their decoders read: received, corrupted (failed COBS/CRC),
+        dropped (over-long, or raced with a detach) and unhandled (no handler listened); on
+        serial links the link emulator counts the rest: frames lost on the line (loss, an
+        undocked link, in flight at a cut or the end, due for a dead module), chunks left
+        unread in a pty when its module died or stopped, frames a bit error merged into the
+        next or split in two, and what a killed module sent and read (its own counters die
+        with it). ``unaccounted`` is what breaks the identity: 0 in every run that went right."""
+        totals = dict.fromkeys((*_FRAME_TERMS, "read_by_killed"), 0)
+        for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
+            counts = self._module_counts(m, v, earlier)
+            for key in _FRAME_TERMS:
+                totals[key] += counts[key]
+            totals["read_by_killed"] += counts["read_by_killed"]
+        for key in _FRAME_TERMS:
             totals[key] += self.cable_frames.get(f"frames_{key}", 0)
-        totals["lost_on_link"] = self._frames_lost_on_link()
-        totals["unaccounted"] = totals["sent"] - sum(
-            totals[k] for k in ("received", "corrupted", "dropped", "lost_on_link")
-        )
+        link = self.emulator.totals() if self.emulator is not None else LinkStats()
+        if self.kind == "inproc" and self._bus_channel:  # the in-process bus counts the same
+            bus = inproc_bus(self._bus_channel)
+            link.frames_lost, link.frames_unread = bus.lost, bus.unread
+        totals["lost_on_link"] = link.frames_lost
+        totals["unread"] = link.frames_unread
+        totals["merged"] = link.frames_merged
+        totals["split"] = link.frames_split
+        accounted = sum(totals[k] for k in (*_ARRIVED, "read_by_killed", "lost_on_link", "unread", "merged"))
+        totals["unaccounted"] = totals["sent"] + totals["split"] - accounted
         return totals
 
-    def _frames_lost_on_link(self) -> int:
+    @property
+    def frames_witnessed(self) -> bool:
+        """Whether a witness counts the frames no module can (sent to nobody, left unread):
+        the link emulator on serial links, the bus on ``inproc``. A CAN bus (and real serial
+        ports) has none: a frame sent to a link nobody holds any more is counted nowhere."""
+        return self.emulator is not None or self.kind == "inproc"
+
+    def unaccounted_where(self) -> list[str]:
+        """Where frames went uncounted (serial links: each module's and cable's own counts
+        against what the link emulator carried from and into its ports); [] when they agree."""
         if self.emulator is None:
-            return 0
-        if self._lost_on_link is None:  # read once the links are closed: kept from stop()
-            # every link the run had: cut ones and cables' too (what they lost stays lost)
-            return sum(self.emulator.stats(i).frames_lost for i in list(self.emulator.links))
-        return self._lost_on_link
+            return [] if not self.frame_accounting()["unaccounted"] else [f"on the {self.kind} links"]
+        out: list[str] = []
+        for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
+            counts = self._module_counts(m, v, earlier)
+            read = sum(counts[k] for k in _ARRIVED) + counts["read_by_killed"]
+            out += self._disagreement(v.name, counts["sent"], read, self._ports_of[m])
+        cable_read = sum(self.cable_frames.get(f"frames_{k}", 0) for k in _ARRIVED)
+        out += self._disagreement("the cables", self.cable_frames.get("frames_sent", 0), cable_read, self._cable_paths)
+        return out
+
+    def _disagreement(self, who: str, sent: int, read: int, paths: Iterable[str]) -> list[str]:
+        assert self.emulator is not None
+        sides = [self.emulator.side_counts(p) for p in paths]
+        carried = sum(c.sent for c in sides)
+        given = sum(c.written - c.unread for c in sides)
+        if (sent, read) == (carried, given):
+            return []
+        return [f"{who} counted {sent} sent and {read} read; its ports took {carried} from it and gave it {given}"]
+
+    def _module_counts(self, module: int, view: ModuleView, earlier: Mapping[str, int]) -> dict[str, int]:
+        """What ``module``'s lives counted: its own counters for the lives that reported them,
+        the link emulator's for those killed before they could (``read_by_killed``)."""
+        reported = not self._unreported[module]
+        c = view.status.get("counters", {}) if reported else {}
+        out = {k: earlier.get(f"frames_{k}", 0) + int(c.get(f"frames_{k}", 0)) for k in _FRAME_TERMS}
+        killed = dict(self.killed_frames[module])
+        if not reported:
+            for key, n in self._life_frames(module).items():
+                killed[key] += n
+        out["sent"] += killed["sent"]
+        out["read_by_killed"] = killed["read"]
+        return out
+
+    def _life_frames(self, module: int) -> dict[str, int]:
+        """The current life's frames as the link emulator counted them at its ports: sent
+        from them, and read from them (written into them, less what was left unread)."""
+        sent = read = 0
+        if self.emulator is not None:
+            for path in self._ports_of[module]:
+                now = self.emulator.side_counts(path)
+                then = self._life_start[module].get(path, SideCounts())
+                sent += now.sent - then.sent
+                read += (now.written - then.written) - (now.unread - then.unread)
+        return {"sent": sent, "read": read}
 
     def sorted_records(self) -> list[dict[str, Any]]:
         """Trace records merged from the modules, by cycle then module."""
@@ -798,8 +894,10 @@ class World:
             if h is not None:
                 h.end(grace=1.0)
         self.poll()
-        if self.emulator is not None:
-            self._lost_on_link = self._frames_lost_on_link()
+        for m, v in enumerate(self.views):  # ended before it reported its counters: counted at its ports
+            if self.emulator is not None and self.handles[m] is not None and not v.finished and not v.killed:
+                self._unreported[m] = True
+        if self.emulator is not None:  # what is left on the lines and in the ptys is counted
             self.emulator.close()
         if self.physics is not None:
             self.physics.close()
@@ -817,8 +915,11 @@ class World:
         self.stop()
 
 
+#: The modules' (and cables') own terms of the frame accounting, and those that arrived.
+_FRAME_TERMS = ("sent", "received", "corrupted", "dropped", "unhandled")
+_ARRIVED = ("received", "corrupted", "dropped", "unhandled")
 #: The status counters the frame accounting adds up.
-FRAME_COUNTERS = frozenset({"frames_sent", "frames_received", "frames_corrupted", "frames_dropped"})
+FRAME_COUNTERS = frozenset(f"frames_{k}" for k in _FRAME_TERMS)
 
 
 def module_pids(world: World) -> Sequence[int]:

@@ -4,6 +4,10 @@ An :class:`InprocBus` is the medium: it maps each link end ``(link_id, side)`` t
 transport listening there and hands encoded bytes across, in order. Buses are found by
 channel name (like python-can's ``virtual``), or passed explicitly. The world can
 ``undock`` a link on the bus: frames on it then go nowhere, as on a real undocked pair.
+
+The bus counts what no transport can: frames carried into nothing (``lost``: an undocked
+link, or no transport at the other end, e.g. a stopped module's) and frames still in a
+transport's inbox when it closed (``unread``), so that every frame sent is counted once.
 """
 
 from __future__ import annotations
@@ -23,6 +27,10 @@ class InprocBus:
         self._lock = threading.Lock()
         self._listeners: dict[tuple[int, int], tuple[InprocTransport, int]] = {}
         self._undocked: set[int] = set()
+        #: frames carried into nothing (undocked, or nobody at the other end)
+        self.lost = 0
+        #: frames left in a transport's inbox when it closed
+        self.unread = 0
 
     def _join(self, end: BusEnd, transport: InprocTransport, connector: int) -> None:
         key = (end.link_id, end.side)
@@ -41,16 +49,20 @@ class InprocBus:
 
     def carry(self, link_id: int, from_side: int, payload: bytes) -> None:
         """Deliver ``payload`` sent by ``from_side`` to the other end, if docked and listening."""
-        with self._lock:
-            if link_id in self._undocked:
+        with self._lock:  # delivered under the lock: a transport that left gets nothing more
+            holder = None if link_id in self._undocked else self._listeners.get((link_id, 1 - from_side))
+            if holder is None:
+                self.lost += 1
                 return
-            holder = self._listeners.get((link_id, 1 - from_side))
-        if holder is not None:
             holder[0]._deliver(holder[1], payload)
 
     def inject(self, link_id: int, to_side: int, data: bytes) -> None:
         """Put raw bytes on the medium towards ``to_side`` (tests: garbage, foreign frames)."""
         self.carry(link_id, 1 - to_side, bytes(data))
+
+    def _unread(self, frames: int) -> None:
+        with self._lock:
+            self.unread += frames
 
     def undock(self, link_id: int) -> None:
         """Stop carrying frames on ``link_id`` (both directions)."""
@@ -115,5 +127,7 @@ class InprocTransport(Transport):
         return out
 
     def _close(self) -> None:
-        with self._ready:
+        with self._ready:  # (the bus's lock is taken outside this one: carry() takes them the other way)
+            left = len(self._inbox)
             self._inbox.clear()
+        self.bus._unread(left)

@@ -25,6 +25,10 @@ import pytest
 from dh2rt import cli
 from hil.pace import PACE
 from tests.hil.flashing import PERIOD, caterpillar, robot_key_and_image, switches
+from tests.marks import sweep
+
+#: modules run in real time: make test runs these serially (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 N = 8
 #: Periods a module's cycle may start after its due time on a loaded machine.
@@ -68,8 +72,7 @@ def assert_every_module_named(summary: dict[str, Any]) -> None:
     assert sorted(len(p.split()) for p in logged.values()) == list(range(1, N + 1)), logged
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("at", [60, 100])
+@pytest.mark.parametrize(("seed", "at"), sweep([(0, 60), (1, 100), (0, 100), (1, 60)]))
 def test_a_flash_under_5_percent_loss_names_every_module(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, at: int
 ) -> None:
@@ -78,8 +81,7 @@ def test_a_flash_under_5_percent_loss_names_every_module(
     assert_every_module_named(summary)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("at", [60, 100])
+@pytest.mark.parametrize(("seed", "at"), sweep([(0, 60), (1, 100), (0, 100), (1, 60)]))
 def test_m3_killed_mid_transfer_and_restarted_every_module_is_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, at: int
 ) -> None:
@@ -100,8 +102,7 @@ def agreed_instants(log: list[str]) -> dict[int, float]:
     return out
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("at", [60, 100])
+@pytest.mark.parametrize(("seed", "at"), sweep([(0, 60), (1, 100), (0, 100), (1, 60)]))
 def test_every_module_switches_within_one_period_of_the_agreed_instant(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, at: int
 ) -> None:
