@@ -25,8 +25,9 @@ demo: $(STAMP)
 # Tests that keep no real time run on two xdist workers; then the ones marked realtime (modules
 # running in real time, timing judged against a bare loop: tests/conftest.py) run serially,
 # with no CPU-bound test beside them.
-CPU_TESTS := $(BIN)/python -m pytest -q -n 2
-REALTIME_TESTS := $(BIN)/python -m pytest -q -p no:xdist
+# --durations: the slowest tests of each group, for whoever keeps make test within 10 minutes
+CPU_TESTS := $(BIN)/python -m pytest -q -n 2 --durations=15
+REALTIME_TESTS := $(BIN)/python -m pytest -q -p no:xdist --durations=25
 
 # tshark checks the Wireshark dissector (tests/tools/test_wireshark.py); installed here when
 # missing and we are root, otherwise that test skips and says why

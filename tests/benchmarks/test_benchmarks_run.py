@@ -16,9 +16,11 @@ NAMES = sorted(p.stem for p in (ROOT / "benchmarks").glob("bench_*.py"))
 #: benchmarks whose quick run runs modules in real time: make test runs them serially
 REALTIME = {"bench_flash", "bench_footprint", "bench_hil", "bench_hil_reach", "bench_sense_latency",
             "bench_sensor_push", "bench_servo"}  # fmt: skip
-#: quick runs of half a minute or more, of what other tests cover (the footprint's figures: the
-#: test below): make test-long runs them
-LONG_RUNS = {"bench_footprint", "bench_hil_reach", "bench_legs_to_snake", "bench_trips"}
+#: quick runs of what other tests cover (the footprint's figures: the test below; the loop's
+#: modules, sensors and servos: tests/hil, tests/firmware), half a minute or more each, or real
+#: time that make test keeps for the loop tests themselves: make test-long runs them
+LONG_RUNS = {"bench_footprint", "bench_hil_reach", "bench_legs_to_snake", "bench_trips", "bench_hil",
+             "bench_sense_latency", "bench_sensor_push", "bench_servo"}  # fmt: skip
 
 
 def quick_runs() -> list[object]:
