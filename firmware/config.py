@@ -17,8 +17,7 @@ from typing import Any
 
 from dh2rt.errors import KeyFileError, ModuleConfigError
 from dh2rt.liveness import SILENCE_CYCLES
-from dh2rt.runtime import CYCLE_PERIOD_S as CYCLE_PERIOD_S  # the core's one default, re-exported
-from dh2rt.runtime import MAX_CYCLE_PERIOD_S as MAX_CYCLE_PERIOD_S
+from dh2rt.runtime import CYCLE_PERIOD_S, MAX_CYCLE_PERIOD_S
 from dh2rt.signed_image import check_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from drivers.dxl_table import MODEL_XM430_W350

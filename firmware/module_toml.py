@@ -78,7 +78,7 @@ from typing import Any
 
 from dh2rt.errors import DH2Error, KeyFileError, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
-from dh2rt.runtime import ms_to_s, s_to_ms
+from dh2rt.runtime import MAX_CYCLE_PERIOD_S, ms_to_s, s_to_ms
 from dh2rt.signed_image import public_key_pem, read_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
@@ -86,7 +86,6 @@ from drivers.dxl_table import MODEL_NAMES
 from firmware.config import (
     DEFAULTS,
     MAX_BAUD,
-    MAX_CYCLE_PERIOD_S,
     MAX_CYCLES,
     MAX_HANDSHAKE_S,
     MAX_SERVO_LATENCY_MS,

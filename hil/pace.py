@@ -40,8 +40,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dh2rt.errors import MachineTooSlow
-from dh2rt.runtime import LATE_TOLERANCE
-from firmware.config import CYCLE_PERIOD_S
+from dh2rt.runtime import CYCLE_PERIOD_S, LATE_TOLERANCE, s_to_ms
 from hil.launcher import EXIT_TOO_SLOW, LATE_SHARE
 
 #: How long the bare loop runs to judge one period (s): long enough for a tenth of its cycles to mean something.
@@ -141,7 +140,7 @@ class LoopPace:
         #: the bare loop measured at the last run the launcher called too slow (None: none was)
         self.last: Baseline | None = None
 
-    def ms(self, asked: float = CYCLE_PERIOD_S * 1000) -> float:
+    def ms(self, asked: float = s_to_ms(CYCLE_PERIOD_S)) -> float:
         """The period in ms a run asking for ``asked`` ms runs at now."""
         return asked * self.factor
 
@@ -189,7 +188,7 @@ class LoopPace:
         factor and return None (make the run again).
 
         Raises MachineTooSlow when the bare loop needs more than MAX_FACTOR."""
-        period_ms = float(argv[argv.index(_OPTION) + 1]) if _OPTION in argv else CYCLE_PERIOD_S * 1000
+        period_ms = float(argv[argv.index(_OPTION) + 1]) if _OPTION in argv else s_to_ms(CYCLE_PERIOD_S)
         self.last = b = measure(period_ms / 1000)
         if b.kept():
             return f"pace: the modules could not keep {period_ms:g} ms cycles, yet {b.describe()}: dh2rt is too slow\n"
