@@ -322,5 +322,3 @@ def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[s
             print(f"  {r['name']}: {r['faults']} fault(s), the last at {r['last_fault']}", file=out)
     for line in robot.log[-20:]:
         print(f"  {line}", file=out)
-
-

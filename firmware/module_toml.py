@@ -257,9 +257,7 @@ def _program(t: _Table, base: Path) -> dict[str, Any]:
 def _cycle(t: _Table) -> dict[str, Any]:
     t.only("period_ms", "silence_cycles", "handshake_s", "timer_phase")
     out: dict[str, Any] = {
-        "cycle_period": ms_to_s(
-            t.get_number("period_ms", s_to_ms(DEFAULTS.cycle_period), s_to_ms(MAX_CYCLE_PERIOD_S))
-        ),
+        "cycle_period": ms_to_s(t.get_number("period_ms", s_to_ms(DEFAULTS.cycle_period), s_to_ms(MAX_CYCLE_PERIOD_S))),
         "silence_cycles": t.get_int("silence_cycles", DEFAULTS.silence_cycles, 1, MAX_SILENCE_CYCLES),
         "handshake": t.get_number("handshake_s", DEFAULTS.handshake, MAX_HANDSHAKE_S, positive=False),
     }

@@ -87,7 +87,6 @@ class Node(ABC):
         self._last_tick: float | None = None  # ``now`` of the last tick
         self._period: float | None = None  # measured between the last two ticks
         self._ticks: deque[float] = deque(maxlen=GRID_TICKS)  # the last ticks, for :meth:`_grid`
-        self._leaving: float | None = None  # the host's clock as it handles this input (receive)
         self._shared_tokens = 0
         self._shared_free_at = -math.inf
         self._rotation = 0
@@ -125,13 +124,10 @@ class Node(ABC):
 
     # -- a received frame ----------------------------------------------------------------------
 
-    def receive(self, connector: int, data: bytes, now: float, leaving: float | None = None) -> list[Action]:
-        """A transfer frame received through ``connector`` (``now``: when it arrived;
-        ``leaving``: the host's clock as it handles it, when later, which is when the frames
-        this input sends leave: a COMMIT passed on states the time left from then, else each
-        hop would add the time its module took to read the frame to the instant)."""
+    def receive(self, connector: int, data: bytes, now: float) -> list[Action]:
+        """A transfer frame received through ``connector`` (``now``: when it arrived, not when
+        the host read it: a COMMIT's time left counts from its arrival)."""
         self._now = now
-        self._leaving = leaving
         self.counters.frames_in += 1
         try:
             sender, message = decode(data)
@@ -142,10 +138,7 @@ class Node(ABC):
         if not port.linked or port.remote != sender:
             self._link(port, sender)
         self._dispatch(port, sender, message)
-        try:
-            return self._finish()
-        finally:
-            self._leaving = None
+        return self._finish()
 
     @abstractmethod
     def _port(self, connector: int) -> Port:
@@ -178,7 +171,7 @@ class Node(ABC):
         for port in self._ports.values():
             port.tokens = self.pacing.budget
 
-    def _spend(self, port: Port, frame: bytes) -> bool:
+    def _spend(self, port: Port, frame: bytes, commit_at: float | None = None) -> bool:
         """Take ``frame``'s cost from this cycle's budget and queue its Send, or refuse.
 
         Two rules: at most ``budget`` units per cycle; and, once the period is known, a
@@ -209,7 +202,7 @@ class Node(ABC):
             port.tokens -= cost
             port.free_at = free_at
         self.counters.units_sent += cost
-        self._actions.append(Send(port.connector, frame))
+        self._actions.append(Send(port.connector, frame, commit_at))
         return True
 
     def _flush(self) -> list[Action]:
@@ -227,7 +220,7 @@ class Node(ABC):
         """Send due commits, queued control frames and due reports; False when the budget ran out."""
         for image in list(port.commits):
             flood = self._floods[image]
-            if not self._spend(port, encode(port.connector, self._commit_message(image, flood))):
+            if not self._spend(port, encode(port.connector, self._commit_message(image, flood)), flood.at):
                 return False
             port.commits.discard(image)
             flood.sent[port.connector] = (self._tick, flood.sent.get(port.connector, (0, 0))[1] + 1)
@@ -350,12 +343,9 @@ class Node(ABC):
                 port.commits.add(image)
 
     def _commit_message(self, image: bytes, flood: Flood) -> Commit:
-        """The COMMIT as it leaves: the time left from now, or (a host that reads its links
-        once a cycle and sends at the tick) from the tick, whichever is later."""
-        leaves = max(self._now, self._last_tick if self._last_tick is not None else self._now)
-        if self._leaving is not None:
-            leaves = max(leaves, self._leaving)
-        return Commit(image, max(0, round((flood.at - leaves) * 1e6)), flood.hops)
+        """The COMMIT, stating the time left from now (the host stamps it again as it leaves:
+        :meth:`~dh2rt.flash.values.Send.frame`)."""
+        return Commit(image, max(0, round((flood.at - self._now) * 1e6)), flood.hops)
 
     def _on_commit_ack(self, port: Port, ack: CommitAck) -> None:
         port.acked.add(ack.image)

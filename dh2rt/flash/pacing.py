@@ -11,7 +11,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from dh2rt.wire.sizes import MAX_PATH, MAX_REASON, MAX_VERDICT, can_cost, serial_cost
+from dh2rt.wire.can_frames import CLASSIC_DATA
+from dh2rt.wire.sizes import MAX_PATH, MAX_REASON, MAX_VERDICT, can_cost, can_frame_bits, serial_cost
 
 #: Share of a serial line's bytes per cycle the rollout may take (hormones keep the rest).
 SERIAL_SHARE = 0.8
@@ -53,7 +54,9 @@ def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> t
         return Pacing(per_cycle, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
     per_cycle = int(bitrate * period * CAN_SHARE)
     _check_share(per_cycle, can_cost, CAN_SEGMENT, "bits", f"a {bitrate} bit/s CAN bus", period)
-    return Pacing(per_cycle, can_cost, shared=True), CAN_SEGMENT, can_cost(_COMMIT_BYTES) / bitrate
+    # a train is timed by its first frame (dh2rt.wire.can_frames.Reassembler.started)
+    first = can_frame_bits(min(_COMMIT_BYTES, CLASSIC_DATA))
+    return Pacing(per_cycle, can_cost, shared=True), CAN_SEGMENT, first / bitrate
 
 
 def _check_share(per_cycle: int, cost: Callable[[int], int], segment: int, unit: str, line: str, period: float) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from dh2rt.signed_image import parse as parse_image
-from dh2rt.wire.transfer import image_id, tag_of
+from dh2rt.wire.transfer import image_id, restamp_commit, tag_of
 
 # ---------------------------------------------------------------------------------------------
 # Images and programs
@@ -110,10 +110,22 @@ class Timing:
 
 @dataclass(frozen=True, slots=True)
 class Send:
-    """Send this transfer frame through ``connector``."""
+    """Send this transfer frame through ``connector``.
+
+    A COMMIT states the time left to the switch instant as it leaves, so it carries that
+    instant (``commit_at``, on this node's clock) and the host stamps it with its own clock
+    as it transmits (:meth:`frame`): however long a busy host takes between the state machine's
+    decision and the send, it is never added to the instant the next module agrees."""
 
     connector: int
     data: bytes
+    commit_at: float | None = None
+
+    def frame(self, now: float) -> bytes:
+        """The bytes to transmit at ``now`` (the host's clock): ``data``, a COMMIT stamped."""
+        if self.commit_at is None:
+            return self.data
+        return restamp_commit(self.data, self.commit_at - now)
 
 
 @dataclass(frozen=True, slots=True)

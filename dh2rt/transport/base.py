@@ -156,6 +156,7 @@ class Inbound(NamedTuple):
     def on_a_link(self) -> bool:
         return self.connector != OFF_LINK
 
+
 #: What takes the frames of one family, as they are polled.
 Handler = Callable[[Inbound], None]
 

@@ -212,10 +212,11 @@ class CanTransport(Transport):
             connector = self._listen.get(msg.arbitration_id & LINK_END_MASK)
             if connector is None:
                 continue  # another module's link, or our own frame echoed back
-            payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data))
+            payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp)
             if payload is not None:
                 on_links = True
-                out.append(Inbound.on_link(connector, payload, self._arrived(msg.timestamp)))
+                # arrived as its first frame did (a COMMIT's time left counts from then)
+                out.append(Inbound.on_link(connector, payload, self._arrived(self._reassembler.started)))
 
     def _arrived(self, stamp: float) -> float:
         """python-can's receive timestamp (wall-clock seconds: the kernel's on SocketCAN and

@@ -194,6 +194,7 @@ class _Partial:
     tag: int
     next_seq: int
     data: bytearray = field(default_factory=bytearray)
+    stamp: float = 0.0  # when its first segment arrived
 
 
 class Reassembler:
@@ -203,23 +204,29 @@ class Reassembler:
     being rebuilt (``dropped``); a segment that cannot start or continue one is ``corrupted``;
     a train whose check fails (spliced from two trains, or a piece missing) is ``refused``,
     and counted in ``dropped`` too. Only payloads that were sent come out.
+
+    ``started``: the ``stamp`` given with the first segment of the payload ``feed`` returned
+    last (its own, for a single frame): when it began to arrive, which is when its sender
+    sent it, whatever held the sender up between its segments.
     """
 
-    __slots__ = ("_partial", "corrupted", "dropped", "refused")
+    __slots__ = ("_partial", "corrupted", "dropped", "refused", "started")
 
     def __init__(self) -> None:
         self._partial: dict[tuple[int, int], _Partial] = {}
         self.dropped = 0
         self.corrupted = 0
         self.refused = 0
+        self.started = 0.0
 
     @property
     def pending(self) -> bool:
         """Whether a payload is being rebuilt (at any link end)."""
         return bool(self._partial)
 
-    def feed(self, can_id: int, data: bytes) -> bytes | None:
-        """Consume one received frame (already known to be for one of our link ends)."""
+    def feed(self, can_id: int, data: bytes, stamp: float = 0.0) -> bytes | None:
+        """Consume one received frame (already known to be for one of our link ends) that
+        arrived at ``stamp`` (any clock: see ``started``)."""
         # The fields of parse_arbitration_id, read in place: this runs for every frame.
         if not 0 <= can_id < _ID_LIMIT:
             self.corrupted += 1
@@ -229,6 +236,7 @@ class Reassembler:
         if mark == SINGLE:
             if self._partial:
                 self._abandon(key)
+            self.started = stamp
             return bytes(data)
         kind, seq = can_id >> 27, (can_id >> 19) & 63
         if mark == FIRST:
@@ -236,7 +244,7 @@ class Reassembler:
             if not data:
                 self.corrupted += 1
                 return None
-            self._partial[key] = _Partial(kind, seq, (seq + 1) % SEQ_MODULUS, bytearray(data))
+            self._partial[key] = _Partial(kind, seq, (seq + 1) % SEQ_MODULUS, bytearray(data), stamp)
             return None
         part = self._partial.get(key)
         if part is None or seq != part.next_seq or kind != part.kind or not data:
@@ -256,6 +264,7 @@ class Reassembler:
                 self.refused += 1
                 self.dropped += 1
                 return None
+            self.started = part.stamp
             return payload
         if len(part.data) >= MAX_TRAIN:  # a last segment would make it too long
             self._abandon(key)

@@ -470,6 +470,15 @@ def decode(data: bytes) -> Transfer:
     return Transfer(sender, message)
 
 
+def restamp_commit(frame: bytes, left_s: float) -> bytes:
+    """``frame``, a COMMIT, stating ``left_s`` seconds to the switch instant instead (none
+    left: 0): what a host sends as the frame leaves (:meth:`dh2rt.flash.values.Send.frame`)."""
+    sender, message = decode(frame)
+    if not isinstance(message, Commit):
+        raise ValueError(f"restamp_commit: a {type(message).__name__}, not a COMMIT")
+    return encode(sender, Commit(message.image, max(0, round(left_s * 1e6)), message.hops))
+
+
 def _decode_offer(r: _Reader) -> Offer:
     version, image, length, size, held, flags = struct.unpack(">I8sIHHB", r.take(21, "offer fields"))
     if length == 0 or not 1 <= size <= MAX_SEGMENT_SIZE or _segments(length, size) > _U16:

@@ -93,7 +93,7 @@ class FlashCable:
     def _send(self, actions: Sequence[Action]) -> None:
         for a in actions:
             if isinstance(a, Send):
-                self.transport.send_raw(a.connector, a.data)
+                self.transport.send_raw(a.connector, a.frame(self.clock()))  # a COMMIT stamped as it leaves
 
     def step(self, until: float) -> None:
         """One tick now, then frames in until ``until`` (a reading of the clock)."""

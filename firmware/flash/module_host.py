@@ -197,7 +197,7 @@ class RolloutHost:
     def on_transfer(self, connector: int, payload: bytes, arrived: float) -> None:
         self.writer.collect()
         # when it arrived, not when it was read: a COMMIT's remaining time counts from then
-        self._do(self.rollout.receive(connector, payload, arrived, leaving=self.rt.clock()))
+        self._do(self.rollout.receive(connector, payload, arrived))
 
     # -- the trial, from the module host -----------------------------------------------------
 
@@ -214,8 +214,9 @@ class RolloutHost:
     def _do(self, actions: list[Action]) -> None:
         for action in actions:
             match action:
-                case Send(connector, data):
-                    self.rt.transport.send_raw(connector, data)
+                case Send(connector):
+                    # stamped as it leaves: a COMMIT states the time left from now
+                    self.rt.transport.send_raw(connector, action.frame(self.rt.clock()))
                 case Persist(info, offset, data):
                     self.writer.submit(functools.partial(self._persist, info, offset, data))
                 case DropPartial():
@@ -238,7 +239,8 @@ class RolloutHost:
         if name is not None and name != said_name:
             self._note(f"named {describe_path(name, self.rt.program.profile.connector_name)}")
         if at is not None and at != said_at:
-            self._note(f"switch agreed at t={at:.6f}")
+            # how far ahead: a module that learns the instant after it passed switches at once
+            self._note(f"switch agreed at t={at:.6f} ({(at - self.rt.clock()) * 1000:+.1f} ms from now)")
         self._said = (name, at)
 
     def _stage(self, data: bytes) -> None:

@@ -3,6 +3,7 @@ tests/dh2rt/test_rollout.py's docs for what it models)."""
 
 from __future__ import annotations
 
+import functools
 import heapq
 import itertools
 import math
@@ -237,6 +238,7 @@ class Node:
         self.buffer: list[tuple[float, int, Frame]] = []
         self.units: Counter[tuple[int, int]] = Counter()  # (cycle, connector or 0) -> units sent
         self.generation = 0
+        self.leaves = -math.inf  # a busy host: when its last held-up frame leaves
 
     def local(self, t: float) -> float:
         return t + self.offset
@@ -251,9 +253,21 @@ class Node:
 
     def carry_out(self, action: Action) -> None:
         assert isinstance(action, Send), action
-        key = 0 if self.world.medium.shared else action.connector
-        self.units[(self.machine.tick_count, key)] += self.world.medium.cost(len(action.data))
-        self.world.transmit(self, action.connector, action.data, link=False)
+        w = self.world
+        key = 0 if w.medium.shared else action.connector
+        self.units[(self.machine.tick_count, key)] += w.medium.cost(len(action.data))
+        if not w.send_delay:
+            self.transmit(action)
+            return
+        # a busy host: held up a while before it sends, its frames still in order
+        self.leaves = max(w.t + w.rng.uniform(0, w.send_delay), self.leaves)
+        w.schedule(self.leaves, functools.partial(self.transmit, action, self.generation))
+
+    def transmit(self, action: Send, generation: int | None = None) -> None:
+        if generation is not None and (generation != self.generation or not self.alive):
+            return  # killed (or restarted) while held up: the frame never left
+        frame = action.frame(self.local(self.world.t))  # a COMMIT stamped as it leaves
+        self.world.transmit(self, action.connector, frame, link=False)
 
     def tick(self) -> None:
         """A cycle: the state machine's tick (a switch takes effect at once), the link
@@ -464,6 +478,7 @@ class World:
         loss: float = 0.0,
         latency: float = 0.0,
         jitter: float = 0.0,
+        send_delay: float = 0.0,
         cut_through: bool = True,
         pacing: Pacing | None = None,
         timing: Timing | None = None,
@@ -479,6 +494,9 @@ class World:
         self.t = 0.0
         self.prompt = prompt
         self.loss, self.latency, self.jitter = loss, latency, jitter
+        #: a busy host: a transfer frame leaves up to this long after its state machine
+        #: decided to send it (as a module's thread held up by the others of its process)
+        self.send_delay = send_delay
         self.cut_through = cut_through
         #: What a host would configure as a COMMIT's transit time: the frame at the line's
         #: rate, the link's mean latency, and (a host that sends at its cycle start) the

@@ -27,9 +27,7 @@ def program(tmp_path: Path) -> Path:
 
 
 @pytest.mark.expect_faults
-def test_faults_in_summary_json_and_trace(
-    program: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_faults_in_summary_json_and_trace(program: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trace = tmp_path / "t.jsonl"
     argv = ["run", str(program), "--topology", "snake:3", "--cycles", "25", "--seed", "1"]
     assert main([*argv, "--trace", str(trace)]) == 0

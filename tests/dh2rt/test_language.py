@@ -22,8 +22,9 @@ def caterpillar_by_api() -> ast.Program:
 
     def body(name: str, got: str, angle: int, phase: str) -> ast.Receptor:
         return receptor(
-            name, (T == ["T16", "T2"]) & (("X", got) == H),  # type: ignore[operator]  # reflected ==: tuple's is bool to mypy
-            [DOF1(angle), emit("X", phase, via="back"), keep_alive()]
+            name,
+            (T == ["T16", "T2"]) & (("X", got) == H),  # type: ignore[operator]  # reflected ==: tuple's is bool to mypy
+            [DOF1(angle), emit("X", phase, via="back"), keep_alive()],
         )
 
     return program(

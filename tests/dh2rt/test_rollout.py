@@ -142,6 +142,19 @@ def test_unsynchronised_modules_switch_within_one_period(images: Images, medium:
     assert not any(m.refusals for m in world)
 
 
+@pytest.mark.parametrize("medium", ["serial", "can"])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_busy_host_sending_late_does_not_move_the_instant(images: Images, medium: str, seed: int) -> None:
+    """Hosts held up to 1.5 periods between the decision to send and the send (a module's
+    thread waiting for the others of its process): each COMMIT is stamped as it leaves, so
+    the wait is never added to the instant the next module agrees, and all still switch
+    within one period."""
+    world = World("snake:8", MEDIA[medium], images, seed=seed, image=images.v2, send_delay=1.5 * PERIOD)
+    world.run()
+    assert world.flasher.succeeded, world.summary()
+    assert world.switch_spread() < PERIOD * 1.05, world.summary()
+
+
 def test_names_are_paths_from_the_entry_point(images: Images) -> None:
     world = World("snake:8", SERIAL, images, seed=1, image=images.v2)
     world.run()

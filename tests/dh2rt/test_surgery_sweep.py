@@ -116,9 +116,7 @@ def check_surgery(robot: Robot, events: list[Event], label: str) -> None:
 
 
 @pytest.mark.parametrize("surgery", SURGERIES, ids=str)
-def test_surgery_at_every_cycle_of_two_clock_cycles(
-    surgery: Surgery, request: pytest.FixtureRequest
-) -> None:
+def test_surgery_at_every_cycle_of_two_clock_cycles(surgery: Surgery, request: pytest.FixtureRequest) -> None:
     program: CompiledProgram = request.getfixturevalue(surgery.program)
     topo = parse_spec(surgery.topology)
     cc = program.clock_cycle

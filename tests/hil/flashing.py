@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -87,6 +88,87 @@ def switches(log: list[str]) -> dict[int, int]:
         if m:
             out[int(m.group(1))] = int(m.group(2))
     return out
+
+
+def agreed_instants(log: list[str]) -> dict[int, tuple[int, float, float]]:
+    """Module -> (its cycle, the switch instant on CLOCK_MONOTONIC to the microsecond, how many
+    seconds ahead it was) from the log line that says its COMMIT agreed the instant."""
+    out: dict[int, tuple[int, float, float]] = {}
+    for line in log:
+        m = re.match(r"m(\d+): cycle (\d+): rollout: switch agreed at t=([0-9.]+) \(([-+0-9.]+) ms from now\)$", line)
+        if m:
+            out[int(m.group(1))] = (int(m.group(2)), float(m.group(3)), float(m.group(4)) / 1000)
+    return out
+
+
+def staged_cycles(log: list[str]) -> dict[int, int]:
+    """Module -> the cycle its image was in its flash, waiting for the switch."""
+    out: dict[int, int] = {}
+    for line in log:
+        m = re.match(r"m(\d+): cycle (\d+): rollout: image staged in slot \w+: waits for the switch$", line)
+        if m:
+            out[int(m.group(1))] = int(m.group(2))
+    return out
+
+
+@dataclass(frozen=True)
+class SwitchTiming:
+    """When each module's switch fell, against the instant its COMMIT agreed (its trace's
+    ``t``: a cycle's start on CLOCK_MONOTONIC, as the instant).
+
+    A module switches at its first cycle that starts at or after the instant, unless it was
+    not ready then: its image not yet in its flash, or the commit not yet come (a module the
+    loop's shared machine held up, which learns the instant after it passed); then at the
+    cycle it becomes ready (the one after the commit came)."""
+
+    agreed: dict[int, float]  # the instant
+    ahead: dict[int, float]  # seconds ahead of the instant the module learned it
+    switched: dict[int, int]  # the cycle that switched
+    first_after: dict[int, int]  # the first cycle that started at or after the instant
+    ready: dict[int, int]  # the cycle by which the module had both the image and the instant
+    starts: dict[int, dict[int, float]]  # module -> cycle -> start
+
+    def misplaced(self) -> dict[int, str]:
+        """Modules that switched early, or later than the first cycle at or after the
+        instant at which they were ready: what happened."""
+        out = {}
+        for m, s in self.switched.items():
+            due = max(self.first_after[m], self.ready[m])
+            if not self.first_after[m] <= s <= due:
+                out[m] = (
+                    f"switched at cycle {s}, due {due} (first at/after the instant {self.first_after[m]}, "
+                    f"ready {self.ready[m]}); learned {self.ahead[m] * 1000:+.1f} ms ahead"
+                )
+        return out
+
+    def in_time(self) -> list[int]:
+        """Modules that learned the instant before it passed."""
+        return sorted(m for m, a in self.ahead.items() if a > 0)
+
+    def after(self) -> dict[int, float]:
+        """Module -> how long after its instant its switch cycle began, in periods."""
+        return {m: round((self.starts[m][s] - self.agreed[m]) / PERIOD, 3) for m, s in self.switched.items()}
+
+
+def switch_timing(log: list[str], records: list[dict[str, Any]], n: int) -> SwitchTiming:
+    """The switch timing of modules 0..n-1 from a run's log and trace records; asserts that
+    every one switched, staged and logged its instant."""
+    switched = switches(log)
+    assert sorted(switched) == list(range(n)), log[-30:]
+    said = agreed_instants(log)
+    assert sorted(said) == list(range(n)), log[-30:]
+    staged = staged_cycles(log)
+    assert sorted(staged) == list(range(n)), log[-30:]
+    starts: dict[int, dict[int, float]] = {m: {} for m in range(n)}
+    for r in records:
+        if int(r["module"]) in starts:
+            starts[int(r["module"])][int(r["cycle"])] = float(r["t"])
+    agreed = {m: at for m, (_, at, _) in said.items()}
+    first_after = {m: min(c for c, t in starts[m].items() if t >= agreed[m] - 1e-6) for m in range(n)}
+    # what a cycle's log says may have come at its start (then it switches in it) or later
+    ready = {m: max(staged[m], said[m][0]) + 1 for m in range(n)}
+    ahead = {m: a for m, (_, _, a) in said.items()}
+    return SwitchTiming(agreed, ahead, switched, first_after, ready, starts)
 
 
 def tick_until(world: World, done: Callable[[], object], seconds: float) -> bool:

@@ -310,3 +310,12 @@ def test_a_hello_must_be_a_hello() -> None:
         tw.decode_hello(b"\x71abc")
     with pytest.raises(EncodeError):
         tw.encode_hello(1, b"abc", 1)
+
+
+def test_a_commit_restamped_states_the_time_left_and_keeps_the_rest() -> None:
+    frame = tw.encode(3, tw.Commit(bytes(range(8)), 50_000, 4))
+    sender, message = tw.decode(tw.restamp_commit(frame, 0.0123456))
+    assert (sender, message) == (3, tw.Commit(bytes(range(8)), 12_346, 4))
+    assert tw.decode(tw.restamp_commit(frame, -1.0)).message == tw.Commit(bytes(range(8)), 0, 4)  # past: at once
+    with pytest.raises(ValueError, match="not a COMMIT"):
+        tw.restamp_commit(tw.encode(3, tw.CommitAck(bytes(range(8)))), 0.01)
