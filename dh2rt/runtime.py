@@ -557,10 +557,13 @@ class ModuleRuntime:
         sleep: Callable[[float], None] | None = None,
         until: float | None = None,
         before_cycle: Callable[[ModuleRuntime], None] | None = None,
+        start: float | None = None,
     ) -> int:
         """Cycle every ``cycle_period`` s until ``cycles`` more ran, ``stop_event`` is set, or
         the next cycle would start at or after ``until`` (a reading of this runtime's clock:
         modules told to stop at one instant stop together, however many cycles each managed).
+        The first cycle is due at ``start`` (default: now): modules told to start at one
+        instant wait for it, and one that comes to it late counts the periods it lost.
 
         Between cycles the loop takes frames in as they arrive, or on a transport that says not
         to (a shared bus: ``Transport.read_between_cycles``) sleeps and reads them at the next
@@ -574,7 +577,8 @@ class ModuleRuntime:
         """
         period = self.cycle_period
         done = 0
-        deadline = self.clock()
+        deadline = self.clock() if start is None else start
+        self._wait_until(deadline, sleep)
         last_start = None if until is None else until - period / 2
         while (cycles is None or done < cycles) and not (stop_event is not None and stop_event.is_set()):
             if last_start is not None and deadline >= last_start:

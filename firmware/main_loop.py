@@ -237,7 +237,10 @@ class ModuleHost:
                     # started at an agreed instant: stop at one too, so that no module runs on
                     # after its neighbours stopped and takes their silence for a lost link
                     until = start_at + self.cycles * self.config.cycle_period
-                    rt.run(None, self.stop_event, self._cycled, until=until, before_cycle=self._take_commands)
+                    rt.run(
+                        None, self.stop_event, self._cycled,
+                        until=until, before_cycle=self._take_commands, start=start_at,
+                    )  # fmt: skip
                     # what the neighbours sent in their last cycles is counted, not lost
                     rt.drain(DRAIN_PERIODS * self.config.cycle_period)
                 else:

@@ -14,6 +14,8 @@ from dh2rt import cli
 from dh2rt.signed_image import new_private_key, pack, read_private_key, write_key_pair
 from hil.pace import PACE
 from tests.hil.flashing import caterpillar, robot_key_and_image
+from tests.hil.frames import adds_up
+from tests.marks import sweep
 
 #: modules run in real time here: make test runs these serially (tests/conftest.py)
 pytestmark = pytest.mark.realtime
@@ -34,11 +36,12 @@ def test_a_flash_event_switches_every_module_and_the_summary_says_so(
     image = _image(tmp_path, key, 2)
     code = PACE.call(
         cli.main,
-        ["--transport", "serial", "--module-count", "4", "--cycles", "500", "--cycle-ms", "20",
+        ["--transport", "serial", "--module-count", "4", "--cycles", "250", "--cycle-ms", "20",
          "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
     )  # fmt: skip
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert code == 0, summary["problems"]
+    adds_up(summary["frames"])  # every frame of the rollout accounted for (issue 27)
     (rollout,) = summary["rollouts"]
     assert rollout["succeeded"] and rollout["failure"] is None
     paths = sorted(m["path"] for m in rollout["modules"])
@@ -81,7 +84,7 @@ def test_a_flash_event_needs_cables(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "a programming cable needs links it can join" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("seed", "at"), [(0, 100), (3, 60)])
+@pytest.mark.parametrize(("seed", "at"), sweep([(0, 100), (3, 60)]))
 def test_the_docs_example_the_same_program_at_version_2_names_all_8_modules(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, at: int
 ) -> None:
@@ -91,7 +94,7 @@ def test_the_docs_example_the_same_program_at_version_2_names_all_8_modules(
     key_file, image = robot_key_and_image(tmp_path, 40)
     code = PACE.call(
         cli.main,
-        ["--transport", "serial", "--module-count", "8", "--cycles", "600", "--cycle-ms", "20", "--seed", str(seed),
+        ["--transport", "serial", "--module-count", "8", "--cycles", "320", "--cycle-ms", "20", "--seed", str(seed),
          "--stand-in", "recording", "--key", str(key_file), "--event", f"{at}:flash:m0:{image}", "--json"]
     )  # fmt: skip
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -27,7 +27,7 @@ from dh2rt.wire.serial_framing import SerialDecoder, encode_serial
 from hil.link_emulator import LinkEmulator
 from hil.pace import PACE
 from hil.world import World
-from tests.hil.flashing import caterpillar
+from tests.hil.frames import adds_up
 from tests.marks import sweep
 from tools.stats import main as stats
 
@@ -35,8 +35,6 @@ from tools.stats import main as stats
 pytestmark = pytest.mark.realtime
 
 ROOT = Path(__file__).resolve().parents[2]
-#: The terms a frame ends in (the right-hand side of the identity).
-ENDS = ("received", "corrupted", "dropped", "unhandled", "read_by_killed", "lost_on_link", "unread", "merged")
 
 
 def launch(
@@ -49,12 +47,6 @@ def launch(
     ]  # fmt: skip
     proc = PACE.run(cmd, text=True, timeout=120, cwd=ROOT)
     return proc.returncode, json.loads(proc.stdout), proc.stderr
-
-
-def adds_up(frames: dict[str, int]) -> None:
-    """Every term measured, and the identity holding with none unaccounted."""
-    assert frames["unaccounted"] == 0, frames
-    assert frames["sent"] + frames["split"] == sum(frames[k] for k in ENDS), frames
 
 
 def test_the_emulator_counts_each_chunk_a_decoder_sees() -> None:
@@ -130,23 +122,6 @@ def test_the_inproc_bus_counts_what_it_carried_into_nothing(tmp_path: Path) -> N
     adds_up(frames)
     assert frames["lost_on_link"] > 0, frames  # sent to the dead m3 until its neighbours noticed
     assert code == 0, (summary["problems"], err[-2000:])
-
-
-def test_a_flash_event_adds_up(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from dh2rt.signed_image import pack, read_private_key, write_key_pair
-
-    key_file = tmp_path / "robot.key"
-    write_key_pair(key_file)
-    image = tmp_path / "v2.img"
-    image.write_bytes(pack(caterpillar(20).image, 2, read_private_key(key_file)))
-    code = PACE.call(
-        cli.main,
-        ["--transport", "serial", "--module-count", "4", "--cycles", "500", "--cycle-ms", "20",
-         "--stand-in", "none", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
-    )  # fmt: skip
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    adds_up(summary["frames"])
-    assert code == 0, summary["problems"]
 
 
 def test_the_capture_agrees_with_dh2rt_stats(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
