@@ -182,7 +182,7 @@ def record_traffic(rec: Recorder, caterpillar: CompiledProgram, counters: Compil
     rec.serial(encode_serial(cat.encode(FRONT, KeepAlive(200))), 3, 1)
     rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",), (), (BACK, BACK)))), 3, 1)
     # frames that pass the CRC and still do not decode: the codec's own errors
-    rec.serial(encode_serial(b"\x82\x00"), 3, 1)  # wire version 2
+    rec.serial(encode_serial(b"\x42\x00"), 3, 1)  # wire version 1 (2 is the transfer family: dump reads it)
     rec.serial(encode_serial(bytes((HEADER | 1, 0, 7, 0))), 3, 1)  # hormone index 7
     rec.serial(encode_serial(cat.encode(FRONT, Hormone("X", ("B",))) + b"\x99"), 3, 1)  # trailing byte
     # serial link 4: the second program
