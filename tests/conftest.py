@@ -21,6 +21,7 @@ Long sweeps (many seeds, whole reconfigurations in the loop) are marked ``long``
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,6 +32,13 @@ from dh2rt.compiler import compile_file
 from dh2rt.program import CompiledProgram
 from dh2rt.testing import FaultWatch
 from hil.pace import Baseline, baseline
+
+# Started in the background by a shell without job control (`make test &`, a CI runner's
+# nohup), this process ignores SIGINT, and so would every command a test starts: Python keeps an
+# ignored SIGINT, so the tests' Ctrl-C would never reach them. Take it back: a handled signal is
+# reset to the default in a child at exec.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

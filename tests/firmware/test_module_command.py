@@ -24,6 +24,7 @@ from dh2rt.bundled import compile_bundled
 from dh2rt.signed_image import pack, public_key_path, read_private_key, write_key_pair
 from hil.link_emulator import LinkEmulator
 from hil.servo_emulator import ServoEmulator
+from tests.marks import sweep
 from tools.capture_sink import FileSink
 from tools.reading import open_capture
 
@@ -348,7 +349,7 @@ def test_help_and_mistakes_are_argparses(tmp_path: Path) -> None:
 
 
 @pytest.mark.realtime
-@pytest.mark.parametrize("count", [2, 8])
+@pytest.mark.parametrize("count", sweep([8, 2]))
 def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: int, tmp_path: Path) -> None:
     """A snake of `count` modules: each given only its module.toml naming its connectors'
     UARTs (the link emulator's ptys: the infrared pairs). Nobody tells them their neighbours,

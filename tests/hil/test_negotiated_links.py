@@ -26,7 +26,7 @@ from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from hil.netns import in_namespace, namespace_problem
 from hil.pace import PACE
 from hil.world import World
-from tests.marks import sweep
+from tests.marks import LONG, sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 LINE = re.compile(r"^(m\d+): link (negotiated|given up): connector (\d+)(?: is link (\d+) side ([01]))?$")
@@ -67,6 +67,7 @@ def launch(*args: str, timeout: float = 180) -> tuple[int, dict[str, Any], str]:
     return proc.returncode, json.loads(proc.stdout), proc.stderr
 
 
+@LONG  # the scale sweep of test_eight_modules_alone_on_a_shared_bus's seven docks
 def test_twenty_docks_at_once_on_one_bus_get_distinct_links() -> None:
     """A snake of 21: twenty pairs in contact at power-up, all negotiating at once."""
     code, summary, err = launch("--transport", "virtual", "--module-count", "21", "--cycles", "150", "--cycle-ms", "40")
