@@ -2,9 +2,12 @@
 receptor faults that every test runs under, and the machine's timer baseline.
 
 No test is skipped because the machine is slow. A test that runs modules in real time is
-marked ``realtime``; `make test` runs those serially, after the rest (which run on two xdist
-workers), so that no CPU-bound test runs beside them. They are judged against this machine's
-own timer, measured in the same session: a bare sleep loop at the same period (hil.pace).
+marked ``realtime``; `make test` runs those after the rest (CPU-bound, on two xdist workers),
+in a group of their own, two at a time: a loop run mostly waits for its cycles, so two share
+the machine as a loop run shares it with one busy core, which every one must bear (issue 26).
+`make test-long` runs its long ones one at a time. They are judged against this machine's own
+timer, measured in the same session (on each worker): a bare sleep loop at the same period
+(hil.pace).
 
 * A loop run that the launcher calls too slow (its exit code EXIT_TOO_SLOW) fails the test
   when a bare loop kept that period: then dh2rt is what was slow.

@@ -13,7 +13,7 @@ from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 NAMES = sorted(p.stem for p in (ROOT / "benchmarks").glob("bench_*.py"))
-#: benchmarks whose quick run runs modules in real time: make test runs them serially
+#: benchmarks whose quick run runs modules in real time: make test runs them in the realtime group
 REALTIME = {"bench_flash", "bench_footprint", "bench_hil", "bench_hil_reach", "bench_sense_latency",
             "bench_sensor_push", "bench_servo"}  # fmt: skip
 #: quick runs of what other tests cover (the footprint's figures: the test below; the loop's

@@ -251,7 +251,7 @@ def cases() -> list[object]:
     found: list[object] = []
     for doc in DOCS:
         # a block runs the doc's earlier blocks first (in each xdist worker that takes one),
-        # so it is real time once it or one of them runs modules in real time: run serially
+        # so it is real time once it or one of them runs modules in real time: the realtime group
         launcher_before = False
         for block in steps(doc):
             launcher_here = bool(LAUNCHER_RUN.search("\n".join(block.body)))

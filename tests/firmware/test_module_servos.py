@@ -21,7 +21,7 @@ from hil.servo_emulator import ServoEmulator
 ROOT = Path(__file__).resolve().parents[2]
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

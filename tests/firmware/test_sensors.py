@@ -34,7 +34,7 @@ receptor tipped when S.roll > 45 { DOF1(-20); V.at = S.pos1; keep_alive() }
 """
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

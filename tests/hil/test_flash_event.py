@@ -17,7 +17,7 @@ from tests.hil.flashing import caterpillar, robot_key_and_image
 from tests.hil.frames import adds_up
 from tests.marks import sweep
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

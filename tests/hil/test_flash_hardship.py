@@ -27,7 +27,7 @@ from hil.pace import PACE
 from tests.hil.flashing import PERIOD, caterpillar, robot_key_and_image, switch_timing
 from tests.marks import sweep
 
-#: modules run in real time: make test runs these serially (tests/conftest.py)
+#: modules run in real time: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 N = 8

@@ -44,7 +44,7 @@ AFTER = 150  # cycles every module runs the new program before the run ends
 WAIT = 240.0  # seconds the rollout and the confirmations may take on a loaded machine
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -38,7 +38,7 @@ VICTIM = 2
 WAIT = 120.0
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

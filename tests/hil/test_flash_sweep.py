@@ -21,7 +21,7 @@ from hil.pace import PACE
 from tests.hil.flashing import caterpillar, switches
 from tests.marks import sweep
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -31,7 +31,7 @@ from tests.hil.frames import adds_up
 from tests.marks import sweep
 from tools.stats import main as stats
 
-#: modules run in real time: make test runs these serially (tests/conftest.py)
+#: modules run in real time: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 ROOT = Path(__file__).resolve().parents[2]

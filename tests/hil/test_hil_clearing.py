@@ -30,7 +30,7 @@ FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 BEHIND_M = 0.12
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -48,7 +48,7 @@ receptor head_reaches when T == T1 and H == CALL as p { reach_dock(p, Front, Lef
 """
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -46,7 +46,7 @@ QUAD_DOCKS = [(("m0", "front"), ("m7", "left")), (("m1", "front"), ("m8", "left"
               (("m2", "front"), ("m7", "right")), (("m3", "front"), ("m8", "right"))]  # fmt: skip
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[2]
 LINE = re.compile(r"^(m\d+): link (negotiated|given up): connector (\d+)(?: is link (\d+) side ([01]))?$")
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -25,7 +25,7 @@ from tests.hil.slcan_emulator import SlcanBusEmulator
 ROOT = Path(__file__).resolve().parents[2]
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

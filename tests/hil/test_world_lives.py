@@ -14,7 +14,7 @@ from firmware.control import Exited
 from hil.world import World
 from tests.hil.flashing import PERIOD, PROGRAM
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -31,7 +31,7 @@ HEAD, FRONT = 0, 1  # the head's front connector is free: the cable goes there
 WAIT = 60.0  # seconds a rollout, or a status report, may take on a loaded machine
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -20,7 +20,7 @@ from tools.pcap import CapturedFrame, write_pcap
 SOURCE = "program flood\nconst ClockCycle = 4\nhormone Y\nhormone Z(n: int)\n"
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 

@@ -41,7 +41,7 @@ PHASES = (0.0, 0.006, 0.012, 0.018)  # where in the cycle each module sends: apa
 # ----------------------------------------------------------------------------- made-up robots
 
 
-#: modules run in real time here: make test runs these serially (tests/conftest.py)
+#: modules run in real time here: make test runs these in a group of their own (tests/conftest.py)
 pytestmark = pytest.mark.realtime
 
 
