@@ -31,9 +31,6 @@ from tests.marks import sweep
 pytestmark = pytest.mark.realtime
 
 N = 8
-#: Periods the cable's module may start the cycle before the agreed instant off its grid
-#: (the instant is the middle of that cycle) on a loaded machine.
-LATE = 0.25
 
 
 def launch(tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: int, *extra: str) -> tuple[int, dict[str, Any]]:
@@ -108,6 +105,6 @@ def test_every_module_switches_at_its_first_cycle_after_the_agreed_instant(
     skew = {m: round((agreed[m] - agreed[m - 1]) / PERIOD, 3) for m in range(1, N)}
     # each at its first cycle at or after its instant (or, held up, as soon as it was ready)
     assert timing.misplaced() == {}, (timing.misplaced(), timing.after(), skew)
-    # the module at the cable put the instant in the middle of its cycle
-    mid = (agreed[0] - timing.starts[0][timing.first_after[0] - 1]) / PERIOD
-    assert 0.5 - LATE <= mid <= 0.5 + LATE, mid
+    # (that the cable's module puts the instant in the middle of its cycle, so that modules in
+    # step switch at one cycle, is test_rollout's test_every_module_stages_commits_and_switches_at_one_cycle:
+    # here a late cycle that restarts a module's schedule moves its cycles after the fact)
