@@ -123,7 +123,6 @@ class SwitchTiming:
 
     agreed: dict[int, float]  # the instant
     ahead: dict[int, float]  # seconds ahead of the instant the module learned it
-    learned: dict[int, int]  # the cycle in which it learned it
     switched: dict[int, int]  # the cycle that switched
     first_after: dict[int, int]  # the first cycle that started at or after the instant
     ready: dict[int, int]  # the cycle by which the module had both the image and the instant
@@ -169,8 +168,7 @@ def switch_timing(log: list[str], records: list[dict[str, Any]], n: int) -> Swit
     # what a cycle's log says may have come at its start (then it switches in it) or later
     ready = {m: max(staged[m], said[m][0]) + 1 for m in range(n)}
     ahead = {m: a for m, (_, _, a) in said.items()}
-    learned = {m: c for m, (c, _, _) in said.items()}
-    return SwitchTiming(agreed, ahead, learned, switched, first_after, ready, starts)
+    return SwitchTiming(agreed, ahead, switched, first_after, ready, starts)
 
 
 def tick_until(world: World, done: Callable[[], object], seconds: float) -> bool:
