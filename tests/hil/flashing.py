@@ -79,15 +79,21 @@ def run_world(world: World, until_cycle: int) -> None:
         time.sleep(0.01)
 
 
-def switches(log: list[str]) -> dict[int, int]:
-    """Module -> the cycle (its own count) at which it switched, from its log lines (the
-    world's, or the launcher summary's)."""
+def _cycle_of_each(log: list[str], pattern: str) -> dict[int, int]:
+    """Module -> the cycle (its own count) of its last log line matching ``pattern``, whose
+    groups are the module's number and the cycle."""
     out: dict[int, int] = {}
     for line in log:
-        m = re.search(r"\bm(\d+): cycle (\d+): switched to program", line)
+        m = re.search(pattern, line)
         if m:
             out[int(m.group(1))] = int(m.group(2))
     return out
+
+
+def switches(log: list[str]) -> dict[int, int]:
+    """Module -> the cycle (its own count) at which it switched, from its log lines (the
+    world's, or the launcher summary's)."""
+    return _cycle_of_each(log, r"\bm(\d+): cycle (\d+): switched to program")
 
 
 def agreed_instants(log: list[str]) -> dict[int, tuple[int, float, float]]:
@@ -103,12 +109,7 @@ def agreed_instants(log: list[str]) -> dict[int, tuple[int, float, float]]:
 
 def staged_cycles(log: list[str]) -> dict[int, int]:
     """Module -> the cycle its image was in its flash, waiting for the switch."""
-    out: dict[int, int] = {}
-    for line in log:
-        m = re.match(r"m(\d+): cycle (\d+): rollout: image staged in slot \w+: waits for the switch$", line)
-        if m:
-            out[int(m.group(1))] = int(m.group(2))
-    return out
+    return _cycle_of_each(log, r"^m(\d+): cycle (\d+): rollout: image staged in slot \w+: waits for the switch$")
 
 
 @dataclass(frozen=True)
