@@ -213,6 +213,26 @@ def test_run_paces_cycles_on_the_injected_clock(caterpillar: CompiledProgram, cl
     assert rt.counters["late_cycles"] == 2  # the first of the three started on time
 
 
+@pytest.mark.parametrize("overshoot", [0.006, 0.007, 0.013, 0.025])
+def test_every_period_the_schedule_lost_is_counted(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime], overshoot: float
+) -> None:
+    """A late start restarts the schedule from now, so its whole lateness is lost, fractions
+    too: the cycles that ran and the periods counted skipped fill the time the run took."""
+    clock = FakeClock(step=0.0)
+    codec = FrameCodec(caterpillar.vocabulary, 4)
+    rt = ModuleRuntime(caterpillar, InprocTransport(codec, bus=InprocBus()), cycle_period=0.01, clock=clock)
+    closing.append(rt)
+
+    def slow_sleep(seconds: float) -> None:
+        clock.now += seconds + overshoot  # every wait overshoots: 0.6 to 2.5 periods
+
+    ran = rt.run(until=1.0, sleep=slow_sleep)
+    periods = int(1.0 / 0.01)
+    assert rt.counters["late_cycles"] == ran - 1  # all but the first, which was due at once
+    assert periods - 2 <= ran + rt.counters["cycles_skipped"] <= periods + 2, (ran, rt.counters["cycles_skipped"])
+
+
 def test_detach_drops_the_link_at_once(caterpillar: CompiledProgram, closing: list[ModuleRuntime]) -> None:
     a, b = snake(caterpillar, 2)
     closing.extend((a, b))
