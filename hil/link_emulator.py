@@ -50,7 +50,7 @@ import os
 import random
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
 
 from dh2rt.closing import Closing
@@ -186,7 +186,12 @@ class LinkEmulator(Closing):
         self._final: dict[int, LinkStats] = {}
         self._final_sides: dict[str, SideCounts] = {}
         self._ptys = PtyRelay(
-            "dh2rt-link-emulator", self._lock, self._from_master, wait=self._next_due, after_reads=self._deliver_due
+            "dh2rt-link-emulator",
+            self._lock,
+            self._from_master,
+            wait=self._next_due,
+            after_reads=self._deliver_due,
+            watch_held=True,
         )
 
     # -- links --------------------------------------------------------------------------------
@@ -310,6 +315,17 @@ class LinkEmulator(Closing):
             if link_id in self._final:
                 return replace(self._final[link_id])
             return replace(self.link(link_id).stats)
+
+    @property
+    def held_s(self) -> float:
+        """The most the machine held the relay thread so far (s): every byte on every link
+        waited that long on top of its line time (see :class:`~hil.ptys.PtyRelay`)."""
+        return self._ptys.held_s
+
+    def holds(self) -> list[tuple[float, float]]:
+        """The latest times the machine held the relay: ``(ended, seconds)`` on
+        CLOCK_MONOTONIC (:func:`held_within` adds them up over a span)."""
+        return list(self._ptys.holds)
 
     def totals(self) -> LinkStats:
         """Every link's counts added up (cut links and cables too; still there after close())."""
@@ -553,3 +569,9 @@ def _read_all(fd: int, *, nonblocking: bool = False) -> bytes:
 
 def _open_side(unopened: bool) -> _Side:
     return _Side(*open_raw_pty(), reader_gone=unopened)
+
+
+def held_within(holds: Iterable[tuple[float, float]], start: float, end: float) -> float:
+    """How long, between ``start`` and ``end`` (CLOCK_MONOTONIC), the relay was held: what a
+    frame crossing then waited on top of its line time (``holds`` from :meth:`LinkEmulator.holds`)."""
+    return sum(max(0.0, min(ended, end) - max(ended - seconds, start)) for ended, seconds in holds)

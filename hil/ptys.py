@@ -8,11 +8,20 @@ import contextlib
 import os
 import selectors
 import threading
+import time
 import tty
+from collections import deque
 from collections.abc import Callable
 
 #: How long the relay waits for a byte when nothing else is due (it wakes for a stop at once).
 IDLE_WAIT_S = 0.2
+
+#: With ``watch_held``, the longest the relay waits at a time: how finely it notices being held.
+HELD_TICK_S = 0.005
+#: Holds shorter than this are not kept as episodes (a round's own work is about 0.1 ms).
+HELD_KEEP_S = 0.002
+#: Hold episodes kept (the latest).
+HELD_EPISODES = 4096
 
 
 def open_raw_pty() -> tuple[int, int, str]:
@@ -38,6 +47,13 @@ class PtyRelay:
     ``lock`` is the emulator's own: :attr:`closed` is read and set under it, and ``wait()``
     (how long the next round may wait for a byte, in seconds) is called under it. A master
     that cannot be read (EIO: no module has its port open) or at its end is skipped.
+
+    With ``watch_held`` the thread measures how long the machine held it: each round waits
+    at most HELD_TICK_S, and :attr:`held_s` is the most a round ended later than its wait
+    allowed (the time from the previous round's end, less the wait: a relay held up holds
+    every byte it carries that long, which neither module's own lateness shows), and
+    :attr:`holds` the latest holds of HELD_KEEP_S or more as ``(ended, seconds)`` on
+    ``time.monotonic()`` (CLOCK_MONOTONIC, the modules' trace clock).
     """
 
     def __init__(
@@ -48,8 +64,14 @@ class PtyRelay:
         *,
         wait: Callable[[], float] = lambda: IDLE_WAIT_S,
         after_reads: Callable[[], None] | None = None,
+        watch_held: bool = False,
     ) -> None:
         self.lock = lock
+        #: the most the machine held this thread (s), measured with ``watch_held``
+        self.held_s = 0.0
+        #: the latest holds: (when each ended, how long it was), oldest first
+        self.holds: deque[tuple[float, float]] = deque(maxlen=HELD_EPISODES)
+        self._watch_held = watch_held
         #: set by :meth:`stop`; an emulator adds no pty once it is
         self.closed = False
         self._on_read = on_read
@@ -87,12 +109,23 @@ class PtyRelay:
         return True
 
     def _run(self) -> None:
+        last = time.monotonic()
         while True:
             with self.lock:
                 if self.closed:
                     return
                 timeout = self._wait()
-            for key, _ in self._sel.select(timeout):
+            if self._watch_held:
+                timeout = min(timeout, HELD_TICK_S)
+            ready = self._sel.select(timeout)
+            if self._watch_held:
+                now = time.monotonic()
+                held = now - last - timeout
+                self.held_s = max(self.held_s, held)
+                if held >= HELD_KEEP_S:
+                    self.holds.append((now, held))
+                last = now
+            for key, _ in ready:
                 fd = int(key.fd)
                 try:
                     data = os.read(fd, 4096)
