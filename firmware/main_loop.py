@@ -324,6 +324,8 @@ class ModuleHost:
         if self.flash is None or self.boot is None or not self.boot.trial:
             return
         verdict = self._trial.cycle(rt, self.boot.trial_cycles)
+        if verdict is not None and self.rollout is not None:
+            self.rollout.settle()  # the switch's boot count is written before the verdict
         if verdict == "clean":
             self.flash.confirm()
             self.boot = self.flash.running

@@ -98,6 +98,12 @@ class RolloutDoor:
         """Images refused at their offer, by verdict."""
         return Counter() if self.host is None else self.host.declined
 
+    def settle(self) -> None:
+        """Wait for the flash writes the host queued (before the module host writes the
+        state record itself: a trial's confirmation or rejection comes after its boot count)."""
+        if self.host is not None:
+            self.host.writer.flush()
+
     def confirmed(self) -> None:
         if self.host is not None:
             self.host.confirmed()
