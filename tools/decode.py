@@ -5,14 +5,14 @@ fails (spliced from two hormones, or a piece lost) is marked refused. Serial lin
 COBS and CRC-32 undone, lost frames (sent, never delivered) marked. Frames that do not decode
 are kept, marked with the reason, so that a capture shows the robot's errors too.
 Flashing's transfer frames (:mod:`dh2rt.wire.transfer`, the second frame family) show as kind
-``transfer``, one line per message in DH2 flash terms (:func:`transfer_text`).
+``transfer``, one line per message in DH2 flash terms (:func:`tools.transfer_view.transfer_text`).
 
 Each link end is decoded with the program its sender announced in its last Hello (matched by
 digest among the capture's programs); before any Hello, with the first program."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 from dh2rt.errors import DecodeError
@@ -23,24 +23,11 @@ from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitr
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
 from dh2rt.wire.negotiation import MANAGEMENT_ID, decode_bus
 from dh2rt.wire.serial_framing import decode_serial
-from dh2rt.wire.transfer import (
-    Ack,
-    Cancel,
-    Commit,
-    CommitAck,
-    Decline,
-    Message,
-    Offer,
-    Path,
-    Report,
-    ReportAck,
-    Request,
-    Segment,
-    is_transfer,
-)
 from dh2rt.wire.transfer import decode as decode_transfer
+from dh2rt.wire.transfer import is_transfer
 from tools.capture_reader import CanRecord, Record
 from tools.serial_records import SerialRecord
+from tools.transfer_view import transfer_text
 
 KINDS = ("hormone", "routed", "keepalive", "hello", "link", "transfer")
 #: Frames decoded once and remembered (see Decoder._memo); cleared when full, so memory stays
@@ -234,8 +221,13 @@ class Decoder:
             sender, message = decode_transfer(payload)
         except DecodeError as exc:
             return Hop(rec_time, link, side, "error", error=str(exc), medium=medium)
-        name = self.profile.connector_name
+        name = self._transfer_connector
         return Hop(rec_time, link, side, "transfer", name(sender), transfer_text(message, name) + note, medium=medium)
+
+    def _transfer_connector(self, index: int) -> str:
+        """A connector a transfer frame names: the profile's name, or ``#INDEX`` beyond the
+        profile's connectors (its four bits name up to 15; the dissector shows them so too)."""
+        return self.profile.connector_name(index) if index <= self.profile.connector_count else f"#{index}"
 
     def _serial(self, rec: SerialRecord) -> Hop:
         key = ("serial", rec.link, rec.side)
@@ -314,46 +306,6 @@ class Decoder:
         except DecodeError as exc:
             return Hop(rec.timestamp, None, None, "error", error=f"link negotiation: {exc}")
         return Hop(rec.timestamp, msg.link_id, None, "link", text=f"{msg.op.name} tag {msg.tag:08x}")
-
-
-def transfer_text(message: Message, name: Callable[[int], str]) -> str:
-    """A transfer message in one short line, its image id in hex and its connectors named
-    by ``name`` (a profile's :meth:`~dh2rt.profile.Profile.connector_name`)."""
-
-    def path(hops: Path) -> str:
-        return " ".join(f"{name(s)}>{name(r)}" for s, r in hops) or "(entry point)"
-
-    match message:
-        case Offer():
-            running = ", running" if message.running else ""
-            return (
-                f"OFFER v{message.version} {message.image.hex()} {message.length} bytes, "
-                f"segments of {message.segment_size}, held {message.held}{running}, path {path(message.path)}"
-            )
-        case Request():
-            probe = ", probe" if message.probe else ""
-            return f"REQUEST {message.image.hex()} from #{message.next}, window {message.window}{probe}"
-        case Segment():
-            return f"SEGMENT tag {message.tag} #{message.index} ({len(message.data)} bytes)"
-        case Ack():
-            return f"ACK tag {message.tag} next #{message.next} sack {message.sack:#06x}"
-        case Decline():
-            return f"DECLINE {message.image.hex()} {message.reason.name.lower()} (runs v{message.version})"
-        case Cancel():
-            return f"CANCEL {message.image.hex()}: {message.verdict}"
-        case Commit():
-            when = f"in {message.remaining_us / 1000:.1f} ms" if message.remaining_us else "at once"
-            return f"COMMIT {message.image.hex()} {when} (hops {message.hops})"
-        case CommitAck():
-            return f"COMMIT_ACK {message.image.hex()}"
-        case Report():
-            why = "".join(f", {text}" for text in (message.verdict, message.reason) if text)
-            return (
-                f"REPORT {message.outcome.name.lower()} v{message.version} tag {message.tag} #{message.seq}, "
-                f"path {path(message.path)}, left {message.left}{why}"
-            )
-        case ReportAck():
-            return f"REPORT_ACK #{message.seq}"
 
 
 def decode(records: Iterable[Record], programs: Sequence[CompiledProgram]) -> Iterator[Hop]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from dh2rt import cli
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.flash.pacing import link_pacing
 from dh2rt.program import CompiledProgram
@@ -22,6 +23,7 @@ from dh2rt.topology import parse_spec
 from dh2rt.transport.base import PortEnd
 from dh2rt.transport.serial_link import SerialTransport
 from firmware.flash.cable import FlashCable, FlashResult, hello_codec
+from hil.pace import PACE
 from hil.world import World
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -44,6 +46,18 @@ def robot_key_and_image(folder: Path, clock_cycle: int, version: int = 2) -> tup
     image = folder / "cat2.simg"
     image.write_bytes(pack(caterpillar(clock_cycle).image, version, read_private_key(key_file)))
     return key_file, image
+
+
+def capture_a_flash(folder: Path, capture: Path) -> int:
+    """A loop run of four modules on the virtual bus in which ``m0`` flashes the caterpillar
+    with another ClockCycle to the others, captured to ``capture`` (keys and image in
+    ``folder``): the launcher's exit code."""
+    key_file, image = robot_key_and_image(folder, 20)
+    return PACE.call(
+        cli.main,
+        ["--transport", "virtual", "--module-count", "4", "--cycles", "120", "--stand-in", "recording",
+         "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--capture", str(capture), "--force"]
+    )  # fmt: skip
 
 
 def flash_through_cable(

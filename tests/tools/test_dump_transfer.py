@@ -10,14 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from dh2rt import cli
 from dh2rt.program import CompiledProgram
 from dh2rt.wire import transfer
 from dh2rt.wire.can_frames import segment
 from dh2rt.wire.serial_framing import encode_serial
 from dh2rt.wire.transfer import Commit, Message, Offer, Outcome, Report, Segment
-from hil.pace import PACE
-from tests.hil.flashing import robot_key_and_image
+from tests.hil.flashing import capture_a_flash
 from tools.capture_reader import CanRecord, Record
 from tools.decode import Decoder
 from tools.dump import main
@@ -73,13 +71,8 @@ def test_a_broken_transfer_frame_is_an_error_naming_the_reason(medium: str, cate
 @pytest.mark.realtime  # modules run in real time
 def test_a_flash_run_dumps_without_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A loop run with a flash event, captured, then dumped: every rollout frame is shown."""
-    key_file, image = robot_key_and_image(tmp_path, 20)
     bus_log = tmp_path / "bus.log"
-    code = PACE.call(
-        cli.main,
-        ["--transport", "virtual", "--module-count", "4", "--cycles", "120", "--stand-in", "recording",
-         "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--capture", str(bus_log), "--force"]
-    )  # fmt: skip
+    code = capture_a_flash(tmp_path, bus_log)
     assert code == 0, capsys.readouterr()
     capsys.readouterr()
     assert main([str(bus_log)]) == 0

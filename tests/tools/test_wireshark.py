@@ -1,8 +1,10 @@
 """The Wireshark dissector (``tools/wireshark/dh2rt.lua``): the real tshark, loading it, reads
 a capture of real frames (CAN, segmented and not, and serial links, lost and corrupted) and
 shows each frame as ``dh2rt dump`` does, and so it does for random frames, broken or not, and
-with two passes as with one; the committed Lua is what the generator writes from
-the codec's layout, and a codec whose layout moved would make it differ.
+with two passes as with one; flashing's transfer frames, of a real flash in the loop and
+of every message type, broken or not, read as dump reads them (issue 27); the committed Lua
+is what the generator writes from the codec's layout, and a codec whose layout moved would
+make it differ.
 
 tshark is installed here when missing (as root, with apt-get); the tests skip, saying why,
 only where that is impossible.
@@ -10,6 +12,7 @@ only where that is impossible.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import random
 import re
@@ -23,12 +26,13 @@ import pytest
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
-from dh2rt.wire import can_frames
+from dh2rt.wire import can_frames, transfer
 from dh2rt.wire.can_frames import FIRST, LAST, Segmenter, make_arbitration_id, parse_arbitration_id, segment
 from dh2rt.wire.frame import WIRE_VERSION, FrameCodec, FrameKind, Hello, KeepAlive, program_digest
 from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
 from dh2rt.wire.serial_framing import encode_serial
-from tools import serial_records
+from tests.hil.flashing import capture_a_flash
+from tools import serial_records, transfer_view
 from tools.decode import REFUSED, Hop
 from tools.pcap import CAN_EFF_FLAG
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
@@ -89,14 +93,16 @@ def tshark() -> str:
     return found
 
 
-def run_tshark(tshark: str, script: Path, capture: Path, home: Path, *options: str) -> list[list[str]]:
-    """tshark with ``script`` over ``capture``: per frame, the values of FIELDS. HOME is a
+def run_tshark(
+    tshark: str, script: Path, capture: Path, home: Path, *options: str, fields: tuple[str, ...] = FIELDS
+) -> list[list[str]]:
+    """tshark with ``script`` over ``capture``: per frame, the values of ``fields``. HOME is a
     fresh folder, so no personal plugin or preference interferes."""
     home.mkdir(exist_ok=True)
     env = {**os.environ, "HOME": str(home), "XDG_CONFIG_HOME": str(home / ".config")}
     command = [tshark, "-n", *options, "-X", f"lua_script:{script}", "-r", str(capture)]
     command += ["-T", "fields", "-E", "separator=/t"]
-    for field in FIELDS:
+    for field in fields:
         command += ["-e", field]
     done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=env, check=False)
     assert done.returncode == 0, done.stderr
@@ -393,6 +399,173 @@ def test_management_frames_and_refused_trains_show_as_dump_does(
     assert info[15] == "link    9 side 1  hormone   GROW(5) via left"
 
 
+# -- transfer frames (flashing) ----------------------------------------------------------
+
+IMAGE = bytes.fromhex("1a2b3c4d5e6f7a8b")
+#: A message of every type, flags and texts set and not.
+TRANSFER_MESSAGES: list[transfer.Message] = [
+    transfer.Offer(2, IMAGE, 1843, 80, 12, path=((FRONT, FRONT), (BACK, FRONT))),
+    transfer.Offer(3, IMAGE, 100, 50, 2, True),
+    transfer.Request(IMAGE, 7, 8),
+    transfer.Request(IMAGE, 0, 1, True),
+    transfer.Segment(0x1234, 12, bytes(80)),
+    transfer.Ack(0x1234, 13, 0x0005),
+    transfer.Decline(IMAGE, transfer.DeclineReason.NEWER, 4),
+    transfer.Cancel(IMAGE, "bad-signature"),
+    transfer.Commit(IMAGE, 105_900, 2),
+    transfer.Commit(IMAGE, 0, 0),
+    transfer.CommitAck(IMAGE),
+    transfer.Report(
+        0x1A2B,
+        3,
+        transfer.Outcome.REFUSED,
+        1,
+        1,
+        ((BACK, FRONT),),
+        "bad-signature",
+        "sign\u00e9 par une autre cl\u00e9",
+    ),
+    transfer.Report(0x1A2B, 4, transfer.Outcome.CONFIRMED, 2, 2, ((BACK, FRONT), (LEFT, RIGHT))),
+    transfer.ReportAck(4),
+]
+
+
+def broken_transfer_frames() -> list[bytes]:
+    """Transfer frames the codec refuses, each for another reason (and one it takes, sent
+    through a connector CONRO does not have)."""
+    commit = transfer.encode(BACK, transfer.Commit(IMAGE, 0, 0))
+    offer = transfer.encode(BACK, transfer.Offer(2, IMAGE, 1843, 80, 12, path=((FRONT, BACK),)))
+    request = transfer.encode(BACK, transfer.Request(IMAGE, 7, 8))
+    report = transfer.encode(BACK, transfer.Report(1, 2, transfer.Outcome.STAGED, 1, 1, ((BACK, FRONT),), "ok", "fine"))
+    segment_frame = transfer.encode(BACK, transfer.Segment(1, 2, b"\x01"))
+    return [
+        commit[:1] + b"\x63" + commit[2:],  # an unknown type
+        commit + b"\x00",  # a trailing byte
+        commit[:1],  # no type
+        bytes((commit[0] & 0xF0,)) + commit[1:],  # sender connector 0
+        bytes((commit[0] ^ 0x30,)) + commit[1:],  # the class of another type
+        offer[:9],  # cut short in the fixed fields
+        offer[:-1],  # cut short in the path
+        offer[:20] + b"\x00\x64" + offer[22:],  # 100 segments held of 24
+        offer[:-1] + b"\x10",  # a path hop naming connector 0
+        offer[:-2] + b"\x41" + offer[-1:],  # a path of 65 hops
+        offer[:14] + bytes(4) + offer[18:],  # an image of 0 bytes
+        offer[:-3] + b"\x02" + offer[-2:],  # unknown flags
+        request[:-2] + b"\x00" + request[-1:],  # window 0
+        transfer.encode(BACK, transfer.Decline(IMAGE, transfer.DeclineReason.HAVE, 1))[:10]
+        + b"\x09"
+        + bytes(4),  # unknown reason
+        report[:6] + b"\x63" + report[7:],  # unknown outcome
+        report[:11] + b"\x02" + report[12:],  # two hops left of a one-hop path
+        report[:15] + b"\xff" + report[16:],  # a verdict that is not ASCII
+        report[:14] + b"\xc8" + report[15:],  # a verdict of 200 bytes
+        report[:-4] + b"\xc3\x28" + report[-2:],  # a reason that is not UTF-8
+        segment_frame[:-1],  # a segment without data
+        transfer.encode(9, transfer.CommitAck(IMAGE)),  # through connector 9: no name in CONRO
+    ]
+
+
+def transfer_capture(path: Path, programs: tuple[CompiledProgram, ...]) -> None:
+    """Every transfer message on CAN (segmented when long) and on a serial link, then the
+    broken ones on both."""
+    rec = Recorder(path, programs)
+    try:
+        frames = [transfer.encode(BACK, m) for m in TRANSFER_MESSAGES]
+        for frame in frames:
+            rec.can(frame, 5, 0)
+            rec.serial(encode_serial(frame), 3, 1)
+        for frame in broken_transfer_frames():
+            rec.can(frame, 7, 1)
+            rec.serial(encode_serial(frame), 4, 0)
+    finally:
+        rec.writer.close()
+
+
+TRANSFER_FIELDS = (*FIELDS, "dh2rt.transfer.message", "_ws.expert.message")
+
+
+def test_transfer_frames_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Every transfer message, and frames broken every way the codec refuses, on CAN and on
+    a serial link: the generic dissector (transfer frames name no program) shows each as
+    dump does, a broken one as malformed (expert info) with dump's reason."""
+    path = tmp_path / "transfer.pcapng"
+    transfer_capture(path, programs)
+    rows = run_tshark(tshark, COMMITTED, path, tmp_path / "home", fields=TRANSFER_FIELDS)
+    hops = dump_hops(path)
+    assert len(rows) == len(hops)
+    shown = [hop for hop in hops if hop.kind != "segment"]
+    assert [hop.kind for hop in shown].count("transfer") == 2 * len(TRANSFER_MESSAGES) + 2
+    assert [hop.kind for hop in shown].count("error") == 2 * (len(broken_transfer_frames()) - 1)
+    for row, hop in zip(rows, hops, strict=True):
+        number, medium, link, side, kind, text, info, message, expert = row
+        assert (medium, int(link), int(side), kind, text) == (hop.medium, hop.link, hop.side, hop.kind, hop.text)
+        assert info == dump_line(hop, path), number
+        assert message == (hop.text.split()[0] if hop.kind == "transfer" else message), number
+        if hop.kind == "error":
+            assert expert == hop.error, number  # malformed: expert info with dump's reason
+        else:
+            assert expert == "", number
+    lines = [row[6] for row in rows if row[4] != "segment"]
+    assert lines[0] == (
+        "link    5 side 0  transfer  OFFER v2 1a2b3c4d5e6f7a8b 1843 bytes, segments of 80, held 12,"
+        " path front>front back>front (reassembled) via back"
+    )
+    assert lines[3] == (
+        "ir      3 side 1  transfer  OFFER v3 1a2b3c4d5e6f7a8b 100 bytes, segments of 50, held 2, running,"
+        " path (entry point) via back"
+    )
+    assert lines[17] == "ir      3 side 1  transfer  COMMIT 1a2b3c4d5e6f7a8b in 105.9 ms (hops 2) via back"
+    errors = [line for line in lines if " error " in line]
+    assert errors[0] == "link    7 side 1  error       !! transfer frame: unknown message type 99"
+    assert errors[-1] == "ir      4 side 0  error       !! transfer frame SEGMENT: 0 data bytes, outside 1..506"
+
+
+def test_transfer_fields_name_what_dump_shows(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Each field of a transfer message is a dh2rt.transfer.NAME field, NAME as dump's table
+    names it: filter on them, add them as columns."""
+    path = tmp_path / "transfer.pcapng"
+    transfer_capture(path, programs)
+    fields = ("dh2rt.transfer.message", "dh2rt.transfer.image", "dh2rt.transfer.version", "dh2rt.transfer.path",
+              "dh2rt.transfer.running", "dh2rt.transfer.reason", "dh2rt.transfer.remaining_us")  # fmt: skip
+    command = ["-Y", 'dh2rt.medium == "serial" && dh2rt.kind == "transfer"']
+    rows = run_tshark(tshark, COMMITTED, path, tmp_path / "home", *command, fields=fields)
+    assert len(rows) == len(TRANSFER_MESSAGES) + 1
+    assert rows[0][:5] == ["OFFER", IMAGE.hex(), "2", "front>front back>front", "0"]
+    assert rows[1][4] == "1"  # tshark prints a bool as 0 or 1
+    assert rows[6][:3] == ["DECLINE", IMAGE.hex(), "4"] and rows[6][5] == "newer"
+    assert rows[8][6] == "105900"
+    assert rows[11][3:6] == ["back>front", "", "sign\u00e9 par une autre cl\u00e9"]
+    names = {f.name for view in transfer_view.VIEWS for f in view.fields}
+    assert {"segment_size", "held", "next", "window", "sack", "outcome", "left", "verdict", "data"} <= names
+
+
+@pytest.mark.realtime  # modules run in real time
+def test_a_flash_in_the_loop_shows_as_dump_does(tshark: str, tmp_path: Path) -> None:
+    """A real flash (four modules in the loop, m0 rolling out an image): the dissector
+    written for its capture shows every frame as dump does, every message type among them."""
+    path = tmp_path / "flash.pcapng"
+    assert capture_a_flash(tmp_path, path) == 0
+    script = tmp_path / "dh2rt.lua"
+    assert main(["--capture", str(path), "-o", str(script)]) == 0
+    rows = run_tshark(tshark, script, path, tmp_path / "home", fields=TRANSFER_FIELDS)
+    hops = dump_hops(path)
+    assert len(rows) == len(hops)
+    for row, hop in zip(rows, hops, strict=True):
+        number, medium, link, side, kind, text, info, _message, expert = row
+        link_and_side = ("" if hop.link is None else str(hop.link), "" if hop.side is None else str(hop.side))
+        assert (medium, (link, side), kind, text) == (hop.medium, link_and_side, hop.kind, hop.text), number
+        assert expert == (hop.error or ""), number
+        assert info == dump_line(hop, path), number
+    messages = {row[7] for row in rows if row[4] == "transfer"}
+    assert messages >= {"OFFER", "REQUEST", "SEGMENT", "ACK", "COMMIT", "COMMIT_ACK", "REPORT", "REPORT_ACK"}
+    assert not [hop for hop in hops if hop.kind == "error"]
+    assert run_tshark(tshark, script, path, tmp_path / "home", "-2", fields=TRANSFER_FIELDS) == rows
+
+
 # -- the layout check --------------------------------------------------------------------
 
 
@@ -428,6 +601,21 @@ def test_the_layout_reads_what_the_codec_writes() -> None:
     ):
         head = codec.encode(sender, frame)[0]
         assert [layout.extract(head, header[n]) for n in ("version", "kind", "sender")] == [WIRE_VERSION, kind, sender]
+
+
+def test_a_transfer_table_the_codec_does_not_match_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Dump's table of transfer messages is checked against the codec: fields in another
+    order, or a field missing, stop the generator."""
+    ack = next(v for v in transfer_view.VIEWS if v.message is transfer.Ack)
+    swapped = dataclasses.replace(ack, fields=(ack.fields[1], ack.fields[0], ack.fields[2]))
+    for views in (
+        tuple(swapped if v is ack else v for v in transfer_view.VIEWS),
+        tuple(dataclasses.replace(v, fields=v.fields[:-1]) if v is ack else v for v in transfer_view.VIEWS),
+        tuple(v for v in transfer_view.VIEWS if v is not ack),
+    ):
+        monkeypatch.setattr(layout, "VIEWS", views)
+        with pytest.raises(layout.LayoutError):
+            layout.transfer_layout()
 
 
 def test_bit_fields_must_be_one_run() -> None:

@@ -8,7 +8,9 @@
 --     the management frames of link negotiation (one arbitration id) show their op, link id
 --     and tag;
 --   * the emulated infrared serial links (link type 147, USER0): the 8-byte "D2" record
---     (side, lost, corrupted, link id), then the frame as on the wire: COBS, CRC-32, 0x00.
+--     (side, lost, corrupted, link id), then the frame as on the wire: COBS, CRC-32, 0x00;
+--   * on both, flashing's transfer frames (the second frame family: OFFER, REQUEST, SEGMENT,
+--     ACK, COMMIT, REPORT ...), each field as `dh2rt dump` names it (dh2rt.transfer.*).
 -- The Info column is the line `dh2rt dump` prints for the frame, without its time.
 --
 -- Frames carry hormone indices, not names. This file, as committed, knows no program: it
@@ -20,8 +22,10 @@
 --
 -- The block below is written by tools/wireshark/generate.py from dh2rt's codec modules
 -- (dh2rt/wire/frame.py, dh2rt/wire/can_frames.py, dh2rt/wire/negotiation.py,
--- dh2rt/wire/serial_framing.py, tools/serial_records.py): a test checks that this file is what the generator writes, so
--- the dissector and the codec cannot drift apart. Edit the generator, not the block.
+-- dh2rt/wire/serial_framing.py, dh2rt/wire/transfer.py, tools/serial_records.py) and dump's
+-- table of transfer messages (tools/transfer_view.py): a test checks that this file is what
+-- the generator writes, so the dissector and the codec cannot drift apart. Edit the
+-- generator, not the block.
 
 -- BEGIN GENERATED
 -- Written by `dh2rt wireshark`; do not edit.
@@ -70,12 +74,209 @@ local LAYOUT = {
         crc_bytes = 4,
         delimiter = 0,
     },
+    transfer = {
+        family = 2,
+        image_bytes = 8,
+        max_connector = 15,
+        max_segment_size = 506,
+        hop = { sent = { shift = 4, width = 4 }, received = { shift = 0, width = 4 } },
+        messages = {
+            [1] = {
+                name = "OFFER",
+                class = 2,
+                head = "offer fields",
+                fields = {
+                    { name = "version", wire = "u32", show = "%d", proto = "uint" },
+                    { name = "image", wire = "image", show = "hex", proto = "bytes" },
+                    { name = "length", wire = "u32", show = "%d", proto = "uint" },
+                    { name = "segment_size", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "held", wire = "u16", show = "%d", proto = "uint" },
+                    {
+                        name = "running",
+                        wire = "flag",
+                        show = "flag",
+                        proto = "bool",
+                        text = ", running",
+                    },
+                    {
+                        name = "path",
+                        wire = "path",
+                        show = "path",
+                        proto = "string",
+                        limit = 64,
+                    },
+                },
+                line = "OFFER v{version} {image} {length} bytes, segments of {segment_size}, held {held}{running}, path {path}",
+            },
+            [2] = {
+                name = "REQUEST",
+                class = 2,
+                head = "request fields",
+                fields = {
+                    { name = "image", wire = "image", show = "hex", proto = "bytes" },
+                    { name = "next", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "window", wire = "u8", show = "%d", proto = "uint", limit = 64 },
+                    {
+                        name = "probe",
+                        wire = "flag",
+                        show = "flag",
+                        proto = "bool",
+                        text = ", probe",
+                    },
+                },
+                line = "REQUEST {image} from #{next}, window {window}{probe}",
+            },
+            [3] = {
+                name = "SEGMENT",
+                class = 3,
+                head = "segment header",
+                fields = {
+                    { name = "tag", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "index", wire = "u16", show = "%d", proto = "uint" },
+                    {
+                        name = "data",
+                        wire = "rest",
+                        show = "count",
+                        proto = "bytes",
+                        limit = 506,
+                    },
+                },
+                line = "SEGMENT tag {tag} #{index} ({data} bytes)",
+            },
+            [4] = {
+                name = "ACK",
+                class = 2,
+                head = "ack fields",
+                fields = {
+                    { name = "tag", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "next", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "sack", wire = "u16", show = "0x%04x", proto = "hex" },
+                },
+                line = "ACK tag {tag} next #{next} sack {sack}",
+            },
+            [5] = {
+                name = "DECLINE",
+                class = 2,
+                head = "decline fields",
+                fields = {
+                    { name = "image", wire = "image", show = "hex", proto = "bytes" },
+                    {
+                        name = "reason",
+                        wire = "u8",
+                        show = "name",
+                        proto = "string",
+                        names = {
+                            [1] = "have",
+                            [2] = "current",
+                            [3] = "newer",
+                            [4] = "refused",
+                            [5] = "reverted",
+                            [6] = "busy",
+                        },
+                    },
+                    { name = "version", wire = "u32", show = "%d", proto = "uint" },
+                },
+                line = "DECLINE {image} {reason} (runs v{version})",
+            },
+            [6] = {
+                name = "CANCEL",
+                class = 2,
+                head = "image id",
+                fields = {
+                    { name = "image", wire = "image", show = "hex", proto = "bytes" },
+                    {
+                        name = "verdict",
+                        wire = "ascii",
+                        show = "%s",
+                        proto = "string",
+                        limit = 16,
+                    },
+                },
+                line = "CANCEL {image}: {verdict}",
+            },
+            [7] = {
+                name = "COMMIT",
+                class = 1,
+                head = "commit fields",
+                fields = {
+                    { name = "image", wire = "image", show = "hex", proto = "bytes" },
+                    { name = "remaining_us", wire = "u32", show = "ms", proto = "uint" },
+                    { name = "hops", wire = "u8", show = "%d", proto = "uint" },
+                },
+                line = "COMMIT {image} {remaining_us} (hops {hops})",
+            },
+            [8] = {
+                name = "COMMIT_ACK",
+                class = 1,
+                head = "image id",
+                fields = { { name = "image", wire = "image", show = "hex", proto = "bytes" } },
+                line = "COMMIT_ACK {image}",
+            },
+            [9] = {
+                name = "REPORT",
+                class = 2,
+                head = "report fields",
+                fields = {
+                    { name = "tag", wire = "u16", show = "%d", proto = "uint" },
+                    { name = "seq", wire = "u16", show = "%d", proto = "uint" },
+                    {
+                        name = "outcome",
+                        wire = "u8",
+                        show = "name",
+                        proto = "string",
+                        names = {
+                            [1] = "withheld",
+                            [2] = "silent",
+                            [3] = "staged",
+                            [4] = "committed",
+                            [5] = "current",
+                            [6] = "confirmed",
+                            [7] = "refused",
+                            [8] = "reverted",
+                        },
+                    },
+                    { name = "version", wire = "u32", show = "%d", proto = "uint" },
+                    { name = "left", wire = "u8", show = "%d", proto = "uint" },
+                    {
+                        name = "path",
+                        wire = "path",
+                        show = "path",
+                        proto = "string",
+                        limit = 64,
+                    },
+                    {
+                        name = "verdict",
+                        wire = "ascii",
+                        show = "suffix",
+                        proto = "string",
+                        limit = 16,
+                    },
+                    {
+                        name = "reason",
+                        wire = "utf8",
+                        show = "suffix",
+                        proto = "string",
+                        limit = 48,
+                    },
+                },
+                line = "REPORT {outcome} v{version} tag {tag} #{seq}, path {path}, left {left}{verdict}{reason}",
+            },
+            [10] = {
+                name = "REPORT_ACK",
+                class = 2,
+                head = "report seq",
+                fields = { { name = "seq", wire = "u16", show = "%d", proto = "uint" } },
+                line = "REPORT_ACK #{seq}",
+            },
+        },
+    },
 }
 local CONNECTORS = { "front", "back", "left", "right" }
 local PROGRAMS = {}
 -- END GENERATED
 
 local FRAME_KINDS = LAYOUT.kind_names
+local TRANSFER = LAYOUT.transfer
 local SEGMENTS = LAYOUT.segment_names
 local INT_MIN, INT_MAX = -2147483648, 2147483647
 local TWO32 = 4294967296
@@ -182,7 +383,7 @@ end
 local dh2rt = Proto("dh2rt", "dh2rt hormone frames")
 
 local F = {
-    kind = ProtoField.string("dh2rt.kind", "Kind (hormone, routed, keepalive, hello, segment, error)"),
+    kind = ProtoField.string("dh2rt.kind", "Kind (hormone, routed, keepalive, hello, transfer, segment, error)"),
     medium = ProtoField.string("dh2rt.medium", "Medium (can, serial)"),
     link = ProtoField.uint32("dh2rt.link", "Link id"),
     side = ProtoField.uint8("dh2rt.side", "Side that sent it"),
@@ -227,12 +428,40 @@ local F = {
     route = ProtoField.string("dh2rt.route", "Route still to go"),
     keepalive_seq = ProtoField.uint8("dh2rt.keepalive.seq", "Keep-alive sequence number"),
     digest = ProtoField.bytes("dh2rt.hello.digest", "Program digest"),
-    version = ProtoField.uint32("dh2rt.hello.version", "Program version"),
+    hello_version = ProtoField.uint32("dh2rt.hello.version", "Program version"),
     program = ProtoField.string("dh2rt.program", "Program naming the hormones"),
+    -- transfer frames: the header; the messages' fields are in TF
+    family = ProtoField.uint8("dh2rt.transfer.family", "Frame family", base.DEC, nil,
+        (2 ^ LAYOUT.header.version.width - 1) * 2 ^ LAYOUT.header.version.shift),
+    class = ProtoField.uint8("dh2rt.transfer.class", "Class (CAN priority)", base.DEC, nil,
+        (2 ^ LAYOUT.header.kind.width - 1) * 2 ^ LAYOUT.header.kind.shift),
+    message = ProtoField.string("dh2rt.transfer.message", "Transfer message (OFFER, REQUEST, SEGMENT, ...)"),
 }
+
+-- A field of each name the transfer messages' fields have (dh2rt.transfer.NAME), of the type
+-- the generator chose (one name, one type).
+local PROTO_FIELDS = {
+    uint = function(abbr, label) return ProtoField.uint32(abbr, label) end,
+    hex = function(abbr, label) return ProtoField.uint32(abbr, label, base.HEX) end,
+    bool = function(abbr, label) return ProtoField.bool(abbr, label) end,
+    bytes = function(abbr, label) return ProtoField.bytes(abbr, label) end,
+    string = function(abbr, label) return ProtoField.string(abbr, label) end,
+}
+local TF = {}
+for _, message in pairs(TRANSFER.messages) do
+    for _, field in ipairs(message.fields) do
+        if TF[field.name] == nil then
+            local label = "Transfer " .. field.name:gsub("_", " ")
+            TF[field.name] = PROTO_FIELDS[field.proto]("dh2rt.transfer." .. field.name, label)
+        end
+    end
+end
+
 local field_list = {}
-for _, field in pairs(F) do
-    field_list[#field_list + 1] = field
+for _, fields in ipairs({ F, TF }) do
+    for _, field in pairs(fields) do
+        field_list[#field_list + 1] = field
+    end
 end
 dh2rt.fields = field_list
 
@@ -465,9 +694,12 @@ function Decode:frame()
         decode_error("frame: no bytes")
     end
     local head = data:byte(1)
+    local version = bits(head, LAYOUT.header.version)
+    if version == TRANSFER.family then
+        return self:transfer()
+    end
     local header = self:range(0, 1)
     self.tree:add(F.version, header)
-    local version = bits(head, LAYOUT.header.version)
     if version ~= LAYOUT.wire_version then
         decode_error(string.format("frame: wire version %d, expected %d", version, LAYOUT.wire_version))
     end
@@ -518,7 +750,7 @@ function Decode:frame()
             if not done then
                 decode_error("hello frame: the version is cut short")
             end
-            self.tree:add(F.version, self:range(short, #data - short), value)
+            self.tree:add(F.hello_version, self:range(short, #data - short), value)
         end
         local digest = tohex(data:sub(2, short))
         local text = digest
@@ -531,6 +763,218 @@ function Decode:frame()
     end
     hop.sender = connector_name(sender)
     return hop
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Transfer frames (dh2rt.wire.transfer.decode), read field by field as LAYOUT.transfer (dump's
+-- table) lists them; shown with the line dump prints (tools.transfer_view.transfer_text)
+
+local FIXED_BYTES = { u8 = 1, u16 = 2, u32 = 4, flag = 1, image = TRANSFER.image_bytes }
+
+-- Whether a byte string is UTF-8 as Python's strict decoder takes it (no overlong forms, no
+-- surrogates, nothing past U+10FFFF).
+local function is_utf8(text)
+    local i, n = 1, #text
+    while i <= n do
+        local c = text:byte(i)
+        local extra, low, high = 0, 0x80, 0xBF
+        if c < 0x80 then
+            extra = 0
+        elseif c >= 0xC2 and c <= 0xDF then
+            extra = 1
+        elseif c == 0xE0 then
+            extra, low = 2, 0xA0
+        elseif c == 0xED then
+            extra, high = 2, 0x9F
+        elseif c >= 0xE1 and c <= 0xEF then
+            extra = 2
+        elseif c == 0xF0 then
+            extra, low = 3, 0x90
+        elseif c >= 0xF1 and c <= 0xF3 then
+            extra = 3
+        elseif c == 0xF4 then
+            extra, high = 3, 0x8F
+        else
+            return false
+        end
+        for k = 1, extra do
+            local b = text:byte(i + k)
+            local lo, hi = k == 1 and low or 0x80, k == 1 and high or 0xBF
+            if b == nil or b < lo or b > hi then
+                return false
+            end
+        end
+        i = i + 1 + extra
+    end
+    return true
+end
+
+-- The codec's checks that span fields, run after the field named: MESSAGE.FIELD.
+local TRANSFER_CHECKS = {
+    ["OFFER.held"] = function(what, v)
+        local size = v.segment_size
+        local segments = size >= 1 and math.ceil(v.length / size) or 0
+        if v.length == 0 or size < 1 or size > TRANSFER.max_segment_size or segments > 0xFFFF then
+            decode_error(string.format("%s: %d bytes in segments of %d is no image", what, v.length, size))
+        end
+        if v.held > segments then
+            decode_error(string.format("%s: %d segments held of %d", what, v.held, segments))
+        end
+    end,
+    ["REPORT.path"] = function(what, v)
+        if v.left < 1 or v.left > #v.path then
+            decode_error(string.format("%s: %d hops left of a %d-hop path", what, v.left, #v.path))
+        end
+    end,
+}
+
+-- Take ``n`` bytes at ``pos`` for ``field`` (what the codec's reader calls it), or fail as it does.
+function Decode:take(what, pos, n, field)
+    if pos + n > #self.data then
+        decode_error(string.format("%s: cut short in the %s at byte %d", what, field, pos))
+    end
+    return self.data:sub(pos + 1, pos + n)
+end
+
+-- One field of a transfer message at ``pos``: its value and its length in bytes.
+function Decode:transfer_field(what, field, pos)
+    local wire, data = field.wire, self.data
+    if FIXED_BYTES[wire] ~= nil then
+        local n = FIXED_BYTES[wire]
+        if wire == "image" then
+            return data:sub(pos + 1, pos + n), n
+        end
+        local value = self:range(pos, n):uint()
+        if wire == "flag" then
+            if value > 1 then
+                decode_error(string.format("%s: unknown flags 0x%02x", what, value))
+            end
+            return value == 1, n
+        end
+        if field.names ~= nil and field.names[value] == nil then
+            decode_error(string.format("%s: unknown %s %d", what, field.name, value))
+        end
+        if field.limit ~= nil and (value < 1 or value > field.limit) then
+            decode_error(string.format("%s: %s %d is outside 1..%d", what, field.name, value, field.limit))
+        end
+        return value, n
+    end
+    if wire == "rest" then
+        local n = #data - pos
+        if n < 1 or n > field.limit then
+            decode_error(string.format("%s: %d data bytes, outside 1..%d", what, n, field.limit))
+        end
+        return data:sub(pos + 1), n
+    end
+    if wire == "path" then
+        local count = self:take(what, pos, 1, "path length"):byte()
+        if count > field.limit then
+            decode_error(string.format("%s: path of %d hops exceeds %d", what, count, field.limit))
+        end
+        local raw = self:take(what, pos + 1, count, "path")
+        local hops = {}
+        for i = 1, count do
+            local sent, received = bits(raw:byte(i), TRANSFER.hop.sent), bits(raw:byte(i), TRANSFER.hop.received)
+            if sent == 0 or received == 0 then
+                decode_error(what .. ": a path hop names connector 0")
+            end
+            hops[i] = connector_name(sent) .. ">" .. connector_name(received)
+        end
+        return hops, 1 + count
+    end
+    -- text: a length byte, then ASCII (ascii) or UTF-8 (utf8)
+    local n = self:take(what, pos, 1, field.name .. " length"):byte()
+    if n > field.limit then
+        decode_error(string.format("%s: %s of %d bytes exceeds %d", what, field.name, n, field.limit))
+    end
+    local text = self:take(what, pos + 1, n, field.name)
+    if wire == "ascii" and text:find("[\128-\255]") then
+        decode_error(string.format("%s: %s is not ASCII", what, field.name))
+    end
+    if not is_utf8(text) then
+        decode_error(string.format("%s: %s is not UTF-8", what, field.name))
+    end
+    return text, 1 + n
+end
+
+-- A field's value as dump shows it (tools.transfer_view.show).
+local function transfer_show(field, value)
+    local how = field.show
+    if how == "hex" then
+        return tohex(value)
+    elseif how == "name" then
+        return field.names[value]
+    elseif how == "count" then
+        return string.format("%d", #value)
+    elseif how == "path" then
+        return #value > 0 and table.concat(value, " ") or "(entry point)"
+    elseif how == "ms" then
+        return value ~= 0 and string.format("in %.1f ms", value / 1000) or "at once"
+    elseif how == "flag" then
+        return value and field.text or ""
+    elseif how == "suffix" then
+        return value ~= "" and ", " .. value or ""
+    end
+    return string.format(how, value)
+end
+
+function Decode:transfer()
+    local data = self.data
+    if #data < 2 then
+        decode_error(string.format("transfer frame: %d bytes, too short for a header and a type", #data))
+    end
+    local header = self:range(0, 1)
+    self.tree:add(F.family, header)
+    self.tree:add(F.class, header)
+    self.tree:add(F.sender, header)
+    local sender = bits(data:byte(1), LAYOUT.header.sender)
+    if sender == 0 then
+        decode_error("transfer frame: sender connector 0")
+    end
+    local message = TRANSFER.messages[data:byte(2)]
+    if message == nil then
+        decode_error(string.format("transfer frame: unknown message type %d", data:byte(2)))
+    end
+    self.tree:add(F.message, self:range(1, 1), message.name)
+    local what = "transfer frame " .. message.name
+    local class = bits(data:byte(1), LAYOUT.header.kind)
+    if class ~= message.class then
+        decode_error(string.format("%s: class %d, expected %d", what, class, message.class))
+    end
+    -- the fixed fields before the first of variable length, which the codec takes at once
+    local fixed = 0
+    for _, field in ipairs(message.fields) do
+        if FIXED_BYTES[field.wire] == nil then
+            break
+        end
+        fixed = fixed + FIXED_BYTES[field.wire]
+    end
+    self:take(what, 2, fixed, message.head)
+    local pos, values, shown = 2, {}, {}
+    for _, field in ipairs(message.fields) do
+        local value, n = self:transfer_field(what, field, pos)
+        values[field.name] = value
+        shown[field.name] = transfer_show(field, value)
+        local check = TRANSFER_CHECKS[message.name .. "." .. field.name]
+        if check ~= nil then
+            check(what, values)
+        end
+        local item = self:range(pos, n)
+        if field.proto == "bytes" then
+            self.tree:add(TF[field.name], item)
+        elseif field.proto == "string" then
+            local text = field.wire == "path" and shown[field.name] or field.names and field.names[value] or value
+            self.tree:add(TF[field.name], item, text)
+        else
+            self.tree:add(TF[field.name], item, value)
+        end
+        pos = pos + n
+    end
+    if pos ~= #data then
+        decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
+    end
+    local text = message.line:gsub("{([%w_]+)}", shown)
+    return { kind = "transfer", text = text, sender = connector_name(sender) }
 end
 
 -- Decode ``tvb`` as one frame; a frame that does not decode gives an error hop.
@@ -630,14 +1074,15 @@ local function parse_can_id(id)
 end
 
 -- Whether a CAN frame is dh2rt's: an extended id whose kind the frame's first byte repeats
--- with the wire version, or a later segment from a link end that sent dh2rt frames.
+-- with the wire version (or the transfer family), or a later segment from a link end that sent dh2rt frames.
 local function is_dh2rt(tvb, id)
     if id.segment == LAYOUT.segments.single or id.segment == LAYOUT.segments.first then
         if tvb:len() < 1 then
             return false
         end
         local head = tvb:range(0, 1):uint()
-        return bits(head, LAYOUT.header.version) == LAYOUT.wire_version and bits(head, LAYOUT.header.kind) == id.kind
+        local version = bits(head, LAYOUT.header.version)
+        return (version == LAYOUT.wire_version or version == TRANSFER.family) and bits(head, LAYOUT.header.kind) == id.kind
     end
     return state.ends[id.link .. ":" .. id.side] == true
 end

@@ -4,22 +4,26 @@ Nothing here restates a bit position: each field is found by probing the codec's
 functions (:func:`~dh2rt.wire.can_frames.make_arbitration_id`,
 :meth:`~dh2rt.wire.frame.FrameCodec.encode`, :func:`~dh2rt.wire.frame.frame_kind`,
 :func:`~dh2rt.wire.can_frames.segment`, :func:`~dh2rt.wire.negotiation.encode_bus`,
-:func:`tools.serial_records.pack`) and then checked against a frame of every kind, so a
-change to the codec changes the generated dissector, or stops the generator with
-:class:`LayoutError`.
+:func:`tools.serial_records.pack`, :func:`dh2rt.wire.transfer.encode`) and then checked
+against a frame of every kind, so a change to the codec changes the generated dissector, or
+stops the generator with :class:`LayoutError`. Transfer messages are read with dump's table
+(:mod:`tools.transfer_view`), checked here against a message of each type as the codec
+encodes it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import re
 import zlib
 from functools import reduce
 from operator import or_
 from typing import Any
 
-from dh2rt.errors import DissectorLayoutError
+from dh2rt.errors import DecodeError, DissectorLayoutError
 from dh2rt.hormone import Hormone, HormoneSpec, Vocabulary
 from dh2rt.profile import Profile
-from dh2rt.wire import can_frames
+from dh2rt.wire import can_frames, transfer
 from dh2rt.wire.frame import (
     HELLO_DIGEST_BYTES,
     MAX_CONNECTORS,
@@ -35,6 +39,7 @@ from dh2rt.wire.negotiation import FIRST_LINK_ID, LAST_LINK_ID, MANAGEMENT_ID, B
 from dh2rt.wire.serial_framing import CRC_BYTES, DELIMITER
 from tools import serial_records
 from tools.decode import KINDS, REFUSED
+from tools.transfer_view import SHOWS, VIEWS, WIRE_KINDS, Field, View
 
 #: A field of an integer: its lowest bit and its width in bits.
 BitField = dict[str, int]
@@ -186,6 +191,136 @@ def serial_layout() -> dict[str, Any]:
     }
 
 
+# -- transfer frames (flashing) ----------------------------------------------------------
+
+_IMAGE = bytes(range(0xA1, 0xA1 + transfer.IMAGE_ID_BYTES))
+#: A message of each type, every field a value of its own, so that fields laid out in
+#: another order, or of another width, fail the check.
+_SAMPLES: dict[type, transfer.Message] = {
+    type(sample): sample
+    for sample in (
+        transfer.Offer(0x01020304, _IMAGE, 1000, 100, 7, True, ((1, 2), (3, 4))),
+        transfer.Request(_IMAGE, 0x0506, 9, True),
+        transfer.Segment(0x0708, 0x090A, b"\x0b\x0c"),
+        transfer.Ack(0x0D0E, 0x0F10, 0x1112),
+        transfer.Decline(_IMAGE, transfer.DeclineReason.NEWER, 0x13141516),
+        transfer.Cancel(_IMAGE, "bad-signature"),
+        transfer.Commit(_IMAGE, 0x1718191A, 27),
+        transfer.CommitAck(_IMAGE),
+        transfer.Report(0x1C1D, 0x1E1F, transfer.Outcome.REFUSED, 0x20212223, 2, ((1, 2), (2, 3)), "v", "r\u00e9ason"),
+        transfer.ReportAck(0x2425),
+    )
+}
+_INT_BYTES = {"u8": 1, "u16": 2, "u32": 4}
+
+
+def hop_fields() -> dict[str, BitField]:
+    """The two connectors of a path's hop byte, probed through OFFER's path (every value of
+    one connector, the other held at 1)."""
+
+    def hop_byte(sent: int, received: int) -> int:
+        return transfer.encode(1, transfer.Offer(1, _IMAGE, 1, 1, 0, path=((sent, received),)))[-1]
+
+    every = range(1, transfer.MAX_CONNECTOR + 1)
+    sent = reduce(or_, (hop_byte(c, 1) ^ hop_byte(1, 1) for c in every))
+    received = reduce(or_, (hop_byte(1, c) ^ hop_byte(1, 1) for c in every))
+    return {"sent": bit_field(sent), "received": bit_field(received)}
+
+
+def _laid_out(view: View, message: transfer.Message, hop: dict[str, BitField]) -> bytes:
+    """``message``'s fields as the table lays them out (what the dissector reads)."""
+    out = bytearray()
+    for field in view.fields:
+        value = getattr(message, field.name)
+        if field.wire in _INT_BYTES:
+            out += int(value).to_bytes(_INT_BYTES[field.wire], "big")
+        elif field.wire == "flag":
+            out.append(int(value))
+        elif field.wire == "path":
+            hops = [s << hop["sent"]["shift"] | r << hop["received"]["shift"] for s, r in value]
+            out += bytes((len(hops), *hops))
+        elif field.wire in ("ascii", "utf8"):
+            out += bytes((len(value.encode()),)) + value.encode()
+        else:  # image, rest
+            out += value
+    return bytes(out)
+
+
+def _proto(field: Field) -> str:
+    """The Wireshark field type a field shows as: uint, hex, bool, bytes or string."""
+    if field.wire in _INT_BYTES:
+        return "string" if field.show == "name" else "hex" if "x" in field.show else "uint"
+    return {"flag": "bool", "image": "bytes", "rest": "bytes"}.get(field.wire, "string")
+
+
+def _head_label(kind: transfer.MessageType, frame: bytes) -> str:
+    """What the codec calls a message's fixed fields when the frame ends before them."""
+    try:
+        transfer.decode(frame[:2])
+    except DecodeError as exc:
+        found = re.fullmatch(rf"transfer frame {kind.name}: cut short in the (.+) at byte 2", str(exc))
+        if found:
+            return found.group(1)
+    raise LayoutError(f"a {kind.name} cut after its type does not say which fields it lacks")
+
+
+def _field_entry(field: Field) -> dict[str, Any]:
+    if field.wire not in WIRE_KINDS or not (field.show in SHOWS or "%" in field.show):
+        raise LayoutError(f"transfer field {field.name}: unknown wire {field.wire!r} or show {field.show!r}")
+    entry: dict[str, Any] = {"name": field.name, "wire": field.wire, "show": field.show, "proto": _proto(field)}
+    if field.text:
+        entry["text"] = field.text
+    if field.names is not None:
+        entry["names"] = {int(value): value.name.lower() for value in field.names}
+    if field.limit is not None:
+        entry["limit"] = field.limit
+    return entry
+
+
+def transfer_layout() -> dict[str, Any]:
+    """Transfer frames as the dissector reads them: the family in byte 0's version bits,
+    and per message type its class (byte 0's kind bits), its fields in wire order as dump's
+    table (:data:`tools.transfer_view.VIEWS`) has them, and what the codec calls its fixed
+    fields; each checked against the codec's encoding of a sample."""
+    header, hop = header_fields(), hop_fields()
+    views = {view.kind: view for view in VIEWS}
+    if set(views) != set(transfer.MessageType):
+        raise LayoutError(f"dump's table has no line for {sorted(set(transfer.MessageType) - set(views))}")
+    messages: dict[int, Any] = {}
+    protos: dict[str, str] = {}
+    for kind, view in views.items():
+        sample = _SAMPLES[view.message]
+        names = {f.name for f in dataclasses.fields(view.message)}
+        if names != {f.name for f in view.fields}:
+            raise LayoutError(f"dump's table lists {kind.name} as {[f.name for f in view.fields]}, not {names}")
+        frame = transfer.encode(1, sample)
+        if extract(frame[0], header["version"]) != transfer.TRANSFER_FAMILY or frame[1] != kind:
+            raise LayoutError(
+                f"a {kind.name} frame does not start with family {transfer.TRANSFER_FAMILY} and type {int(kind)}"
+            )
+        if frame[2:] != _laid_out(view, sample, hop):
+            raise LayoutError(f"a {kind.name} frame is not its fields laid out as dump's table says")
+        fields = [_field_entry(f) for f in view.fields]
+        for entry in fields:
+            if protos.setdefault(entry["name"], entry["proto"]) != entry["proto"]:
+                raise LayoutError(f"transfer field {entry['name']} is a {entry['proto']} and a {protos[entry['name']]}")
+        messages[int(kind)] = {
+            "name": kind.name,
+            "class": extract(frame[0], header["kind"]),
+            "head": _head_label(kind, frame),
+            "fields": fields,
+            "line": view.line,
+        }
+    return {
+        "family": transfer.TRANSFER_FAMILY,
+        "image_bytes": transfer.IMAGE_ID_BYTES,
+        "max_connector": transfer.MAX_CONNECTOR,
+        "max_segment_size": transfer.MAX_SEGMENT_SIZE,
+        "hop": hop,
+        "messages": messages,
+    }
+
+
 # -- all of it ---------------------------------------------------------------------------
 
 
@@ -216,4 +351,5 @@ def wire_layout(profile: Profile) -> dict[str, Any]:
         "train": train_layout(),
         "management": management_layout(),
         "serial": serial_layout(),
+        "transfer": transfer_layout(),
     }
