@@ -837,7 +837,8 @@ class World:
         undocked link, in flight at a cut or the end, due for a dead module), chunks left
         unread in a pty when its module died or stopped, frames a bit error merged into the
         next or split in two, and what a killed module sent and read (its own counters die
-        with it). ``unaccounted`` is what breaks the identity: 0 in every run that went right."""
+        with it); on a CAN bus its witness counts the same (frames sent to an end nobody held,
+        left unread when an end was let go, a killed process's). ``unaccounted`` is what breaks the identity: 0 in every run that went right."""
         totals = dict.fromkeys((*_FRAME_TERMS, "read_by_killed"), 0)
         for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
             counts = self._module_counts(m, v, earlier)
@@ -864,8 +865,9 @@ class World:
     @property
     def frames_witnessed(self) -> bool:
         """Whether a witness counts the frames no module can (sent to nobody, left unread):
-        the link emulator on serial links, the bus on ``inproc``. A CAN bus (and real serial
-        ports) has none: a frame sent to a link nobody holds any more is counted nowhere."""
+        the link emulator on serial links, the bus on ``inproc``, the bus's witness on a CAN
+        bus every node shares. Real serial ports and CAN adapters of the modules' own have
+        none: a frame sent to a link nobody holds any more is counted nowhere."""
         return self._witnessed_links or self.kind == "inproc"
 
     @property
