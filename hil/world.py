@@ -838,7 +838,8 @@ class World:
         unread in a pty when its module died or stopped, frames a bit error merged into the
         next or split in two, and what a killed module sent and read (its own counters die
         with it); on a CAN bus its witness counts the same (frames sent to an end nobody held,
-        left unread when an end was let go, a killed process's). ``unaccounted`` is what breaks the identity: 0 in every run that went right."""
+        left unread when an end was let go, a killed process's). ``unaccounted`` is what
+        breaks the identity: 0 in every run that went right."""
         totals = dict.fromkeys((*_FRAME_TERMS, "read_by_killed"), 0)
         for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
             counts = self._module_counts(m, v, earlier)

@@ -29,8 +29,8 @@ import pytest
 
 from dh2rt import cli
 from dh2rt.transport.base import LinkCounters
-from firmware.main_loop import ModuleHost
 from dh2rt.wire.serial_framing import SerialDecoder, encode_serial
+from firmware.main_loop import ModuleHost
 from hil.link_emulator import LinkEmulator
 from hil.netns import namespace_problem
 from hil.pace import PACE
