@@ -373,6 +373,10 @@ class ModuleHost:
 
     def _status(self, rt: ModuleRuntime) -> dict[str, Any]:
         status = rt.status()
+        ends = rt.transport.held_ends()
+        if ends:  # on a shared bus: the world's witness tells frames sent to nobody (hil.bus_witness)
+            status["link_ends"] = [[e.link_id, e.side, e.since, e.until] for e in ends]
+            status["link_ends_at"] = time.time()
         program = self.program_status()
         if program is not None:
             status["program"] = program

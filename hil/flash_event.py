@@ -189,7 +189,8 @@ class FlashEvents:
         assert ev._flash is not None and ev._cable is not None
         ev.result = ev._flash.result()
         link_or_mate, transport = ev._cable
-        self.world.count_cable(transport.counters)  # the flasher's frames are the run's too
+        # the flasher's frames are the run's too (on a bus, with the spans it held its link end in)
+        self.world.count_cable(transport.counters, transport.held_ends())
         if ev._bus is not None:
             with ev._flash.lock:
                 ev._bus.close()  # the link released on the bus before the contact breaks

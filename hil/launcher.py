@@ -580,7 +580,8 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
             )
     frames = world.frame_accounting()
     # frames always add up (docs/hil.md, "Counting frames"): in every run with a witness of
-    # the frames sent to nobody; on a CAN bus, which has none, in runs whose links stay
+    # the frames sent to nobody (the link emulator, the inproc bus, the CAN bus's witness);
+    # over real serial ports or CAN adapters the world cannot join, in runs whose links stay
     if frames["unaccounted"] and (world.frames_witnessed or not changes_links):
         where = world.unaccounted_where()
         out.append(
@@ -608,10 +609,11 @@ def frame_identity(f: dict[str, int]) -> str:
     return f"{left} = {' + '.join(right)}"
 
 
-#: What the summary says of frames a CAN bus run cannot account for (no witness on a bus).
+#: What the summary says of frames a run with no witness cannot account for: over real serial
+#: ports (--hardware-map) or CAN adapters the world cannot join (slcan, an adapter per module).
 NO_WITNESS = (
-    "a bus has no witness of frames sent to a link nobody held, nor of what a killed module counted after its "
-    "last report"
+    "real ports and adapters of the modules' own have no witness of frames sent to a link nobody held, nor of "
+    "what a killed module counted after its last report"
 )
 
 

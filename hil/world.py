@@ -59,14 +59,14 @@ from typing import TYPE_CHECKING, Any
 
 from dh2rt import docking
 from dh2rt.docking import End
-from dh2rt.errors import HilWorldError, TopologyError
+from dh2rt.errors import HilWorldError, TopologyError, TransportUnavailable
 from dh2rt.events import Event
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import PhaseDraw
 from dh2rt.runtime import CYCLE_PERIOD_S
 from dh2rt.topology import Topology
-from dh2rt.transport.base import LinkCounters, PortEnd
+from dh2rt.transport.base import HeldEnd, LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.inproc import inproc_bus
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
@@ -90,6 +90,7 @@ from firmware.control import (
     Stop,
     TraceRecord,
 )
+from hil.bus_witness import SHARED_INTERFACES, BusWitness, EndId, Span, negotiated_end, spans_of
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
 from hil.contact_emulator import ContactEmulator
 from hil.hardware_map import HardwareMap
@@ -285,6 +286,16 @@ class World:
         self._unreported = [False] * topology.size
         #: frames of each module's earlier such lives, counted by the emulator: {"sent": n, "read": n}
         self.killed_frames = [{"sent": 0, "read": 0} for _ in range(topology.size)]
+        #: on a shared CAN bus, the witness of the frames no module can count (hil.bus_witness;
+        #: opened by start()); the spans each module's earlier lives held their link ends in,
+        #: each with whether that life reported its counters (else the witness counted its
+        #: frames); the ends its current life logged it negotiated; when that life began and
+        #: was killed (wall clock, the bus's stamps); the cables' spans
+        self.witness: BusWitness | None = None
+        self._bus_spans: list[list[tuple[Span, bool]]] = [[] for _ in range(topology.size)]
+        self._negotiated: list[set[EndId]] = [set() for _ in range(topology.size)]
+        self._life_wall: list[tuple[float, float | None]] = [(0.0, None)] * topology.size
+        self._cable_spans: list[Span] = []
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
         self.handles: list[ModuleHandle | None] = [None] * topology.size
@@ -365,11 +376,16 @@ class World:
     def _spawn(self, module: int, cycles: int | None, phase: int) -> None:
         config = replace(self.config(module, cycles, phase), life=self.lives[module])
         v = self.views[module]
+        if self.lives[module] and self.witness is not None:  # the spans of the life that ended
+            reported = not self._unreported[module]
+            self._bus_spans[module] += [(span, reported) for span in self._life_spans(module)]
         if self.lives[module] and self._unreported[module]:  # its counters died with it
             for key, n in self._life_frames(module).items():
                 self.killed_frames[module][key] += n
             v.status = {}
         self._unreported[module] = False
+        self._negotiated[module] = set()
+        self._life_wall[module] = (time.time(), None)
         if self.emulator is not None:  # a new life's counts begin here
             self._ports_of[module].update(e.url for e in config.attach.values() if isinstance(e, PortEnd))
             for path in self._ports_of[module]:
@@ -392,6 +408,8 @@ class World:
         """Start every module, wait until all have attached their links, then say ``go``."""
         if self.capture is not None and self.bus_tap is None and self.kind != "serial":
             self.bus_tap = self._open_bus_tap(self.capture)  # before any module speaks
+        if self.witness is None and self.kind in NEGOTIATED:
+            self.witness = self._open_witness()
         for m in range(self.topology.size):
             self._spawn(m, self.cycles, self.phases[m])
         deadline = time.monotonic() + ready_timeout
@@ -417,6 +435,19 @@ class World:
             return BusTap(str(self.bus_options["interface"]), str(self.bus_options["channel"]), sink, **options)
         assert self._bus_channel is not None
         return BusTap(PYTHON_CAN[self.kind], self._bus_channel, sink)
+
+    def _open_witness(self) -> BusWitness | None:
+        """The bus's witness, on a bus every node shares (none on adapters of the modules' own)."""
+        interface = str(self.bus_options.get("interface")) if self.kind == "can" else PYTHON_CAN.get(self.kind)
+        own_adapters = self.hardware is not None and any(h.can_channel for h in self.hardware.modules.values())
+        if interface not in SHARED_INTERFACES or own_adapters or not self._bus_channel:
+            return None
+        options = {k: v for k, v in self.bus_options.items() if k not in ("interface", "channel")}
+        try:
+            return BusWitness(str(interface), str(self._bus_channel), **options)
+        except TransportUnavailable as exc:
+            self.note(f"no witness of the bus's frames: {exc}")
+            return None
 
     def _exited(self, module: int) -> bool:
         h = self.handles[module]
@@ -497,6 +528,9 @@ class World:
             self._effect(module, rep.kind, rep.args)
         elif isinstance(rep, Log):
             self.log.append(f"{v.name}: {rep.message}")
+            end = negotiated_end(rep.message)
+            if end is not None:
+                self._negotiated[module].add(end)
         elif isinstance(rep, Failure):
             v.errors.append(rep.message)
             v.failed = True
@@ -683,8 +717,11 @@ class World:
         self._send(module, Attach(connector, PortEnd(link.paths[0])))
         return link.link_id, link.paths[1]
 
-    def count_cable(self, counters: LinkCounters) -> None:
-        """Add a programming cable's transport counters (at its end) to the run's frames."""
+    def count_cable(self, counters: LinkCounters, ends: Iterable[HeldEnd] = ()) -> None:
+        """Add a programming cable's transport counters (at its end) to the run's frames, and
+        on a bus the spans it held its link ends in (those held still: until now)."""
+        now = time.time()
+        self._cable_spans += [((e.link_id, e.side), e.since, now if e.until is None else e.until) for e in ends]
         for key in _FRAME_TERMS:
             name = f"frames_{key}"
             self.cable_frames[name] = self.cable_frames.get(name, 0) + int(getattr(counters, key))
@@ -722,13 +759,16 @@ class World:
         if h is None or not self.views[module].alive:
             return
         self.views[module].killed = True
+        dying = time.time()
         h.end(grace=0.0 if not self.threads else 1.0)
         if isinstance(h, ProcessModule):
             h.proc.wait(5)
         self.poll()  # what it said last (its final status, its end) is read before any next life
         self.views[module].alive = False
-        # a killed process reports nothing more: the emulator counts what it read and sent
-        self._unreported[module] = self.emulator is not None and not self.views[module].finished
+        # a killed process reports nothing more: the emulator (the bus's witness) counts what it read and sent
+        self._unreported[module] = self._witnessed_links and not self.views[module].finished
+        if self._unreported[module]:
+            self._life_wall[module] = (self._life_wall[module][0], dying)
         if self.emulator is not None:
             for path in self._ports_of[module]:
                 self.emulator.reader_gone(path)
@@ -797,7 +837,9 @@ class World:
         undocked link, in flight at a cut or the end, due for a dead module), chunks left
         unread in a pty when its module died or stopped, frames a bit error merged into the
         next or split in two, and what a killed module sent and read (its own counters die
-        with it). ``unaccounted`` is what breaks the identity: 0 in every run that went right."""
+        with it); on a CAN bus its witness counts the same (frames sent to an end nobody held,
+        left unread when an end was let go, a killed process's). ``unaccounted`` is what
+        breaks the identity: 0 in every run that went right."""
         totals = dict.fromkeys((*_FRAME_TERMS, "read_by_killed"), 0)
         for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
             counts = self._module_counts(m, v, earlier)
@@ -810,6 +852,9 @@ class World:
         if self.kind == "inproc" and self._bus_channel:  # the in-process bus counts the same
             bus = inproc_bus(self._bus_channel)
             link.frames_lost, link.frames_unread = bus.lost, bus.unread
+        if self.witness is not None:  # the CAN bus's witness counts the same
+            link.frames_lost = self.witness.total() - self._read_in(self._held_spans())
+            link.frames_unread = sum(max(0, given - read) for _who, _s, _c, read, given in self._bus_tallies())
         totals["lost_on_link"] = link.frames_lost
         totals["unread"] = link.frames_unread
         totals["merged"] = link.frames_merged
@@ -821,13 +866,22 @@ class World:
     @property
     def frames_witnessed(self) -> bool:
         """Whether a witness counts the frames no module can (sent to nobody, left unread):
-        the link emulator on serial links, the bus on ``inproc``. A CAN bus (and real serial
-        ports) has none: a frame sent to a link nobody holds any more is counted nowhere."""
-        return self.emulator is not None or self.kind == "inproc"
+        the link emulator on serial links, the bus on ``inproc``, the bus's witness on a CAN
+        bus every node shares. Real serial ports and CAN adapters of the modules' own have
+        none: a frame sent to a link nobody holds any more is counted nowhere."""
+        return self._witnessed_links or self.kind == "inproc"
+
+    @property
+    def _witnessed_links(self) -> bool:
+        """Whether a witness counts what each link end took and was given: the link emulator,
+        or the bus's witness."""
+        return self.emulator is not None or self.witness is not None
 
     def unaccounted_where(self) -> list[str]:
         """Where frames went uncounted (serial links: each module's and cable's own counts
         against what the link emulator carried from and into its ports); [] when they agree."""
+        if self.witness is not None:
+            return self._bus_disagreements()
         if self.emulator is None:
             return [] if not self.frame_accounting()["unaccounted"] else [f"on the {self.kind} links"]
         out: list[str] = []
@@ -866,6 +920,10 @@ class World:
         """The current life's frames as the link emulator counted them at its ports: sent
         from them, and read from them (written into them, less what was left unread)."""
         sent = read = 0
+        if self.witness is not None:
+            spans = self._life_spans(module)
+            sent = sum(self.witness.sent_from(end) for end in {end for end, _since, _until in spans})
+            read = self._read_in(spans)
         if self.emulator is not None:
             for path in self._ports_of[module]:
                 now = self.emulator.side_counts(path)
@@ -873,6 +931,71 @@ class World:
                 sent += now.sent - then.sent
                 read += (now.written - then.written) - (now.unread - then.unread)
         return {"sent": sent, "read": read}
+
+    # ------------------------------------------------------------ the bus's witness
+
+    def _life_spans(self, module: int) -> list[Span]:
+        """The spans ``module``'s current life held its link ends in: as its last status says,
+        and for a killed life, until it was killed, with the ends it negotiated after that
+        status held from its start."""
+        start, killed = self._life_wall[module]
+        spans = spans_of(self.views[module].status, killed)
+        if killed is not None:
+            held = {end for end, _since, _until in spans}
+            spans += [(end, start, killed) for end in self._negotiated[module] - held]
+        return spans
+
+    def _spans(self, module: int) -> list[tuple[Span, bool]]:
+        """Every life's spans, each with whether its life reported its counters."""
+        return [*self._bus_spans[module], *((s, not self._unreported[module]) for s in self._life_spans(module))]
+
+    def _held_spans(self) -> list[Span]:
+        """Every span any module or cable held a link end in."""
+        return [span for m in range(self.topology.size) for span, _ in self._spans(m)] + self._cable_spans
+
+    def _read_in(self, spans: Iterable[Span]) -> int:
+        """Frames the bus's witness saw sent to the ends within ``spans``."""
+        assert self.witness is not None
+        return sum(self.witness.sent_to(end, [(since, until)]) for end, since, until in spans)
+
+    def _bus_tallies(self) -> list[tuple[str, int, int, int, int]]:
+        """For each module and the cables: (who, frames it counted sent, frames the bus's
+        witness saw sent from its link ends, frames it counted read, frames the witness saw
+        sent to its ends while it held them), over the lives that reported their counters
+        (a killed life's frames are the witness's only)."""
+        assert self.witness is not None
+        out = []
+        for m, (v, earlier) in enumerate(zip(self.views, self.earlier_lives, strict=True)):
+            counts = self._module_counts(m, v, earlier)
+            spans = self._spans(m)
+            carried = sum(self.witness.sent_from(end) for end in {span[0] for span, _ in spans})
+            given = self._read_in(span for span, reported in spans if reported)
+            out.append((v.name, counts["sent"], carried, sum(counts[k] for k in _ARRIVED), given))
+        if self._cable_spans:
+            ends = {end for end, _since, _until in self._cable_spans}
+            out.append((
+                "the cables", self.cable_frames.get("frames_sent", 0), sum(self.witness.sent_from(e) for e in ends),
+                sum(self.cable_frames.get(f"frames_{k}", 0) for k in _ARRIVED), self._read_in(self._cable_spans),
+            ))  # fmt: skip
+        return out
+
+    def _bus_disagreements(self) -> list[str]:
+        """Where a bus's frames went uncounted: each module's (and the cables') own counts
+        against what the witness saw sent from its link ends and to them while it held them
+        (it may have left some unread when it let an end go, never read more), and frames
+        from link ends nobody held."""
+        assert self.witness is not None
+        out = [
+            f"{who} counted {sent} sent and {read} read; the bus carried {carried} from its link ends "
+            f"and {given} to them while it held them"
+            for who, sent, carried, read, given in self._bus_tallies()
+            if sent != carried or read > given
+        ]
+        held = {end for end, _since, _until in self._held_spans()}
+        stray = sum(self.witness.sent_from(end) for end in self.witness.ends() if end not in held)
+        if stray:
+            out.append(f"{stray} frame(s) came from link ends no module held")
+        return out
 
     def sorted_records(self) -> list[dict[str, Any]]:
         """Trace records merged from the modules, by cycle then module."""
@@ -895,10 +1018,13 @@ class World:
                 h.end(grace=1.0)
         self.poll()
         for m, v in enumerate(self.views):  # ended before it reported its counters: counted at its ports
-            if self.emulator is not None and self.handles[m] is not None and not v.finished and not v.killed:
+            if self._witnessed_links and self.handles[m] is not None and not v.finished and not v.killed:
                 self._unreported[m] = True
+                self._life_wall[m] = (self._life_wall[m][0], time.time())
         if self.emulator is not None:  # what is left on the lines and in the ptys is counted
             self.emulator.close()
+        if self.witness is not None:  # the last frames on the bus are counted
+            self.witness.close()
         if self.physics is not None:
             self.physics.close()
         if self.bus_tap is not None:

@@ -190,6 +190,20 @@ class LinkCounters:
     unhandled: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class HeldEnd:
+    """One span in which a transport held a link end on a shared bus (wall-clock seconds, the
+    clock python-can stamps frames with): from ``since`` (its attach, or the stamp of the
+    first frame it took for it, if earlier) to ``until`` (its detach; None: held still).
+    Frames sent to it within the span are this transport's to read; a witness on the bus
+    counts those sent outside every span as lost (hil.bus_witness)."""
+
+    link_id: int
+    side: int
+    since: float
+    until: float | None
+
+
 class Transport(Closing, ABC):
     """A module's links over one medium. See the module docstring for the contract."""
 
@@ -353,6 +367,11 @@ class Transport(Closing, ABC):
             send_failed=self._send_failed,
             unhandled=self._unhandled.total(),
         )
+
+    def held_ends(self) -> list[HeldEnd]:
+        """The link ends this transport held on a shared bus, and when; [] elsewhere (a
+        point-to-point medium has its own witness: the link emulator)."""
+        return []
 
     def close(self) -> None:
         """Detach every connector and release the medium; calling it again does nothing."""

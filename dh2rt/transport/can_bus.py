@@ -16,15 +16,17 @@ from __future__ import annotations
 
 import socket
 import time
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from dh2rt.errors import TransportError, TransportUnavailable
-from dh2rt.transport.base import OFF_LINK, BusEnd, FrameFamily, Inbound, LinkEnd, Transport
+from dh2rt.transport.base import OFF_LINK, BusEnd, FrameFamily, HeldEnd, Inbound, LinkEnd, Transport
 from dh2rt.wire.can_frames import (
     CLASSIC_DATA,
     FD_DATA,
     LINK_END_MASK,
     MANAGEMENT_ID,
+    MAX_LINK_ID,
     Reassembler,
     Segmenter,
     listen_filter,
@@ -57,6 +59,14 @@ def socketcan_problem(channel: str) -> str | None:
     except OSError:
         return f"there is no network interface named {channel!r}"
     return None
+
+
+@dataclass(slots=True)
+class _Span:
+    """A span in which a transport held one of its link ends (see HeldEnd)."""
+
+    since: float
+    until: float | None = None
 
 
 class CanTransport(Transport):
@@ -95,6 +105,8 @@ class CanTransport(Transport):
         self.max_data = FD_DATA if fd else CLASSIC_DATA
         self._listen: dict[int, int] = {}  # low 19 bits of the far end's id -> my connector
         self._reassembler = Reassembler()
+        #: my link ends (link id, side) and the spans I held them: [since, until] (see held_ends)
+        self._held: dict[tuple[int, int], list[_Span]] = {}
         self._segmenter = Segmenter(self.max_data)  # numbers each link end's segment trains
         self._bus: Any = self._open_bus(bus_options)
         import can  # already imported by _open_bus; kept for exception and Message types
@@ -156,12 +168,16 @@ class CanTransport(Transport):
                 f"link {end.link_id} side {end.side} is already attached to connector {self._listen[far]}"
             )
         self._listen[far] = connector
+        self._held.setdefault((end.link_id, end.side), []).append(_Span(time.time()))
         self._apply_filters()
 
     def _detach(self, connector: int, end: LinkEnd) -> None:
         if isinstance(end, BusEnd):
             self._listen.pop((end.link_id << 1) | (1 - end.side), None)
             self._reassembler.forget(end.link_id, 1 - end.side)
+            spans = self._held.get((end.link_id, end.side))
+            if spans and spans[-1].until is None:
+                spans[-1].until = time.time()
             if not self._closed:
                 self._apply_filters()
 
@@ -215,8 +231,22 @@ class CanTransport(Transport):
             payload = self._reassembler.feed(msg.arbitration_id, bytes(msg.data), msg.timestamp)
             if payload is not None:
                 on_links = True
+                self._took((msg.arbitration_id >> 1) & MAX_LINK_ID, 1 - (msg.arbitration_id & 1))
                 # arrived as its first frame did (a COMMIT's time left counts from then)
                 out.append(Inbound.on_link(connector, payload, self._arrived(self._reassembler.started)))
+
+    def _took(self, link_id: int, side: int) -> None:
+        """A frame for my end ``(link_id, side)`` was taken: if it was sent before I attached
+        the end (it waited in the bus's queue meanwhile), the end was mine from its stamp on:
+        every later frame to the end comes after it in the queue, and is read too."""
+        spans = self._held.get((link_id, side))
+        stamp = self._reassembler.started
+        if spans and stamp and stamp < spans[-1].since:
+            spans[-1].since = stamp
+
+    def held_ends(self) -> list[HeldEnd]:
+        """The link ends this transport held, each span apart (see :class:`HeldEnd`)."""
+        return [HeldEnd(link, side, s.since, s.until) for (link, side), spans in self._held.items() for s in spans]
 
     def _arrived(self, stamp: float) -> float:
         """python-can's receive timestamp (wall-clock seconds: the kernel's on SocketCAN and
