@@ -734,6 +734,9 @@ def _summary(
             "displacement_m": world.physics.displacement() if world.physics is not None else None,
             "seconds": elapsed,
             "cycle_period": world.cycle_period,
+            # the longest the machine held the link emulator's relay (serial links; every byte
+            # on the links waited that long): a lost link beside a long hold is the bench's
+            "relay_held_ms": None if world.emulator is None else round(world.emulator.held_s * 1000, 1),
             "modules": rows,
             "events": [{"text": text, "t": t} for text, t in world.event_times],
             "sensor_push": _push_cost(world),

@@ -22,6 +22,10 @@ HELD_TICK_S = 0.005
 HELD_KEEP_S = 0.002
 #: Hold episodes kept (the latest).
 HELD_EPISODES = 4096
+#: The relays play wires, which no busy processor holds up: their threads run at this nice
+#: value, above the module processes and the world's own work (Linux keeps a nice value per
+#: thread; lowering it needs root or CAP_SYS_NICE, and without either the thread runs as it is).
+RELAY_NICE = -10
 
 
 def open_raw_pty() -> tuple[int, int, str]:
@@ -108,7 +112,14 @@ class PtyRelay:
         close_fd(self._wake_w)
         return True
 
+    @property
+    def native_id(self) -> int | None:
+        """The relay thread's id in the kernel (its nice value is its own: RELAY_NICE)."""
+        return self._thread.native_id
+
     def _run(self) -> None:
+        with contextlib.suppress(OSError):  # EACCES without the privilege: relay at the default
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RELAY_NICE)
         last = time.monotonic()
         while True:
             with self.lock:

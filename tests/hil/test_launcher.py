@@ -91,6 +91,7 @@ def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.C
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [m["state"] for m in summary["modules"]] == ["done"] * 4
     assert [m["T"] for m in summary["modules"]][:1] == [1]
+    assert summary["relay_held_ms"] is None  # a bus: no relay between the modules
     records = [json.loads(line) for line in trace.read_text().splitlines()]
     keys = [(r["cycle"], r["module"]) for r in records]
     # modules stop together at the end instant (go + 60 periods): one that started a cycle
@@ -243,6 +244,8 @@ def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str],
     assert [rows[n]["T"] for n in ("m0", "m1", "m2", "m3")] == [1, 16, 16, 2]  # one snake again
     assert rows["m2"]["cycle"] < 150  # the restarted module ran the cycles that were left
     assert rows["m2"]["counters"]["hormones_received"] > 0  # and carries the wave again
+    # serial links: the summary says how long the machine held the link emulator's relay
+    assert isinstance(summary["relay_held_ms"], float) and summary["relay_held_ms"] >= 0.0
 
 
 def test_default_stand_in_is_the_physics_world_through_the_servo_firmware_path(

@@ -4,13 +4,14 @@ allow for the holds that fell within what they time (tests/hil/test_flash_loop.p
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
 import pytest
 
 from hil.link_emulator import held_within
-from hil.ptys import HELD_KEEP_S, PtyRelay
+from hil.ptys import HELD_KEEP_S, RELAY_NICE, PtyRelay
 
 
 @pytest.mark.parametrize("hold_s", [0.03, 0.08])
@@ -59,3 +60,20 @@ def test_held_within_adds_the_overlap_of_each_hold() -> None:
     assert held_within(holds, 0.9, 1.6) == pytest.approx(0.1 + 0.1)
     assert held_within(holds, 2.0, 2.9) == 0.0
     assert held_within([], 0.0, 1.0) == 0.0
+
+
+def test_the_relay_thread_runs_above_the_modules() -> None:
+    """A wire is never held up by a busy processor: the relay's thread gets RELAY_NICE, where
+    the machine lets this process lower it (root here), and the rest of the process keeps its own."""
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    relay = PtyRelay("test-relay", threading.Lock(), lambda fd, data: None)
+    try:
+        deadline = time.monotonic() + 2.0
+        assert relay.native_id is not None
+        expected = RELAY_NICE if os.geteuid() == 0 else base
+        while os.getpriority(os.PRIO_PROCESS, relay.native_id) != expected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert os.getpriority(os.PRIO_PROCESS, relay.native_id) == expected
+        assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == base
+    finally:
+        relay.stop()
