@@ -176,10 +176,14 @@ class Node(ABC):
 
         Two rules: at most ``budget`` units per cycle; and, once the period is known, a
         frame goes out between ticks only if, sent back to back with this cycle's earlier
-        frames at the budget's rate (``budget`` units per period, slower than the link), it
-        would be out before the next tick (until two ticks have measured the period, frames
-        go out at ticks only). The link is then idle when the next cycle's hormone frames go
-        out, whenever the transfer frames were sent."""
+        frames, it would be out before the next tick (until two ticks have measured the
+        period, frames go out at ticks only). The link is then idle when the next cycle's
+        hormone frames go out, whenever the transfer frames were sent. Frames are timed at
+        the line's own rate when the pacing knows it (a serial connector), else at the
+        budget's rate (``budget`` units per period, slower than the line): timed at the
+        budget's rate, a segment frame arriving in the second half of a cycle waited for
+        the next tick although the line had it out in 0.4 of one (0.64 cycles a hop in
+        tests/dh2rt/rollout_sim.py's snake:20, 0.55 at the line's rate)."""
         cost = self.pacing.cost(len(frame))
         tokens = self._shared_tokens if self.pacing.shared else port.tokens
         if cost > tokens:
@@ -192,7 +196,8 @@ class Node(ABC):
                 return False  # the period is not known yet: frames go out at ticks only
         else:
             start = max(self._now, self._last_tick, free_at)
-            free_at = start + cost * self._period / self.pacing.budget
+            rate = self.pacing.rate or self.pacing.budget / self._period
+            free_at = start + cost / rate
             if free_at > self._last_tick + self._period * (1 + 1e-9):
                 return False
         if self.pacing.shared:

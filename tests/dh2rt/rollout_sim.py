@@ -83,7 +83,8 @@ class Medium:
 
     @property
     def pacing(self) -> Pacing:
-        return Pacing(self.budget, self.cost, self.shared)
+        # the line's own rate times frames on a link of their own (not on the shared bus)
+        return Pacing(self.budget, self.cost, self.shared, 0.0 if self.shared else self.rate)
 
     def seconds(self, payload: int) -> float:
         return self.cost(payload) / self.rate
@@ -709,3 +710,14 @@ def flash_time(spec: str, medium: Medium, images: Images, seed: int, prompt: boo
     switched = max(m.switched_at or 0.0 for m in world) - start
     depth = max(len(m.path) for m in world.flasher.report())
     return staged, switched, depth
+
+
+def staged_hops(spec: str, medium: Medium, images: Images, seed: int) -> list[float]:
+    """Cycles between the stagings of successive modules of a snake flashed from its head
+    (module k to k + 1, prompt hosts): what each further hop adds."""
+    world = World(spec, medium, images, seed=seed, image=images.v2)
+    world.run()
+    assert world.flasher.succeeded, world.summary()
+    staged = [m.staged_at for m in world]
+    assert all(t is not None for t in staged), world.summary()
+    return [(b - a) / PERIOD for a, b in itertools.pairwise(t for t in staged if t is not None)]

@@ -61,6 +61,7 @@ from tests.dh2rt.rollout_sim import (
     flash_time,
     make_images,
     snake_path,
+    staged_hops,
 )
 
 
@@ -537,6 +538,24 @@ def test_figure_time_to_flash_against_the_link_limits(images: Images, capsys: py
                     assert ratio <= 2.0, lines[-1]
     with capsys.disabled():
         sys.stdout.write("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("spec", ["snake:8", "snake:20"])
+def test_each_further_hop_stages_within_a_segments_time_and_a_half(images: Images, spec: str) -> None:
+    """Serial links: a module passes each segment on as it arrives when the line has it out
+    before the module's next tick (timed at the line's own rate, ``Pacing.rate``), else at
+    that tick. A segment frame takes ``s`` cycles on the line (0.40 at 115,200 baud and
+    20 ms), and only one arriving within ``s`` of a tick waits for it (fewer than half, at
+    unrelated phases), so the median hop, over 5 seeds, stages within ``1.5 s`` of the
+    module before it: the segment's own time and the one before it in the same cycle.
+    Timed at the budget's rate (``budget`` units per period, 0.5 cycles a segment), a
+    segment arriving in the second half of a cycle waited for the tick: 0.78 and 0.64
+    cycles a hop on snake:8 and snake:20."""
+    segment = SERIAL.seconds(SERIAL.segment_size + 6) / PERIOD
+    hops = [h for seed in range(5) for h in staged_hops(spec, SERIAL, images, seed)]
+    assert statistics.median(hops) <= 1.5 * segment, (
+        f"median hop {statistics.median(hops):.3f} cycles, segment {segment:.3f}: {[round(h, 2) for h in hops]}"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
