@@ -110,6 +110,21 @@ class Node(ABC):
         late = min((t - last + period / 2) % period - period / 2 for t in ticks)
         return last + late, period
 
+    def join_cycle(self, start: float, period: float) -> None:
+        """This node was made between ticks (a module host loads its Rollout when a transfer
+        frame first concerns the module, :mod:`firmware.flash.door`): the cycle that began at
+        ``start`` is under way and cycles are ``period`` long. Its budget is whole (nothing
+        of the rollout went out in it), and frames go out between ticks at once. Without it,
+        frames waited for the node's first tick, and for its second (the period measured)
+        to go out between ticks: the REQUEST, the first segments and their forwarding went
+        at ticks only at every module the image reached (about a cycle a hop)."""
+        if self._last_tick is not None or period <= 0:
+            return
+        self._last_tick = start
+        self._period = period
+        self._ticks.append(start)
+        self._refill()
+
     def _check_budget(self) -> None:
         largest = max(self.segment_size + 6, LARGEST_CONTROL)
         if self.pacing.cost(largest) > self.pacing.budget:
@@ -167,6 +182,10 @@ class Node(ABC):
             self._period = now - self._last_tick
         self._last_tick = now
         self._ticks.append(now)
+        self._refill()
+
+    def _refill(self) -> None:
+        """A cycle's whole budget, on every port (or the bus)."""
         self._shared_tokens = self.pacing.budget
         for port in self._ports.values():
             port.tokens = self.pacing.budget

@@ -129,6 +129,7 @@ class RolloutHost:
         pacing: Pacing,
         segment_size: int,
         latency: float,
+        cycle_started: float | None = None,
     ) -> None:
         self.rt = rt
         self.flash = flash
@@ -154,6 +155,8 @@ class RolloutHost:
             latency=latency,
             connector_name=rt.program.profile.connector_name,
         )
+        if cycle_started is not None:  # opened between cycles: frames go out before the next tick
+            self.rollout.join_cycle(cycle_started, rt.cycle_period)
         self.log: list[str] = []
         self.stages = 0
         self.writer = FlashWriter(threaded=lambda: rt.clock is time.monotonic)

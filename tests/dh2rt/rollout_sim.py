@@ -240,6 +240,7 @@ class Node:
         self.units: Counter[tuple[int, int]] = Counter()  # (cycle, connector or 0) -> units sent
         self.generation = 0
         self.leaves = -math.inf  # a busy host: when its last held-up frame leaves
+        self.ticked_at: float | None = None  # when its last cycle began
 
     def local(self, t: float) -> float:
         return t + self.offset
@@ -275,6 +276,7 @@ class Node:
         frames (hormones, beacons: the new program's Hello after a switch), then the
         transfer frames the tick let out."""
         w = self.world
+        self.ticked_at = w.t
         actions = self.machine.tick(self.local(w.t))
         self.run(a for a in actions if not isinstance(a, Send))
         self.send_link_frames()
@@ -319,6 +321,8 @@ class Module(Node):
         self.refusals: list[tuple[float, int]] = []  # (time, connector) of Hellos refused
         self.faulty = False  # its trial faults (the host reverts it) instead of running clean
         self.stages = 0
+        self.hellos: dict[int, tuple[float, bytes]] = {}  # connector -> its last Hello: (when, frame)
+        self.opened = not world.opened_by_frame
         self.machine = self.boot()
 
     @property
@@ -397,9 +401,31 @@ class Module(Node):
 
     def forget(self, connector: int) -> None:
         self.peers.pop(connector, None)
+        self.hellos.pop(connector, None)
+
+    def take(self, at: float, connector: int, frame: Frame) -> None:
+        if not frame.link and not self.opened:
+            self.open()
+        super().take(at, connector, frame)
+
+    def open(self) -> None:
+        """A host that loads its Rollout at the first transfer frame (firmware.flash.door):
+        a new one, the links attached, the Hellos kept handed on, and (``joins_cycle``) the
+        cycle under way and the period told (``Rollout.join_cycle``)."""
+        w = self.world
+        self.opened = True
+        self.machine = self.boot()
+        if w.joins_cycle and self.ticked_at is not None:
+            self.machine.join_cycle(self.local(self.ticked_at), PERIOD)
+        for connector in w.connectors(self.index):
+            self.run(self.machine.attach(connector, self.local(w.t)))
+        for connector, (at, payload) in sorted(self.hellos.items()):
+            hello = tw.decode_hello(payload)
+            self.run(self.machine.hello(connector, hello.sender, hello.version, hello.digest, self.local(at)))
 
     def take_link_frame(self, at: float, connector: int, frame: Frame) -> None:
         if len(frame.payload) > LINK_FRAME:
+            self.hellos[connector] = (at, frame.payload)
             digest = tw.decode_hello(frame.payload).digest
             self.peers[connector] = digest
             assert isinstance(self.machine, Rollout)
@@ -423,6 +449,9 @@ class Module(Node):
         self.running = self.flash.confirmed
         self.offset = self.world.rng.uniform(-1e4, 1e4)
         self.machine = self.boot()
+        self.opened = not self.world.opened_by_frame or self.partial is not None or self.flash.pending is not None
+        self.hellos = {}
+        self.ticked_at = None
         self.alive = True
         self.peers = {}
         self.hello_sent = {}
@@ -488,8 +517,14 @@ class World:
         settle_ticks: int = 250,
         confirm: bool = False,
         faulty: Iterable[int] = (),
+        opened_by_frame: bool = False,
+        joins_cycle: bool = True,
     ) -> None:
         self.topology = parse_spec(spec) if isinstance(spec, str) else spec
+        #: modules load their Rollout at the first transfer frame (firmware.flash.door),
+        #: telling it the cycle under way (``joins_cycle``), rather than at boot
+        self.opened_by_frame = opened_by_frame
+        self.joins_cycle = joins_cycle
         self.medium = medium
         self.rng = random.Random(seed)
         self.t = 0.0
@@ -712,10 +747,11 @@ def flash_time(spec: str, medium: Medium, images: Images, seed: int, prompt: boo
     return staged, switched, depth
 
 
-def staged_hops(spec: str, medium: Medium, images: Images, seed: int) -> list[float]:
+def staged_hops(spec: str, medium: Medium, images: Images, seed: int, **options: bool) -> list[float]:
     """Cycles between the stagings of successive modules of a snake flashed from its head
-    (module k to k + 1, prompt hosts): what each further hop adds."""
-    world = World(spec, medium, images, seed=seed, image=images.v2)
+    (module k to k + 1, prompt hosts): what each further hop adds. ``options``: World's
+    ``opened_by_frame`` and ``joins_cycle``."""
+    world = World(spec, medium, images, seed=seed, image=images.v2, **options)
     world.run()
     assert world.flasher.succeeded, world.summary()
     staged = [m.staged_at for m in world]

@@ -232,6 +232,24 @@ def test_the_rollout_opens_at_the_first_transfer_frame_and_not_before(tmp_path: 
     assert transport.counters.unhandled == 0
 
 
+def test_a_rollout_opened_between_ticks_answers_before_the_next(tmp_path: Path, signer: bytes) -> None:
+    """The door hands its host the cycle under way (``Node.join_cycle``): the head's REQUEST
+    to the cable's OFFER goes out in the cycle the OFFER opened the host in, before the
+    host's first tick (a Rollout not told the cycle sent nothing before it)."""
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 2, 0, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(40)
+    cable = robot.cable(pack(new.image, 2, signer))
+    for _ in range(20):
+        robot.step(cable)
+        host = door(robot, 0).host
+        if host is not None:
+            break
+    assert host is not None
+    assert host.rollout.tick_count == 0  # opened in this cycle, after its start
+    assert host.rollout.counters.units_sent > 0
+
+
 @pytest.mark.parametrize("behind", [0, 2, 3])
 def test_a_neighbour_on_a_lower_version_opens_the_rollout_and_is_brought_up_to_date(
     tmp_path: Path, signer: bytes, behind: int
