@@ -747,11 +747,14 @@ def flash_time(spec: str, medium: Medium, images: Images, seed: int, prompt: boo
     return staged, switched, depth
 
 
-def staged_hops(spec: str, medium: Medium, images: Images, seed: int, **options: bool) -> list[float]:
+def staged_hops(
+    spec: str, medium: Medium, images: Images, seed: int, *, opened_by_frame: bool = False, joins_cycle: bool = True
+) -> list[float]:
     """Cycles between the stagings of successive modules of a snake flashed from its head
-    (module k to k + 1, prompt hosts): what each further hop adds. ``options``: World's
-    ``opened_by_frame`` and ``joins_cycle``."""
-    world = World(spec, medium, images, seed=seed, image=images.v2, **options)
+    (module k to k + 1, prompt hosts): what each further hop adds (see World for the options)."""
+    world = World(
+        spec, medium, images, seed=seed, image=images.v2, opened_by_frame=opened_by_frame, joins_cycle=joins_cycle
+    )
     world.run()
     assert world.flasher.succeeded, world.summary()
     staged = [m.staged_at for m in world]
