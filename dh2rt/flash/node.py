@@ -202,7 +202,7 @@ class Node(ABC):
         budget's rate (``budget`` units per period, slower than the line): timed at the
         budget's rate, a segment frame arriving in the second half of a cycle waited for
         the next tick although the line had it out in 0.4 of one (0.64 cycles a hop in
-        tests/dh2rt/rollout_sim.py's snake:20, 0.55 at the line's rate)."""
+        tests/dh2rt/rollout_sim.py's snake:20, 0.56 at the line's rate)."""
         cost = self.pacing.cost(len(frame))
         tokens = self._shared_tokens if self.pacing.shared else port.tokens
         if cost > tokens:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from dh2rt import signed_image as si
 from dh2rt.compiler import compile_source
 from dh2rt.flash.flasher import Flasher
-from dh2rt.flash.pacing import Pacing
+from dh2rt.flash.pacing import SERIAL_TIMING, Pacing
 from dh2rt.flash.rollout import Rollout
 from dh2rt.flash.values import Action, DropPartial, ImageInfo, Partial, Persist, Program, Send, Stage, Switch, Timing
 from dh2rt.topology import Topology, parse_spec
@@ -84,7 +84,7 @@ class Medium:
     @property
     def pacing(self) -> Pacing:
         # the line's own rate times frames on a link of their own (not on the shared bus)
-        return Pacing(self.budget, self.cost, self.shared, 0.0 if self.shared else self.rate)
+        return Pacing(self.budget, self.cost, self.shared, 0.0 if self.shared else self.rate * SERIAL_TIMING)
 
     def seconds(self, payload: int) -> float:
         return self.cost(payload) / self.rate
