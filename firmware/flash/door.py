@@ -81,6 +81,8 @@ class RolloutDoor:
         self._hellos: dict[int, tuple[int, Hello, float]] = {}
         #: when the cycle under way began (the host's Rollout joins it: Node.join_cycle)
         self._cycle_started: float | None = None
+        #: between a cycle's start and its link frames going out (the host holds its frames then)
+        self._in_cycle = False
         rt.liveness.version = boot.version  # the Hellos state it from the first one
         rt.observer = self
         #: the transport's transfer frames: they open the host, then go to it
@@ -124,6 +126,11 @@ class RolloutDoor:
         """Nothing to tolerate and nothing to send while no image moves; the cycle's start
         is kept for the host, should it open before the next."""
         self._cycle_started = now
+        self._in_cycle = True
+
+    def cycle_sent(self, rt: ModuleRuntime) -> None:
+        """Nothing held back while no image moves."""
+        self._in_cycle = False
 
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
         self._hellos[connector] = (remote, hello, now)
@@ -156,7 +163,7 @@ class RolloutDoor:
         self.host = host = RolloutHost(
             self.rt, self.flash, self.boot, self.on_switch,
             connectors=connectors, pacing=pacing, segment_size=segment, latency=latency,
-            cycle_started=self._cycle_started,
+            cycle_started=self._cycle_started, in_cycle=self._in_cycle,
         )  # fmt: skip
         self.opened_by = why
         self.rt.log.append(f"cycle {self.rt.cycle}: rollout: opened ({why})")

@@ -250,6 +250,49 @@ def test_a_rollout_opened_between_ticks_answers_before_the_next(tmp_path: Path, 
     assert host.rollout.counters.units_sent > 0
 
 
+def test_a_cycles_hormones_go_out_before_its_transfer_frames(
+    tmp_path: Path, signer: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the Rollout lets out in a cycle (its tick, and frames read in the cycle) goes
+    through a connector after that cycle's hormones and beacons (``cycle_sent``): the line
+    is the hormones' at each cycle start, as the pacing promises."""
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 3, 0, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(40)
+    host = robot.hosts[1]
+    assert host is not None
+    rt = host.runtime
+    sent: list[tuple[str, int]] = []  # ("step", 0), then ("link" or "transfer", connector)
+    step, send, send_raw = rt.step, rt.transport.send, rt.transport.send_raw
+
+    def traced_step() -> None:
+        sent.append(("step", 0))
+        step()
+
+    def traced_send(through: int, frame: Any) -> bool:
+        sent.append(("link", through))
+        return send(through, frame)
+
+    def traced_send_raw(through: int, payload: bytes) -> bool:
+        sent.append(("transfer", through))
+        return send_raw(through, payload)
+
+    monkeypatch.setattr(rt, "step", traced_step)
+    monkeypatch.setattr(rt.transport, "send", traced_send)
+    monkeypatch.setattr(rt.transport, "send_raw", traced_send_raw)
+    result = robot.flash(pack(new.image, 2, signer))
+    assert result.succeeded, result.failure
+    cycles = [list(g) for k, g in itertools.groupby(sent[1:], key=lambda e: e[0] == "step") if not k]
+    both = 0
+    for cycle in cycles:
+        for connector in {c for kind, c in cycle if kind == "transfer"}:
+            kinds = [kind for kind, c in cycle if c == connector]
+            if "link" in kinds:
+                both += 1
+                assert kinds.index("transfer") > max(i for i, k in enumerate(kinds) if k == "link"), (connector, kinds)
+    assert both > 10  # cycles in which both went through one connector
+
+
 @pytest.mark.parametrize("behind", [0, 2, 3])
 def test_a_neighbour_on_a_lower_version_opens_the_rollout_and_is_brought_up_to_date(
     tmp_path: Path, signer: bytes, behind: int
