@@ -123,10 +123,13 @@ class Driver(Protocol):
 
 class LinkObserver(Protocol):
     """Who else watches the links (a rollout host, :mod:`firmware.flash.module_host`): told of each
-    cycle's start before the engine runs, of every Hello (verified or refused), and of
-    connectors liveness found silent. It may switch the program at a cycle start."""
+    cycle's start before the engine runs, once the cycle's link frames (hormones, beacons) are
+    sent, of every Hello (verified or refused), and of connectors liveness found silent. It
+    may switch the program at a cycle start."""
 
     def cycle_start(self, rt: ModuleRuntime, now: float) -> None: ...
+
+    def cycle_sent(self, rt: ModuleRuntime) -> None: ...
 
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None: ...
 
@@ -368,6 +371,8 @@ class ModuleRuntime:
                 engine.send_failed(em.through)
         self.stats.hormones_sent += len(sent)
         self._beacon(carried)
+        if self.observer is not None:
+            self.observer.cycle_sent(self)
         faults: list[str] = []
         if engine.effects:
             for kind, args in engine.effects:

@@ -110,6 +110,21 @@ class Node(ABC):
         late = min((t - last + period / 2) % period - period / 2 for t in ticks)
         return last + late, period
 
+    def join_cycle(self, start: float, period: float) -> None:
+        """This node was made between ticks (a module host loads its Rollout when a transfer
+        frame first concerns the module, :mod:`firmware.flash.door`): the cycle that began at
+        ``start`` is under way and cycles are ``period`` long. Its budget is whole (nothing
+        of the rollout went out in it), and frames go out between ticks at once. Without it,
+        frames waited for the node's first tick, and for its second (the period measured)
+        to go out between ticks: the REQUEST, the first segments and their forwarding went
+        at ticks only at every module the image reached (about a cycle a hop)."""
+        if self._last_tick is not None or period <= 0:
+            return
+        self._last_tick = start
+        self._period = period
+        self._ticks.append(start)
+        self._refill()
+
     def _check_budget(self) -> None:
         largest = max(self.segment_size + 6, LARGEST_CONTROL)
         if self.pacing.cost(largest) > self.pacing.budget:
@@ -167,6 +182,10 @@ class Node(ABC):
             self._period = now - self._last_tick
         self._last_tick = now
         self._ticks.append(now)
+        self._refill()
+
+    def _refill(self) -> None:
+        """A cycle's whole budget, on every port (or the bus)."""
         self._shared_tokens = self.pacing.budget
         for port in self._ports.values():
             port.tokens = self.pacing.budget
@@ -176,10 +195,14 @@ class Node(ABC):
 
         Two rules: at most ``budget`` units per cycle; and, once the period is known, a
         frame goes out between ticks only if, sent back to back with this cycle's earlier
-        frames at the budget's rate (``budget`` units per period, slower than the link), it
-        would be out before the next tick (until two ticks have measured the period, frames
-        go out at ticks only). The link is then idle when the next cycle's hormone frames go
-        out, whenever the transfer frames were sent."""
+        frames, it would be out before the next tick (until two ticks have measured the
+        period, frames go out at ticks only). The link is then idle when the next cycle's
+        hormone frames go out, whenever the transfer frames were sent. Frames are timed at
+        the line's own rate when the pacing knows it (a serial connector), else at the
+        budget's rate (``budget`` units per period, slower than the line): timed at the
+        budget's rate, a segment frame arriving in the second half of a cycle waited for
+        the next tick although the line had it out in 0.4 of one (0.64 cycles a hop in
+        tests/dh2rt/rollout_sim.py's snake:20, 0.56 at the line's rate)."""
         cost = self.pacing.cost(len(frame))
         tokens = self._shared_tokens if self.pacing.shared else port.tokens
         if cost > tokens:
@@ -192,7 +215,8 @@ class Node(ABC):
                 return False  # the period is not known yet: frames go out at ticks only
         else:
             start = max(self._now, self._last_tick, free_at)
-            free_at = start + cost * self._period / self.pacing.budget
+            rate = self.pacing.rate or self.pacing.budget / self._period
+            free_at = start + cost / rate
             if free_at > self._last_tick + self._period * (1 + 1e-9):
                 return False
         if self.pacing.shared:

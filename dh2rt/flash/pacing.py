@@ -19,6 +19,11 @@ SERIAL_SHARE = 0.8
 #: Segment size on serial links (92 bytes on the wire each) and on a CAN bus (8 frames).
 SERIAL_SEGMENT = 80
 CAN_SEGMENT = 56
+#: The share of a serial line's nominal rate a rollout times its frames at (``Pacing.rate``):
+#: a line runs a little slower than nominal (the link emulator carried the image's 35.0 ms of
+#: bytes in 36.1 ms in benchmarks/bench_flash.py), and a frame timed to be out just before the
+#: next tick must not still be on the line when the hormones go.
+SERIAL_TIMING = 0.95
 #: Bits per cycle a module may spend on a shared CAN bus, as a share of the bus.
 CAN_SHARE = 0.3
 #: A COMMIT's payload, for its transit time.
@@ -36,11 +41,18 @@ class Pacing:
     """How much a module may send per cycle: ``budget`` link units per connector (or per
     module when ``shared``: every connector on one bus), a frame of n bytes costing
     ``cost(n)`` units (:func:`dh2rt.wire.transfer.serial_cost`: bytes on a serial line;
-    :func:`~dh2rt.wire.transfer.can_cost`: worst-case bits on a CAN bus)."""
+    :func:`~dh2rt.wire.transfer.can_cost`: worst-case bits on a CAN bus).
+
+    ``rate``: the line's own units per second (:data:`SERIAL_TIMING` of its nominal rate),
+    when the module's frames have the line to themselves (a serial connector): a frame sent
+    between ticks is timed out at it, so that one that is out before the next tick goes
+    now. 0 (a shared bus, whose frames wait for the others' arbitration; or unknown): timed
+    at the budget's rate, ``budget`` units per period, slower than the line."""
 
     budget: int
     cost: Callable[[int], int] = _bytes
     shared: bool = False
+    rate: float = 0.0
 
 
 def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> tuple[Pacing, int, float]:
@@ -51,7 +63,8 @@ def link_pacing(transport: str, period: float, baudrate: int, bitrate: int) -> t
     if transport == "serial":
         per_cycle = int(baudrate / 10 * period * SERIAL_SHARE)
         _check_share(per_cycle, serial_cost, SERIAL_SEGMENT, "bytes", f"a {baudrate}-baud serial line", period)
-        return Pacing(per_cycle, serial_cost), SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
+        pacing = Pacing(per_cycle, serial_cost, rate=baudrate / 10 * SERIAL_TIMING)
+        return pacing, SERIAL_SEGMENT, serial_cost(_COMMIT_BYTES) * 10 / baudrate
     per_cycle = int(bitrate * period * CAN_SHARE)
     _check_share(per_cycle, can_cost, CAN_SEGMENT, "bits", f"a {bitrate} bit/s CAN bus", period)
     # a train is timed by its first frame (dh2rt.wire.can_frames.Reassembler.started)

@@ -15,7 +15,11 @@ door instead and opens the host at the first thing that needs it:
 Until then the door keeps what the host would have been told: the latest Hello on every
 linked connector. When it opens, the new host attaches the transport's links as it always
 does and is handed those Hellos (the one that opened it among them), then the transfer frame
-that opened it, if one did, so it starts where an eagerly loaded host would be. After that
+that opened it, if one did, so it starts where an eagerly loaded host would be, in the cycle
+under way too: its Rollout is told when that cycle began (``Node.join_cycle``), so that it
+sends between ticks at once (a Rollout made between ticks otherwise waited for its first two
+ticks: each module's REQUEST and first segments went at ticks only, about a cycle a hop in
+``benchmarks/bench_flash.py``, 0.73 in tests/dh2rt/rollout_sim.py's snake:20). After that
 the host is the runtime's observer, the door's transfer handler (the transport's, registered
 once) hands it every transfer frame, and the door only forwards the module host's calls.
 
@@ -75,6 +79,10 @@ class RolloutDoor:
         #: why it was opened, for the log and the tests
         self.opened_by: str | None = None
         self._hellos: dict[int, tuple[int, Hello, float]] = {}
+        #: when the cycle under way began (the host's Rollout joins it: Node.join_cycle)
+        self._cycle_started: float | None = None
+        #: between a cycle's start and its link frames going out (the host holds its frames then)
+        self._in_cycle = False
         rt.liveness.version = boot.version  # the Hellos state it from the first one
         rt.observer = self
         #: the transport's transfer frames: they open the host, then go to it
@@ -115,7 +123,14 @@ class RolloutDoor:
     # -- the runtime's LinkObserver, while closed --------------------------------------------
 
     def cycle_start(self, rt: ModuleRuntime, now: float) -> None:
-        """Nothing to tolerate and nothing to send while no image moves."""
+        """Nothing to tolerate and nothing to send while no image moves; the cycle's start
+        is kept for the host, should it open before the next."""
+        self._cycle_started = now
+        self._in_cycle = True
+
+    def cycle_sent(self, rt: ModuleRuntime) -> None:
+        """Nothing held back while no image moves."""
+        self._in_cycle = False
 
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
         self._hellos[connector] = (remote, hello, now)
@@ -148,6 +163,7 @@ class RolloutDoor:
         self.host = host = RolloutHost(
             self.rt, self.flash, self.boot, self.on_switch,
             connectors=connectors, pacing=pacing, segment_size=segment, latency=latency,
+            cycle_started=self._cycle_started, in_cycle=self._in_cycle,
         )  # fmt: skip
         self.opened_by = why
         self.rt.log.append(f"cycle {self.rt.cycle}: rollout: opened ({why})")

@@ -9,7 +9,9 @@ host, for :class:`firmware.main_loop.ModuleHost`, which opens it through
   Hellos, silent links, attaches and detaches from the runtime (it is the runtime's
   :class:`~dh2rt.runtime.LinkObserver`), and it ticks the Rollout at every cycle start,
   before the engine;
-* it carries out the actions: ``Send`` through the transport, ``Persist``/``DropPartial``
+* it carries out the actions: ``Send`` through the transport (from a cycle's start until the
+  runtime has sent that cycle's hormones and beacons, ``cycle_sent``, held back and sent
+  after them: the line is the hormones' at each cycle start), ``Persist``/``DropPartial``
   into ``partial.img``/``partial.json`` beside the slots of the module's flash (durably,
   so that a module restarted mid-staging resumes), ``Stage`` through ``Flash.stage(hold=
   True)`` (the image waits for the agreed switch; a restart meanwhile boots the old program
@@ -129,6 +131,8 @@ class RolloutHost:
         pacing: Pacing,
         segment_size: int,
         latency: float,
+        cycle_started: float | None = None,
+        in_cycle: bool = False,
     ) -> None:
         self.rt = rt
         self.flash = flash
@@ -154,8 +158,13 @@ class RolloutHost:
             latency=latency,
             connector_name=rt.program.profile.connector_name,
         )
+        if cycle_started is not None:  # opened between cycles: frames go out before the next tick
+            self.rollout.join_cycle(cycle_started, rt.cycle_period)
         self.log: list[str] = []
         self.stages = 0
+        #: between a cycle's start and its link frames going out, transfer frames wait here
+        self._holding = in_cycle  # opened after a cycle's start, before its link frames went
+        self._held: list[Send] = []
         self.writer = FlashWriter(threaded=lambda: rt.clock is time.monotonic)
         #: what the log said last of this module's name and switch instant
         self._said: tuple[object, object] = (None, None)
@@ -175,8 +184,19 @@ class RolloutHost:
 
     def cycle_start(self, rt: ModuleRuntime, now: float) -> None:
         self.writer.collect()
+        self._holding = True  # the cycle's hormones go first: see cycle_sent
         self._do(self.rollout.tick(now))
         rt.liveness.tolerated = self.rollout.tolerated()
+
+    def cycle_sent(self, rt: ModuleRuntime) -> None:
+        """The runtime sent the cycle's link frames: the transfer frames held back since its
+        start follow them, in order. The pacing keeps the line free for the hormones at each
+        cycle start; sent at the tick, before the engine ran, up to a cycle's budget of
+        transfer bytes (16 ms at 115,200 baud) went ahead of the cycle's hormones."""
+        self._holding = False
+        held, self._held = self._held, []
+        for send in held:
+            self._send(send)
 
     def hello(self, connector: int, remote: int, hello: Hello, now: float) -> None:
         self.writer.collect()
@@ -214,9 +234,11 @@ class RolloutHost:
     def _do(self, actions: list[Action]) -> None:
         for action in actions:
             match action:
-                case Send(connector):
-                    # stamped as it leaves: a COMMIT states the time left from now
-                    self.rt.transport.send_raw(connector, action.frame(self.rt.clock()))
+                case Send():
+                    if self._holding:
+                        self._held.append(action)
+                    else:
+                        self._send(action)
                 case Persist(info, offset, data):
                     self.writer.submit(functools.partial(self._persist, info, offset, data))
                 case DropPartial():
@@ -229,6 +251,10 @@ class RolloutHost:
                     self.declined[verdict] += 1
                     self._note(f"offer of version {version} refused ({verdict}): {reason}")
         self._say_name_and_instant()
+
+    def _send(self, send: Send) -> None:
+        # stamped as it leaves: a COMMIT states the time left from now
+        self.rt.transport.send_raw(send.connector, send.frame(self.rt.clock()))
 
     def _say_name_and_instant(self) -> None:
         """Log this module's name (its path, as every report prints it) once an OFFER told

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from dh2rt import signed_image as si
 from dh2rt.compiler import compile_source
 from dh2rt.flash.flasher import Flasher
-from dh2rt.flash.pacing import Pacing
+from dh2rt.flash.pacing import SERIAL_TIMING, Pacing
 from dh2rt.flash.rollout import Rollout
 from dh2rt.flash.values import Action, DropPartial, ImageInfo, Partial, Persist, Program, Send, Stage, Switch, Timing
 from dh2rt.topology import Topology, parse_spec
@@ -83,7 +83,8 @@ class Medium:
 
     @property
     def pacing(self) -> Pacing:
-        return Pacing(self.budget, self.cost, self.shared)
+        # the line's own rate times frames on a link of their own (not on the shared bus)
+        return Pacing(self.budget, self.cost, self.shared, 0.0 if self.shared else self.rate * SERIAL_TIMING)
 
     def seconds(self, payload: int) -> float:
         return self.cost(payload) / self.rate
@@ -239,6 +240,7 @@ class Node:
         self.units: Counter[tuple[int, int]] = Counter()  # (cycle, connector or 0) -> units sent
         self.generation = 0
         self.leaves = -math.inf  # a busy host: when its last held-up frame leaves
+        self.ticked_at: float | None = None  # when its last cycle began
 
     def local(self, t: float) -> float:
         return t + self.offset
@@ -274,6 +276,7 @@ class Node:
         frames (hormones, beacons: the new program's Hello after a switch), then the
         transfer frames the tick let out."""
         w = self.world
+        self.ticked_at = w.t
         actions = self.machine.tick(self.local(w.t))
         self.run(a for a in actions if not isinstance(a, Send))
         self.send_link_frames()
@@ -318,6 +321,8 @@ class Module(Node):
         self.refusals: list[tuple[float, int]] = []  # (time, connector) of Hellos refused
         self.faulty = False  # its trial faults (the host reverts it) instead of running clean
         self.stages = 0
+        self.hellos: dict[int, tuple[float, bytes]] = {}  # connector -> its last Hello: (when, frame)
+        self.opened = not world.opened_by_frame
         self.machine = self.boot()
 
     @property
@@ -396,9 +401,31 @@ class Module(Node):
 
     def forget(self, connector: int) -> None:
         self.peers.pop(connector, None)
+        self.hellos.pop(connector, None)
+
+    def take(self, at: float, connector: int, frame: Frame) -> None:
+        if not frame.link and not self.opened:
+            self.open()
+        super().take(at, connector, frame)
+
+    def open(self) -> None:
+        """A host that loads its Rollout at the first transfer frame (firmware.flash.door):
+        a new one, the links attached, the Hellos kept handed on, and (``joins_cycle``) the
+        cycle under way and the period told (``Rollout.join_cycle``)."""
+        w = self.world
+        self.opened = True
+        self.machine = self.boot()
+        if w.joins_cycle and self.ticked_at is not None:
+            self.machine.join_cycle(self.local(self.ticked_at), PERIOD)
+        for connector in w.connectors(self.index):
+            self.run(self.machine.attach(connector, self.local(w.t)))
+        for connector, (at, payload) in sorted(self.hellos.items()):
+            hello = tw.decode_hello(payload)
+            self.run(self.machine.hello(connector, hello.sender, hello.version, hello.digest, self.local(at)))
 
     def take_link_frame(self, at: float, connector: int, frame: Frame) -> None:
         if len(frame.payload) > LINK_FRAME:
+            self.hellos[connector] = (at, frame.payload)
             digest = tw.decode_hello(frame.payload).digest
             self.peers[connector] = digest
             assert isinstance(self.machine, Rollout)
@@ -422,6 +449,9 @@ class Module(Node):
         self.running = self.flash.confirmed
         self.offset = self.world.rng.uniform(-1e4, 1e4)
         self.machine = self.boot()
+        self.opened = not self.world.opened_by_frame or self.partial is not None or self.flash.pending is not None
+        self.hellos = {}
+        self.ticked_at = None
         self.alive = True
         self.peers = {}
         self.hello_sent = {}
@@ -487,8 +517,14 @@ class World:
         settle_ticks: int = 250,
         confirm: bool = False,
         faulty: Iterable[int] = (),
+        opened_by_frame: bool = False,
+        joins_cycle: bool = True,
     ) -> None:
         self.topology = parse_spec(spec) if isinstance(spec, str) else spec
+        #: modules load their Rollout at the first transfer frame (firmware.flash.door),
+        #: telling it the cycle under way (``joins_cycle``), rather than at boot
+        self.opened_by_frame = opened_by_frame
+        self.joins_cycle = joins_cycle
         self.medium = medium
         self.rng = random.Random(seed)
         self.t = 0.0
@@ -709,3 +745,18 @@ def flash_time(spec: str, medium: Medium, images: Images, seed: int, prompt: boo
     switched = max(m.switched_at or 0.0 for m in world) - start
     depth = max(len(m.path) for m in world.flasher.report())
     return staged, switched, depth
+
+
+def staged_hops(
+    spec: str, medium: Medium, images: Images, seed: int, *, opened_by_frame: bool = False, joins_cycle: bool = True
+) -> list[float]:
+    """Cycles between the stagings of successive modules of a snake flashed from its head
+    (module k to k + 1, prompt hosts): what each further hop adds (see World for the options)."""
+    world = World(
+        spec, medium, images, seed=seed, image=images.v2, opened_by_frame=opened_by_frame, joins_cycle=joins_cycle
+    )
+    world.run()
+    assert world.flasher.succeeded, world.summary()
+    staged = [m.staged_at for m in world]
+    assert all(t is not None for t in staged), world.summary()
+    return [(b - a) / PERIOD for a, b in itertools.pairwise(t for t in staged if t is not None)]

@@ -61,6 +61,7 @@ from tests.dh2rt.rollout_sim import (
     flash_time,
     make_images,
     snake_path,
+    staged_hops,
 )
 
 
@@ -537,6 +538,31 @@ def test_figure_time_to_flash_against_the_link_limits(images: Images, capsys: py
                     assert ratio <= 2.0, lines[-1]
     with capsys.disabled():
         sys.stdout.write("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("opened", ["boot", "frame"])
+@pytest.mark.parametrize("spec", ["snake:8", "snake:20"])
+def test_each_further_hop_stages_within_a_segments_time_and_a_half(images: Images, spec: str, opened: str) -> None:
+    """Serial links: a module passes each segment on as it arrives when the line has it out
+    before the module's next tick (timed at the line's rate, ``Pacing.rate``: 95 % of the
+    nominal), else at that tick. A segment frame takes ``s`` cycles so timed (0.42 at
+    115,200 baud and 20 ms), and only one arriving within ``s`` of a tick waits for it
+    (fewer than half, at unrelated phases), so over 5 seeds the median and the mean hop
+    stage within ``1.5 s`` of the module before: the segment's own time and the one before
+    it in the same cycle. ``opened``: the Rollout made at boot, or at the first transfer
+    frame, as the module program's door does (it joins the cycle under way:
+    ``Node.join_cycle``).
+
+    Before issue 27's pacing work, frames timed at the budget's rate (0.5 cycles a segment)
+    waited for the tick when they arrived in a cycle's second half: mean hops of 0.72 and
+    0.64 cycles on snake:8 and snake:20; and a Rollout made at the first frame, not told the
+    cycle under way, sent at its first two ticks only: 0.75 and 0.73."""
+    segment = SERIAL.pacing.cost(SERIAL.segment_size + 6) / SERIAL.pacing.rate / PERIOD
+    lazy = opened == "frame"
+    hops = [h for seed in range(5) for h in staged_hops(spec, SERIAL, images, seed, opened_by_frame=lazy)]
+    shown = f"segment {segment:.3f} cycles, hops {[round(h, 2) for h in hops]}"
+    assert statistics.median(hops) <= 1.5 * segment, f"median hop {statistics.median(hops):.3f}: {shown}"
+    assert statistics.mean(hops) <= 1.5 * segment, f"mean hop {statistics.mean(hops):.3f}: {shown}"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -232,6 +232,67 @@ def test_the_rollout_opens_at_the_first_transfer_frame_and_not_before(tmp_path: 
     assert transport.counters.unhandled == 0
 
 
+def test_a_rollout_opened_between_ticks_answers_before_the_next(tmp_path: Path, signer: bytes) -> None:
+    """The door hands its host the cycle under way (``Node.join_cycle``): the head's REQUEST
+    to the cable's OFFER goes out in the cycle the OFFER opened the host in, before the
+    host's first tick (a Rollout not told the cycle sent nothing before it)."""
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 2, 0, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(40)
+    cable = robot.cable(pack(new.image, 2, signer))
+    for _ in range(20):
+        robot.step(cable)
+        host = door(robot, 0).host
+        if host is not None:
+            break
+    assert host is not None
+    assert host.rollout.tick_count == 0  # opened in this cycle, after its start
+    assert host.rollout.counters.units_sent > 0
+
+
+def test_a_cycles_hormones_go_out_before_its_transfer_frames(
+    tmp_path: Path, signer: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the Rollout lets out in a cycle (its tick, and frames read in the cycle) goes
+    through a connector after that cycle's hormones and beacons (``cycle_sent``): the line
+    is the hormones' at each cycle start, as the pacing promises."""
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 3, 0, signer=signer, image=pack(old.image, 1, signer))
+    robot.run(40)
+    host = robot.hosts[1]
+    assert host is not None
+    rt = host.runtime
+    sent: list[tuple[str, int]] = []  # ("step", 0), then ("link" or "transfer", connector)
+    step, send, send_raw = rt.step, rt.transport.send, rt.transport.send_raw
+
+    def traced_step() -> None:
+        sent.append(("step", 0))
+        step()
+
+    def traced_send(through: int, frame: Any) -> bool:
+        sent.append(("link", through))
+        return send(through, frame)
+
+    def traced_send_raw(through: int, payload: bytes) -> bool:
+        sent.append(("transfer", through))
+        return send_raw(through, payload)
+
+    monkeypatch.setattr(rt, "step", traced_step)
+    monkeypatch.setattr(rt.transport, "send", traced_send)
+    monkeypatch.setattr(rt.transport, "send_raw", traced_send_raw)
+    result = robot.flash(pack(new.image, 2, signer))
+    assert result.succeeded, result.failure
+    cycles = [list(g) for k, g in itertools.groupby(sent[1:], key=lambda e: e[0] == "step") if not k]
+    both = 0
+    for cycle in cycles:
+        for connector in {c for kind, c in cycle if kind == "transfer"}:
+            kinds = [kind for kind, c in cycle if c == connector]
+            if "link" in kinds:
+                both += 1
+                assert kinds.index("transfer") > max(i for i, k in enumerate(kinds) if k == "link"), (connector, kinds)
+    assert both > 10  # cycles in which both went through one connector
+
+
 @pytest.mark.parametrize("behind", [0, 2, 3])
 def test_a_neighbour_on_a_lower_version_opens_the_rollout_and_is_brought_up_to_date(
     tmp_path: Path, signer: bytes, behind: int
