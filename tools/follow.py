@@ -13,7 +13,8 @@ module (bound there, or no link to go on; a CAN capture cannot tell the two apar
 Where a branch ends at a module, that module may answer with a hormone of its own (the
 caterpillar's module takes X(A) and sends X(B) on through its back, Table I's wave): with
 ``--chain`` (the default) the journey goes on through the hormone that module sent first
-within a cycle and a half after the arrival, through another of its link ends. Which link
+within ANSWER_CYCLES cycles after the arrival, through another of its link ends (a module
+answers in its next cycle, at most a period later, plus however late that cycle began). Which link
 ends are one module comes from the traffic alone (:mod:`tools.topology_rebuild`: hormones
 forwarded, frames sent in one burst, hormones answered), so this is what the capture shows,
 not a module's name; each module is visited once.
@@ -37,6 +38,11 @@ from dh2rt.hormone import Path as HormonePath
 from tools.decode import Hop
 from tools.reading import PROGRAM_HELP, interruptible, options_and_capture
 from tools.topology_rebuild import Rebuilt, Traffic, rebuild
+
+#: How long after a hormone reached a module its answer may come, in the robot's periods: the
+#: module reads it at its next cycle start (up to a period later) and answers in that cycle; a
+#: loaded machine starts cycles late (1.5 missed answers from a module held half a period).
+ANSWER_CYCLES = 2.0
 
 
 @dataclass
@@ -186,7 +192,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (CaptureError, ValueError) as exc:
             err(f"{ns.capture}: cannot tell which link ends are one module ({exc}); try --no-chain")
             return EXIT_USAGE
-        chain(hops, root, rebuilt, 1.5 * rebuilt.period)
+        chain(hops, root, rebuilt, ANSWER_CYCLES * rebuilt.period)
     if ns.json:
 
         def tree(step: Step) -> dict[str, object]:
