@@ -25,7 +25,7 @@ as a module's status file is in ``/run``. Per process (median and max over the e
 
 * resident memory: ``VmRSS`` of ``/proc/PID/status`` at the end of the window (and the peak,
   ``VmHWM``);
-* CPU: ``utime + stime`` of ``/proc/PID/stat`` (every thread) between two status writes a
+* CPU: the run time of every thread (``/proc/PID/task/*/schedstat``, in ns) between two status writes a
   window apart (read the moment each status file is replaced, so the cycle count matches),
   per cycle and as % of one core;
 * cycle lateness: the status's ``lateness_ms`` p50/p99 (the last 4,096 cycles: start-up
@@ -174,20 +174,23 @@ class Sample:
     hwm_kb: int
 
 
-def cpu_seconds(stat: Path) -> float:
-    """utime + stime from a ``/proc/PID/stat`` (every thread) or ``/proc/PID/task/TID/stat``, in s."""
-    fields = stat.read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def cpu_seconds(task: Path) -> float:
+    """The time a task ran on a CPU, in s: the first field of ``/proc/PID/task/TID/schedstat``
+    (nanoseconds; ``/proc/PID/stat``'s utime and stime count 10 ms ticks, and a bare loop's
+    2 s window of a quick run could read 0 ticks)."""
+    return int((task / "schedstat").read_text().split()[0]) / 1e9
 
 
 def cpu_of(pid: int) -> tuple[float, float]:
-    """(CPU seconds of the whole process, of its threads other than the main one)."""
-    total = cpu_seconds(Path(f"/proc/{pid}/stat"))
-    threads = 0.0
+    """(CPU seconds of the whole process, of its threads other than the main one): its live
+    threads' run time (a thread that ended since the last sample takes its time with it)."""
+    total = threads = 0.0
     for task in Path(f"/proc/{pid}/task").iterdir():
-        if task.name != str(pid):
-            with contextlib.suppress(OSError):  # a thread that just ended
-                threads += cpu_seconds(task / "stat")
+        with contextlib.suppress(OSError, ValueError):  # a thread that just ended
+            seconds = cpu_seconds(task)
+            total += seconds
+            if task.name != str(pid):
+                threads += seconds
     return total, threads
 
 
