@@ -164,6 +164,8 @@ class ModuleHost:
         self.boot: Boot | None = None
         self.program = self._load_program(config)
         self._trial = TrialWatch()
+        #: a clean trial's confirmation handed to the flash's writer thread, not yet written
+        self._confirming = False
         self.module = config.module
         self.cycles = config.cycles
         self.driver, driver_fault = open_driver(config)
@@ -316,22 +318,27 @@ class ModuleHost:
         """The rollout switched the running program (at a cycle start): it runs on trial."""
         self.program, self.boot = program, boot
         self._trial = TrialWatch()
+        self._confirming = False
 
     def _check_trial(self, rt: ModuleRuntime) -> None:
         """A program on trial is confirmed after its clean cycles (no receptor or actuator
         fault, every neighbour verified); a fault rejects it, and the module stops so that
         its next start (systemd restarts it) boots the confirmed program."""
-        if self.flash is None or self.boot is None or not self.boot.trial:
+        if self.flash is None or self.boot is None or not self.boot.trial or self._confirming:
             return
         verdict = self._trial.cycle(rt, self.boot.trial_cycles)
         if verdict is not None and self.rollout is not None:
             self.rollout.settle()  # the switch's boot count is written before the verdict
         if verdict == "clean":
-            self.flash.confirm()
-            self.boot = self.flash.running
-            rt.log.append(f"program version {self.boot.version if self.boot else '?'} confirmed after its trial")
-            if self.rollout is not None:
-                self.rollout.confirmed()
+            # the state record's write (two fsyncs) off the cycle's path where a rollout host
+            # has its writer thread; the module says confirmed once it is on the flash
+            if self.rollout is not None and self.rollout.write(
+                self.flash.confirm, lambda _, error: self._confirmed(rt, error)
+            ):
+                self._confirming = True
+            else:
+                self.flash.confirm()
+                self._confirmed(rt, None)
         elif verdict is not None and self.rollout is not None and self.rollout.switched:
             # switched to by a rollout: back to the confirmed program in the running loop,
             # and the entry point is told (its neighbours offer it again; it declines for good)
@@ -346,6 +353,18 @@ class ModuleHost:
             rt.log.append(f"program on trial rejected ({verdict}): the next start boots the confirmed one")
             self.failed = True
             self.stop_event.set()
+
+    def _confirmed(self, rt: ModuleRuntime, error: BaseException | None) -> None:
+        """The trial's confirmation is on the flash (or its write failed: raised here, on the
+        module's thread, as a write done at once would raise; the next boot reverts)."""
+        self._confirming = False
+        if error is not None:
+            raise error
+        assert self.flash is not None
+        self.boot = self.flash.running
+        rt.log.append(f"program version {self.boot.version if self.boot else '?'} confirmed after its trial")
+        if self.rollout is not None:
+            self.rollout.confirmed()
 
     def program_status(self) -> dict[str, Any] | None:
         """Where the running program came from, for the status line."""

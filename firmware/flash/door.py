@@ -40,6 +40,7 @@ from __future__ import annotations
 import importlib
 import threading
 from collections import Counter
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from dh2rt.flash.pacing import link_pacing
@@ -111,6 +112,15 @@ class RolloutDoor:
         state record itself: a trial's confirmation or rejection comes after its boot count)."""
         if self.host is not None:
             self.host.writer.flush()
+
+    def write(self, work: Callable[[], object], then: Callable[[object, BaseException | None], None]) -> bool:
+        """Hand ``work`` (a flash write) to the host's writer thread, in order after what it
+        queued; ``then(result, error)`` runs on the module's thread at the host's next input.
+        False when no host is open: the caller writes at once."""
+        if self.host is None:
+            return False
+        self.host.writer.submit(work, then)
+        return True
 
     def confirmed(self) -> None:
         if self.host is not None:

@@ -325,3 +325,42 @@ def test_an_image_received_in_part_before_a_restart_opens_the_rollout_at_boot(tm
     robot.kill(2)
     robot.start(2)
     assert door(robot, 2).opened_by == "an image received in part before this start"
+
+
+def test_a_clean_trial_is_confirmed_on_the_writer_thread_and_said_once_written(tmp_path: Path, signer: bytes) -> None:
+    """The confirmation's state write (two fsyncs) goes to the flash's writer thread, as the
+    switch's does: the module's cycle never waits for it, and the module says "confirmed" (its
+    log, its status, the rollout's CONFIRMED) only once it is on the flash."""
+    import threading
+
+    old, new = compile_file(str(PROGRAM)), caterpillar(20)
+    robot = Robot(tmp_path, 3, 0, signer=signer, image=pack(old.image, 1, signer), trial_cycles=20)
+    robot.run(10)
+    where: dict[int, list[str]] = {m: [] for m in range(3)}
+    for m in range(3):
+        host = robot.hosts[m]
+        assert host is not None
+        confirm = host.flash.confirm  # type: ignore[union-attr]
+
+        def on_writer(m: int = m, confirm: Callable[[], None] = confirm) -> None:
+            where[m].append(threading.current_thread().name)
+            confirm()
+
+        host.flash.confirm = on_writer  # type: ignore[method-assign,union-attr]
+    cable = robot.cable(pack(new.image, 2, signer))
+    for _ in range(300):
+        robot.step(cable)
+        for m in range(3):
+            opened = door(robot, m).host
+            if opened is not None:  # writes in its own thread, as on the module's own clock
+                opened.writer.threaded = lambda: True
+        for host in robot.hosts:
+            assert host is not None and host.rollout is not None
+            host.rollout.settle()  # the virtual clock does not wait for the disk: wait here
+    assert cable.result().succeeded, cable.result().failure
+    assert where == {m: ["dh2rt-flash-writer"] for m in range(3)}, where
+    for m in range(3):
+        host = robot.hosts[m]
+        assert host is not None
+        assert sum("confirmed after its trial" in line for line in host.runtime.log) == 1, host.runtime.log[-5:]
+        assert robot.program_of(m)["version"] == 2 and not robot.program_of(m)["trial"]
