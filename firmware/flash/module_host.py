@@ -306,8 +306,8 @@ class RolloutHost:
 
     def _switch(self, program: Program) -> None:
         self.writer.flush()  # the partial image dropped before the trial's boot is counted
-        # the boot's count is written on the writer's thread: the switch costs the cycle no fsync
-        boot = self.flash.start_trial(persist=lambda write: self.writer.submit(write, self._trial_written))
+        # the boot is counted on the flash before the new program runs (Flash.start_trial)
+        boot = self.flash.start_trial()
         if boot.digest != program.digest:
             raise FlashError(f"the flash boots {boot.digest.hex()}, the rollout switched to {program.digest.hex()}")
         prepared, self._prepared = self._prepared, None
@@ -317,12 +317,6 @@ class RolloutHost:
         )
         self.switched = True
         self.on_switch(compiled, boot)
-
-    def _trial_written(self, _: object, error: BaseException | None) -> None:
-        """The switch's boot count is on the flash (or could not be written: the program runs
-        all the same, and a restart boots the confirmed one with the image still held)."""
-        if error is not None:
-            self._note(f"the switch's boot count was not written to the flash: {error}")
 
     def _note(self, message: str) -> None:
         self.rt.log.append(f"cycle {self.rt.cycle}: rollout: {message}")

@@ -30,12 +30,11 @@ nothing on the flash. See docs/flashing.md.
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -348,16 +347,11 @@ class Flash:
 
     # -------------------------------------------------------- stage
 
-    def start_trial(self, persist: Callable[[Callable[[], None]], None] | None = None) -> Boot:
-        """The rollout's switch: boot the held image on trial (its boot counted, so that a
-        restart before it is confirmed reverts). Raises FlashError when none is held.
-
-        The boot's count is a state-record write (two fsyncs). ``persist`` takes that write
-        to do it off the caller's path (a module host's writer thread: the switch happens at a
-        cycle start, and an fsync takes 5 to 50 ms on a shared disk); without it, the write is
-        done before this returns. A restart before a deferred write lands finds the image
-        still held, as a restart just before the switch would: the confirmed program boots
-        and the rollout takes the held image back (docs/flashing.md)."""
+    def start_trial(self) -> Boot:
+        """The rollout's switch: boot the held image on trial, its boot counted on the flash
+        before this returns (two fsyncs, on the switch cycle's path: a new program that kills
+        its process in its first cycle must find its boot counted, and revert, not be switched
+        to again after a restart). Raises FlashError when none is held."""
         state = self._read_state()
         trial = None if state is None else state.trial
         if state is None or trial is None or not trial.hold or trial.boots:
@@ -366,11 +360,7 @@ class Flash:
         if isinstance(checked, str):
             self._boot_confirmed(self._revert(state, checked))
             raise FlashError(f"{self.directory}: the staged image cannot boot: {checked}")
-        write = functools.partial(self._write_state, replace(state, trial=replace(trial, boots=1, hold=False)))
-        if persist is None:
-            write()
-        else:
-            persist(write)
+        self._write_state(replace(state, trial=replace(trial, boots=1, hold=False)))
         log.info("%s: slot %s boots on trial at the switch", self.directory, trial.program.slot)
         self.held = None
         self._running = _boot(trial.program, checked, trial=True, cycles=trial.cycles)
