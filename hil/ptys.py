@@ -28,6 +28,13 @@ HELD_EPISODES = 4096
 RELAY_NICE = -10
 
 
+def run_as_hardware() -> None:
+    """Give the calling thread RELAY_NICE: it plays hardware (a wire, a servo's controller),
+    which no busy processor holds up. Without the privilege it runs at the default."""
+    with contextlib.suppress(OSError):  # EACCES without root or CAP_SYS_NICE
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RELAY_NICE)
+
+
 def open_raw_pty() -> tuple[int, int, str]:
     """A raw pty pair: (master, non-blocking; slave; the slave's path)."""
     master, slave = os.openpty()
@@ -118,8 +125,7 @@ class PtyRelay:
         return self._thread.native_id
 
     def _run(self) -> None:
-        with contextlib.suppress(OSError):  # EACCES without the privilege: relay at the default
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), RELAY_NICE)
+        run_as_hardware()
         last = time.monotonic()
         while True:
             with self.lock:

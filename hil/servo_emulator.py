@@ -47,6 +47,7 @@ from hil.dxl_protocol import (
     PacketParser,
     encode_status,
 )
+from hil.ptys import run_as_hardware
 from hil.servo_joints import JointBackend, KinematicJoint, ModuleJointAdapter
 from hil.servo_table import EmulatedServo, Fault, u16
 
@@ -299,6 +300,7 @@ class ServoEmulator:
         self.stop()
 
     def _run(self) -> None:
+        run_as_hardware()  # a servo's controller answers whatever the modules' processors do
         try:
             while True:
                 ready, _, _ = select.select([self._master, self._wake_r], [], [])

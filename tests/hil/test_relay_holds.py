@@ -77,3 +77,25 @@ def test_the_relay_thread_runs_above_the_modules() -> None:
         assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == base
     finally:
         relay.stop()
+
+
+def test_the_servo_emulators_thread_runs_as_hardware() -> None:
+    """The servo emulator's thread, like the relays', plays hardware: RELAY_NICE where allowed."""
+    from hil.servo_emulator import ServoEmulator
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    seen: list[int] = []
+    before = {t.native_id for t in threading.enumerate()}
+    emulator = ServoEmulator((1, 2)).start()
+    try:
+        deadline = time.monotonic() + 2.0
+        expected = RELAY_NICE if os.geteuid() == 0 else base
+        while time.monotonic() < deadline:
+            new = [t.native_id for t in threading.enumerate() if t.native_id not in before and t.name == "dxl-emulator"]
+            seen = [os.getpriority(os.PRIO_PROCESS, tid) for tid in new if tid is not None]
+            if seen == [expected]:
+                break
+            time.sleep(0.01)
+        assert seen == [expected]
+    finally:
+        emulator.stop()
