@@ -328,7 +328,7 @@ class ModuleHost:
             return
         verdict = self._trial.cycle(rt, self.boot.trial_cycles)
         if verdict is not None and self.rollout is not None:
-            self.rollout.settle()  # the switch's boot count is written before the verdict
+            self.rollout.settle()  # what the host queued (a partial image's drop) lands before the verdict's write
         if verdict == "clean":
             # the state record's write (two fsyncs) off the cycle's path where a rollout host
             # has its writer thread; the module says confirmed once it is on the flash

@@ -109,7 +109,7 @@ class RolloutDoor:
 
     def settle(self) -> None:
         """Wait for the flash writes the host queued (before the module host writes the
-        state record itself: a trial's confirmation or rejection comes after its boot count)."""
+        state record itself: a trial's rejection, written at once, comes after them)."""
         if self.host is not None:
             self.host.writer.flush()
 
