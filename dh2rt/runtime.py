@@ -615,15 +615,28 @@ class ModuleRuntime:
             self._wait_until(deadline, sleep)
         return done
 
-    def drain(self, seconds: float) -> int:
-        """After the last cycle: take in what the neighbours sent in their last cycles, for
-        ``seconds``, without acting on it, so that every frame sent is counted received (or
-        corrupted) by someone. Returns how many frames came in."""
-        deadline = self.clock() + seconds
-        got = 0
-        while (left := deadline - self.clock()) > 0:
-            got += len(self.transport.poll(left))
-        return got
+    def drain(self, quiet: float, most: float) -> int:
+        """After the last cycle: take in what the neighbours sent in their last cycles, without
+        acting on it, so that every frame sent is counted received (or corrupted, dropped,
+        unhandled) by someone. It reads until nothing has come for ``quiet`` seconds, and for
+        ``most`` seconds at the most: a medium that delivers late (a relay or an adapter the
+        machine held for a moment) is waited for, not counted short. A fixed window of three
+        periods left 24 of 780 frames unread on slcan adapters with one core kept busy.
+        Returns how many frames came in, of every family."""
+        start = self.clock()
+        taken = self._taken()
+        first, last_came = taken, start
+        while (left := min(start + most, last_came + quiet) - self.clock()) > 0:
+            self.transport.poll(left)
+            now = self._taken()
+            if now != taken:
+                taken, last_came = now, self.clock()
+        return taken - first
+
+    def _taken(self) -> int:
+        """Frames the transport has taken in so far, of every family and outcome."""
+        c = self.transport.counters
+        return c.received + c.corrupted + c.dropped + c.unhandled
 
     def _wait_until(self, deadline: float, sleep: Callable[[float], None] | None) -> None:
         """Until ``deadline``: take frames in as they come (the transport's

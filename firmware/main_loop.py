@@ -107,8 +107,10 @@ from firmware.control import (
 )
 
 Reporter = Callable[[Report], None]
-#: Cycle periods a module keeps reading after its last cycle (see ModuleRuntime.drain).
-DRAIN_PERIODS = 3
+#: After its last cycle a module keeps reading until nothing came for this many cycle
+#: periods, and for at most DRAIN_MOST_PERIODS (see ModuleRuntime.drain).
+DRAIN_QUIET_PERIODS = 3
+DRAIN_MOST_PERIODS = 50
 #: Seconds a module under the HIL world may take to link its contacts before it is ready.
 NEGOTIATE_S = 10.0
 #: Periods the links must stay settled before a module counts its contacts linked.
@@ -244,7 +246,8 @@ class ModuleHost:
                         until=until, before_cycle=self._take_commands, start=start_at,
                     )  # fmt: skip
                     # what the neighbours sent in their last cycles is counted, not lost
-                    rt.drain(DRAIN_PERIODS * self.config.cycle_period)
+                    period = self.config.cycle_period
+                    rt.drain(DRAIN_QUIET_PERIODS * period, DRAIN_MOST_PERIODS * period)
                 else:
                     rt.run(self.cycles, self.stop_event, self._cycled, before_cycle=self._take_commands)
         except Exception as exc:  # report it to the world rather than die silently

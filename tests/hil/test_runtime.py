@@ -6,6 +6,8 @@ A's cycle n is in B's mailbox for B's cycle n, so every count here is exact.
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from dh2rt.runtime import SILENCE_CYCLES, ModuleRuntime
 from dh2rt.testing import FakeClock, runtime_chain, step_all
 from dh2rt.transport.base import BusEnd
 from dh2rt.transport.inproc import InprocBus, InprocTransport
-from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello
+from dh2rt.wire.frame import NO_PROGRAM, FrameCodec, Hello, KeepAlive
 from drivers.recording import RecordingDriver
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -258,3 +260,77 @@ def test_frames_waiting_at_a_detached_connector_are_lost_in_flight(caterpillar: 
     finally:
         a.close()
         b.close()
+
+
+def _pair_on_the_real_clock(program: CompiledProgram) -> tuple[ModuleRuntime, InprocTransport]:
+    """A runtime on the monotonic clock, its back linked to a bare transport (the neighbour)."""
+    bus = InprocBus()
+    codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+    rt = ModuleRuntime(program, InprocTransport(codec, bus=bus), clock=time.monotonic)
+    peer = InprocTransport(FrameCodec(program.vocabulary, program.profile.connector_count), bus=bus)
+    rt.attach(BACK, BusEnd(0, 0))
+    peer.attach(FRONT, BusEnd(0, 1))
+    return rt, peer
+
+
+@pytest.mark.parametrize("gap_s", [0.01, 0.03, 0.045])
+def test_the_drain_waits_for_frames_a_late_medium_delivers(caterpillar: CompiledProgram, gap_s: float) -> None:
+    """After its last cycle a module reads on until the link has been quiet for ``quiet``
+    seconds: frames that come late, each within ``quiet`` of the last, are all counted
+    received, even long after a fixed window would have closed (slcan adapters under load
+    delivered the last 24 of 780 frames after the old three periods)."""
+    rt, peer = _pair_on_the_real_clock(caterpillar)
+    try:
+        sent = 12
+
+        def late_neighbour() -> None:
+            for _ in range(sent):
+                time.sleep(gap_s)
+                peer.send(FRONT, KeepAlive())
+
+        sender = threading.Thread(target=late_neighbour)
+        started = time.monotonic()
+        sender.start()
+        got = rt.drain(quiet=0.06 + gap_s, most=5.0)
+        sender.join()
+        assert got == sent, f"{got} of {sent} late frames taken in"
+        assert rt.counters["frames_received"] == sent
+        assert time.monotonic() - started < sent * gap_s + 1.0
+    finally:
+        rt.close()
+        peer.close()
+
+
+def test_the_drain_ends_at_its_bound_on_a_link_that_never_goes_quiet(caterpillar: CompiledProgram) -> None:
+    rt, peer = _pair_on_the_real_clock(caterpillar)
+    stop = threading.Event()
+
+    def chatter() -> None:
+        while not stop.is_set():
+            peer.send(FRONT, KeepAlive())
+            time.sleep(0.005)
+
+    sender = threading.Thread(target=chatter)
+    sender.start()
+    try:
+        started = time.monotonic()
+        got = rt.drain(quiet=0.05, most=0.3)
+        took = time.monotonic() - started
+        assert got > 10
+        assert 0.3 <= took < 0.3 + 0.5, took
+    finally:
+        stop.set()
+        sender.join()
+        rt.close()
+        peer.close()
+
+
+def test_the_drain_of_a_quiet_link_takes_its_quiet_window(caterpillar: CompiledProgram) -> None:
+    rt, peer = _pair_on_the_real_clock(caterpillar)
+    try:
+        started = time.monotonic()
+        assert rt.drain(quiet=0.05, most=5.0) == 0
+        assert 0.05 <= time.monotonic() - started < 0.05 + 0.5
+    finally:
+        rt.close()
+        peer.close()
