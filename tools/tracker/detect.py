@@ -44,7 +44,7 @@ def aruco_dictionary(name: str) -> Any:
 
 @dataclass
 class Detections:
-    """One frame's markers, and how many detections were dropped for a bad fit."""
+    """One frame's markers, and how many detections were dropped (a bad fit, an id seen twice)."""
 
     poses: list[MarkerPose] = field(default_factory=list)
     rejected: int = 0
@@ -61,9 +61,8 @@ class MarkerDetector:
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
         self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), parameters)
-        self._square = np.array(
-            [marker_mm] * 4 + [marker_mm * math.sqrt(2)] * 2, dtype=np.float64
-        )  # four sides, two diagonals
+        # a true square's four sides and two diagonals, as _pose measures them
+        self._square = np.array([marker_mm] * 4 + [marker_mm * math.sqrt(2)] * 2, dtype=np.float64)
 
     def detect(self, image: npt.NDArray[np.uint8]) -> Detections:
         """The markers in ``image`` (BGR or grey), by ascending id."""
@@ -102,7 +101,9 @@ class MarkerDetector:
         assert cal.rotation is not None and cal.translation_mm is not None
         normalised = np.asarray(cv2.undistortPoints(raw, cal.camera_matrix, cal.distortion_vector)).reshape(-1, 2)
         rays = np.column_stack([normalised, np.ones(len(normalised))]) @ cal.rotation.T
-        reach = (cal.marker_height_mm - cal.translation_mm[2]) / rays[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reach = (cal.marker_height_mm - cal.translation_mm[2]) / rays[:, 2]
+        reach[~(reach > 0)] = np.nan  # a ray that never meets the plane in front of the camera
         return np.asarray(cal.translation_mm[:2] + rays[:, :2] * reach[:, None], dtype=np.float64)
 
     def _pose(self, marker: int, pixels: Points) -> MarkerPose | None:

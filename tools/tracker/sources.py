@@ -72,7 +72,7 @@ class CaptureSource(FrameSource):
         self.name = f"camera {device}" if isinstance(device, int) else str(device)
         if isinstance(device, Path) and not device.is_file():
             raise OptionError(f"{option} {device}: no such file")
-        self.capture: Any = cv2.VideoCapture(device if isinstance(device, int) else str(device))
+        self.capture: Any = cv2.VideoCapture(device) if isinstance(device, int) else cv2.VideoCapture(str(device))
         if not self.capture.isOpened():
             self.capture.release()
             raise OptionError(f"{option} {device}: OpenCV cannot open it")
