@@ -23,7 +23,7 @@ import math
 import tempfile
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -216,24 +216,32 @@ def bare_arena() -> int:
 
 @dataclass(frozen=True)
 class Shot:
-    """One rendered frame (RGB), the markers' truth in it, and the seconds it took."""
+    """One rendered frame (RGB), the markers' truth in it, the camera that took it and the
+    seconds it took."""
 
     image: Image
     truth: list[MarkerTruth]
+    camera: OverheadCamera
     seconds: float
 
 
-def robot_frames(topology_spec: str, frames: int, seed: int, camera: OverheadCamera) -> Iterator[Shot]:
+def robot_frames(
+    topology_spec: str, frames: int, seed: int, camera: OverheadCamera, *, centred: bool = False
+) -> Iterator[Shot]:
     """Frame k: a World of ``topology_spec`` built with seed ``seed + k`` (turned and shifted)
-    and let settle for a quarter of a second, markers 0..n-1 on modules 0..n-1."""
+    and let settle for a quarter of a second, markers 0..n-1 on modules 0..n-1. ``centred``:
+    the camera moved over the robot's centroid (to the millimetre) for each frame, so that a
+    large robot, which a seed turns about module 0, stays in the field."""
     for k in range(frames):
         started = time.perf_counter()
         with World(parse_spec(topology_spec), seed=seed + k) as world:
             world.step(round(world.physics_hz / 4))
             plates = MarkerPlates(world.client, list(range(world.size)))
             truth = plates.follow(world, {m: m for m in range(world.size)})
-            image = camera.render(world.client)
-        yield Shot(image, truth, time.perf_counter() - started)
+            x, y, _ = world.centroid()
+            taking = replace(camera, centre_m=(round(x, 3), round(y, 3))) if centred else camera
+            image = taking.render(world.client)
+        yield Shot(image, truth, taking, time.perf_counter() - started)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -68,7 +68,7 @@ def test_latest_pose_with_its_age_then_too_old(feed: TrackerFeed, clock: FakeClo
 
 def test_garbage_is_counted_not_raised(feed: TrackerFeed, clock: FakeClock) -> None:
     assert feed.take(b"not a tracker datagram", clock()) == 0
-    assert feed.rejected == 1 and feed.last_error is not None and feed.last_error.field == "length"
+    assert feed.rejected == 1 and feed.last_error is not None and feed.last_error.field == "magic"
     with pytest.raises(NoTrackerReading):
         feed.own_pose()
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from firmware.tracker_feed import TrackerFeed
@@ -36,6 +37,12 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("overhead")
     assert overhead.main([str(folder), "--topology", "snake:4", "--frames", "3", "--seed", "1"]) == 0
     return folder
+
+
+def read_image(path: Path) -> npt.NDArray[np.uint8]:
+    image = cv2.imread(str(path))
+    assert image is not None, path
+    return np.asarray(image, dtype=np.uint8)
 
 
 def heading_error(a: float, b: float) -> float:
@@ -90,7 +97,7 @@ def test_a_homography_places_markers_as_the_camera_pose_does(rendered: Path, tmp
         [0.0, 0.0, 1.0],
     ]
     (tmp_path / "homography.json").write_text(json.dumps(data))
-    image = cv2.imread(str(rendered / "frame-000.png"))
+    image = read_image(rendered / "frame-000.png")
     by_pose = MarkerDetector(load_calibration(rendered / "calibration.json"), 20.0).detect(image).poses
     by_homography = MarkerDetector(load_calibration(tmp_path / "homography.json"), 20.0).detect(image).poses
     assert len(by_pose) == 4 and [p.marker for p in by_pose] == [p.marker for p in by_homography]
@@ -107,13 +114,14 @@ def test_lens_distortion_is_undone(rendered: Path, tmp_path: Path) -> None:
     data: dict[str, Any] = json.loads((rendered / "calibration.json").read_text())
     camera = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]])
     distortion = np.array([-0.3, 0.1, 0.001, -0.001, 0.0])
-    straight = cv2.imread(str(rendered / "frame-000.png"))
-    rows, cols = np.indices(straight.shape[:2], dtype=np.float32)
-    bent_pixels = np.stack([cols.ravel(), rows.ravel()], axis=1).reshape(-1, 1, 2)
+    straight = read_image(rendered / "frame-000.png")
+    rows, cols = np.indices(straight.shape[:2])
+    bent_pixels = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float32).reshape(-1, 1, 2)
     source = cv2.undistortPoints(bent_pixels, camera, distortion, P=camera).reshape(*straight.shape[:2], 2)
     bent = cv2.remap(straight, source[..., 0], source[..., 1], cv2.INTER_LINEAR)
     truth = {m["marker"]: m for m in json.loads((rendered / "truth.json").read_text())[0]["markers"]}
     errors = {}
+    given: list[float]
     for given in ([], distortion.tolist()):
         path = _write(tmp_path / "cal.json", {**data, "distortion": given})
         poses = MarkerDetector(load_calibration(path), 20.0).detect(bent).poses
@@ -127,7 +135,7 @@ def test_lens_distortion_is_undone(rendered: Path, tmp_path: Path) -> None:
 def test_a_video_file_is_read_like_a_camera(rendered: Path, tmp_path: Path) -> None:
     """OpenCV's VideoCapture, the path a camera takes, on a video of the rendered frames."""
     video = tmp_path / "arena.avi"
-    frames = [cv2.imread(str(path)) for path in sorted(rendered.glob("frame-*.png"))]
+    frames = [read_image(path) for path in sorted(rendered.glob("frame-*.png"))]
     writer = cv2.VideoWriter(
         str(video), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (frames[0].shape[1], frames[0].shape[0])
     )
@@ -195,6 +203,8 @@ def _write(path: Path, data: object) -> Path:
 GOOD: dict[str, Any] = overhead.OverheadCamera().calibration(25.4)
 DOWN = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
 STRETCHED = [[1, 0, 0], [0, 1, 0], [0, 0, 2]]
+IDENTITY = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
+HIGH, LOW = [0, 0, 1000], [0, 0, 10]
 
 
 @pytest.mark.parametrize(
@@ -206,9 +216,9 @@ STRETCHED = [[1, 0, 0], [0, 1, 0], [0, 0, 2]]
         ({"distortion": [0.1, 0.2]}, "field 'distortion': expected a list of 0 or 4 or 5 or 8 or 12 or 14 numbers"),
         ({"image_size": [640]}, "field 'image_size'"),
         ({"focal": 3}, "field 'focal': unknown field"),
-        ({"floor_homography": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "exactly one of camera_pose and floor_homography"),
-        ({"camera_pose": {"rotation": STRETCHED, "translation_mm": [0, 0, 1000]}}, "not a rotation"),
-        ({"camera_pose": {"rotation": DOWN, "translation_mm": [0, 0, 10]}}, "not above the markers"),
+        ({"floor_homography": IDENTITY}, "field 'camera_pose': give exactly one of camera_pose and floor_homography"),
+        ({"camera_pose": {"rotation": STRETCHED, "translation_mm": HIGH}}, "'camera_pose.rotation': not a rotation"),
+        ({"camera_pose": {"rotation": DOWN, "translation_mm": LOW}}, "'camera_pose.translation_mm': the camera (10 mm"),
     ],
 )  # fmt: skip
 def test_a_bad_calibration_is_exit_2_naming_the_field(
@@ -217,7 +227,8 @@ def test_a_bad_calibration_is_exit_2_naming_the_field(
     data = {key: value for key, value in {**GOOD, **change}.items() if value is not None}
     path = _write(tmp_path / "cal.json", data)
     assert tracker(["--frames", str(rendered), "--calibration", str(path)]) == 2
-    assert f"--calibration {path}: {says}" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith(f"dh2rt: --calibration {path}: field ") and says in err
 
 
 @pytest.mark.parametrize(

@@ -52,6 +52,7 @@ class Accuracy:
     render_s: float = 0.0
     detect_s: float = 0.0
     frames: int = 0
+    out_of_view: int = 0  # markers of a robot too large for the frame: not counted as placed
 
     def add(self, truth: Sequence[MarkerTruth], found: dict[int, Any]) -> None:
         self.placed += len(truth)
@@ -73,6 +74,7 @@ class Accuracy:
             "frames": self.frames,
             "markers_placed": self.placed,
             "markers_missed": self.missed,
+            "markers_out_of_view": self.out_of_view,
             "position_error_mm": stats(self.position_mm),
             "heading_error_deg": stats(self.heading_deg),
             "render_s_per_frame": round(self.render_s / max(1, self.frames), 3),
@@ -104,12 +106,22 @@ def _render(camera: OverheadCamera, client: int, accuracy: Accuracy) -> Any:
     return image
 
 
+def field_half_mm(camera: OverheadCamera, height_mm: float) -> tuple[float, float]:
+    """Half the width and height (mm) of what ``camera`` sees of the plane at ``height_mm``."""
+    seen_y = (camera.height_m * 1000 - height_mm) * math.tan(math.radians(camera.fov_deg) / 2)
+    return seen_y * camera.width_px / camera.height_px, seen_y
+
+
+def in_view(camera: OverheadCamera, marker: MarkerTruth, height_mm: float) -> bool:
+    """Whether a marker's whole plate is in the frame (FIELD_MARGIN_MM inside its edges)."""
+    half_x, half_y = field_half_mm(camera, height_mm)
+    dx, dy = marker.x_mm - camera.centre_m[0] * 1000, marker.y_mm - camera.centre_m[1] * 1000
+    return abs(dx) <= half_x - FIELD_MARGIN_MM and abs(dy) <= half_y - FIELD_MARGIN_MM
+
+
 def free_poses(rng: random.Random, count: int, camera: OverheadCamera, height_mm: float) -> list[MarkerTruth]:
     """``count`` plates at random, apart, inside the camera's view of the plane at ``height_mm``."""
-    depth = camera.height_m * 1000 - height_mm
-    seen_y = depth * math.tan(math.radians(camera.fov_deg) / 2)
-    half_x = seen_y * camera.width_px / camera.height_px - FIELD_MARGIN_MM
-    half_y = seen_y - FIELD_MARGIN_MM
+    half_x, half_y = (half - FIELD_MARGIN_MM for half in field_half_mm(camera, height_mm))
     cx, cy = (c * 1000 for c in camera.centre_m)
     placed: list[MarkerTruth] = []
     while len(placed) < count:
@@ -164,12 +176,16 @@ def measure_free(
 
 
 def measure_robot(topology: str, frames: int, seed: int = 1, camera: OverheadCamera | None = None) -> Accuracy:
-    """Frame k: a World of ``topology`` with seed ``seed + k``, settled, a marker per module."""
-    camera = camera or OverheadCamera()
-    detector = MarkerDetector(_calibration(camera, module_marker_height_mm()), DEFAULT_MARKER_MM)
+    """Frame k: a World of ``topology`` with seed ``seed + k``, settled, a marker per module,
+    the camera over the robot's centroid; markers of a robot larger than the frame that fall
+    outside it are counted apart (``out_of_view``), neither placed nor missed."""
     accuracy = Accuracy()
-    for shot in robot_frames(topology, frames, seed, camera):
+    height = module_marker_height_mm()
+    for shot in robot_frames(topology, frames, seed, camera or OverheadCamera(), centred=True):
+        detector = MarkerDetector(_calibration(shot.camera, height), DEFAULT_MARKER_MM)
         accuracy.frames += 1
         accuracy.render_s += shot.seconds
-        accuracy.add(shot.truth, _detect(detector, shot.image, accuracy))
+        seen = [marker for marker in shot.truth if in_view(shot.camera, marker, height)]
+        accuracy.out_of_view += len(shot.truth) - len(seen)
+        accuracy.add(seen, _detect(detector, shot.image, accuracy))
     return accuracy

@@ -16,7 +16,9 @@ file's field), 130 Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import signal
 import socket
 import sys
 import time
@@ -215,6 +217,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     tally = Tally()
     interrupted = False
+    before = None
+    with contextlib.suppress(ValueError):  # not the main thread: Ctrl-C is not ours to handle
+        # started: Ctrl-C is KeyboardInterrupt now (dh2rt.entry quits quietly while importing)
+        before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         run(source, detector, targets, ns, tally)
     except OptionError as exc:  # a frame of another size than the calibration's
@@ -222,6 +228,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         interrupted = True
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGINT, before)
     if ns.json:
         print(json.dumps(tally.to_json(source.name, targets)))
     else:

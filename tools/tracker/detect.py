@@ -64,7 +64,7 @@ class MarkerDetector:
         # a true square's four sides and two diagonals, as _pose measures them
         self._square = np.array([marker_mm] * 4 + [marker_mm * math.sqrt(2)] * 2, dtype=np.float64)
 
-    def detect(self, image: npt.NDArray[np.uint8]) -> Detections:
+    def detect(self, image: npt.NDArray[Any]) -> Detections:
         """The markers in ``image`` (BGR or grey), by ascending id."""
         size = self.calibration.image_size
         if size is not None and (image.shape[1], image.shape[0]) != size:
