@@ -24,8 +24,9 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── DecodeError                     (remote) bytes from a link or a file do not decode
     │   │   ├── FrameCorrupted              a frame failed its CRC or framing
     │   │   ├── CaptureError                a capture file is not what it claims, or is cut short
-    │   │   └── TraceError                  a trace file holds a line that is no trace record
-    │   │       └── TraceFieldError         one field is missing or of the wrong kind
+    │   │   ├── TraceError                  a trace file holds a line that is no trace record
+    │   │   │   └── TraceFieldError         one field is missing or of the wrong kind
+    │   │   └── TrackerDatagramError        an overhead tracker's datagram is malformed (names the field)
     │   └── DxlProtocolError                Dynamixel Protocol 2.0 packets
     │       ├── DxlEncodeError (EncodeError)     values that make no valid packet
     │       └── DxlDecodeError (DecodeError)     bytes that are no valid packet
@@ -39,7 +40,8 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── ServoCommError                  a packet was lost or garbled (CRC, timeout)
     │   ├── ServoHardwareAlert              the servo reports a hardware error
     │   ├── ServoInstructionError           the servo rejected an instruction
-    │   └── FlashError                      the module's flash holds no bootable program, or was misused
+    │   ├── FlashError                      the module's flash holds no bootable program, or was misused
+    │   └── NoTrackerReading                the overhead tracker has not seen a marker, or not lately
     ├── SimulationError (RuntimeError)      the physics stand-in failed
     │   ├── PhysicsWorldError (ValueError)  a module, connector or setting of the world does not exist
     │   ├── RecordError (ValueError)        a recording parameter or sample is malformed
@@ -198,6 +200,15 @@ class TraceFieldError(TraceError):
         self.field, self.expected, self.value = field, expected, value
 
 
+class TrackerDatagramError(DecodeError):
+    """A datagram from the overhead tracker (:mod:`dh2rt.wire.tracker`) is malformed: ``field``
+    names what is wrong and ``offset`` the byte it starts at."""
+
+    def __init__(self, field: str, offset: int, message: str) -> None:
+        super().__init__(f"tracker datagram, {field} (byte {offset}): {message}")
+        self.field, self.offset = field, offset
+
+
 class DxlProtocolError(CodecError):
     """Bytes or values that do not make a valid Dynamixel Protocol 2.0 packet."""
 
@@ -257,6 +268,17 @@ class ServoInstructionError(DriverError):
 class FlashError(DriverError):
     """The module's flash directory holds no program it may boot (nothing confirmed, or the
     confirmed image fails its checks), or was asked for a step its state does not allow."""
+
+
+class NoTrackerReading(DriverError):
+    """The overhead tracker has reported no pose of ``marker`` (module ``module``), ever
+    (``age_s`` None) or within the bound the caller asked for (``age_s`` the latest one's age).
+    A module must not steer by a pose it does not have: this is never a silent zero."""
+
+    def __init__(self, marker: int, module: str, age_s: float | None, max_age_s: float) -> None:
+        when = "never seen" if age_s is None else f"last seen {age_s:.3f} s ago (bound {max_age_s:g} s)"
+        super().__init__(f"no tracker reading of marker {marker} ({module}): {when}")
+        self.marker, self.module, self.age_s, self.max_age_s = marker, module, age_s, max_age_s
 
 
 class PhysicsWorldError(SimulationError, ValueError):
