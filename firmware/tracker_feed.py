@@ -1,7 +1,7 @@
 """What a module hears from the overhead tracker: each marker's latest pose on the floor, and
 how old it is.
 
-``dh2rt tracker`` (tools/tracker.py) broadcasts one datagram per camera frame
+``dh2rt tracker`` (tools/tracker/) broadcasts one datagram per camera frame
 (:mod:`dh2rt.wire.tracker`). A module binds a UDP socket, non-blocking, and :meth:`TrackerFeed.poll`
 drains it once a cycle from the main loop: no thread, no wait. Markers are named by the
 mapping marker id -> module name the module is given (its config's, later). A pose that never
