@@ -45,6 +45,7 @@ from collections.abc import Iterator
 from types import ModuleType
 from typing import Any, Final
 
+from dh2rt.closing import Closing
 from dh2rt.errors import (
     DriverConfigError,
     DriverError,
@@ -203,13 +204,178 @@ def _packet_handler(sdk: ModuleType) -> Any:
     return _PacketHandler()
 
 
+class DynamixelBus(Closing):
+    """One half-duplex Dynamixel bus: a port at a baud rate, and everything that talks on it.
+
+    The joints' :class:`DynamixelDriver` and a latch servo (:class:`drivers.latch.ServoLatch`)
+    on the same wires share one bus, so that one lock orders their packets and one place turns
+    the SDK's result tuples into exceptions. Each servo is addressed by its id and named by
+    ``who`` (``"DOF1 servo id 1"``, ``"latch servo id 7"``) in every message. Callers take
+    :attr:`lock` around a sequence of packets that must not be interleaved.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 1_000_000,
+        *,
+        latency_timer_ms: float | None = None,
+        reboot_timeout_s: float = 1.0,
+    ) -> None:
+        if not isinstance(port, str) or not port:
+            raise DriverConfigError(f"port must be a device path such as /dev/ttyUSB0: {port!r}")
+        if "://" in port:
+            raise DriverConfigError(f"port {port!r} is a URL; dynamixel-sdk's PortHandler opens a device path")
+        if baudrate not in SUPPORTED_BAUDRATES:
+            raise DriverConfigError(f"baudrate {baudrate!r} is not one dynamixel-sdk supports: {SUPPORTED_BAUDRATES}")
+        self.port_path = port
+        self.baudrate = baudrate
+        self.reboot_timeout_s = reboot_timeout_s
+        self.lock = threading.RLock()
+        self._latency_timer_ms = latency_timer_ms
+        self._sdk: ModuleType | None = None
+        self.port: Any = None
+        self.ph: Any = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.port is not None
+
+    def open(self) -> None:
+        """Open the port at the bus's rate (nothing if it is open)."""
+        with self.lock:
+            if self.port is not None:
+                return
+            sdk = self._sdk = _load_sdk()
+            port = port_handler(sdk, self.port_path, self._latency_timer_ms)
+            try:
+                # setBaudRate (re)opens the port; openPort() would open it at the default rate first.
+                ok = port.setBaudRate(self.baudrate)
+            except Exception as exc:  # pyserial's SerialException and OSError
+                raise ServoCommError(f"cannot open servo port {self.port_path!r}: {exc}") from exc
+            if not ok:
+                raise ServoCommError(f"cannot set {self.baudrate} bps on {self.port_path!r}")
+            self.port = port
+            self.ph = _packet_handler(sdk)
+
+    def close(self) -> None:
+        """Close the port (torque is left as it is, so the servos keep their pose)."""
+        with self.lock:
+            if self.port is not None:
+                try:
+                    self.port.closePort()
+                finally:
+                    self.port = None
+
+    def require_open(self) -> None:
+        if self.port is None:
+            raise ServoCommError(f"servo port {self.port_path} is not open")
+
+    def ping(self, dxl_id: int, who: str, expected_model: int | None = None) -> int:
+        """PING one servo; its model number. ServoNotFound when nothing answers."""
+        with self.lock, self.io(f"PING of {who}"):
+            self.require_open()
+            model, result, error = self.ph.ping(self.port, dxl_id)
+        if result == self.sdk_const("COMM_RX_TIMEOUT"):
+            raise ServoNotFound(f"{who} did not answer a PING on {self.port_path} at {self.baudrate} bps")
+        self.check(dxl_id, who, "PING", result, error)
+        if expected_model is not None and model != expected_model:
+            raise ServoModelMismatch(f"{who} is model {_model_name(model)}, expected {_model_name(expected_model)}")
+        return int(model)
+
+    def read(self, dxl_id: int, who: str, field: dxt.Field) -> int:
+        with self.lock, self.io(f"READ of {field.name} from {who}"):
+            self.require_open()
+            data, result, error = self.ph.readTxRx(self.port, dxl_id, field.address, field.size)
+        self.check(dxl_id, who, f"READ of {field.name}", result, error)
+        return int.from_bytes(bytes(data[: field.size]), "little", signed=field.signed)
+
+    def write(self, dxl_id: int, who: str, field: dxt.Field, value: int) -> None:
+        data = list(value.to_bytes(field.size, "little", signed=field.signed))
+        with self.lock, self.io(f"WRITE of {field.name} to {who}"):
+            self.require_open()
+            result, error = self.ph.writeTxRx(self.port, dxl_id, field.address, field.size, data)
+        self.check(dxl_id, who, f"WRITE of {field.name}={value}", result, error)
+
+    def reboot(self, dxl_id: int, who: str) -> None:
+        """REBOOT one servo and wait until it answers a PING again (RAM back to defaults:
+        torque off, hardware alert cleared)."""
+        with self.lock:
+            with self.io(f"REBOOT of {who}"):
+                self.require_open()
+                result, _ = self.ph.reboot(self.port, dxl_id)  # the status predates the reboot
+            if result != 0:
+                raise ServoCommError(f"REBOOT of {who}: {self.result(result)}")
+            deadline = time.monotonic() + self.reboot_timeout_s
+            attempts = 0
+            while True:  # the servo is silent while it restarts
+                time.sleep(0.02)
+                attempts += 1
+                try:
+                    self.ping(dxl_id, who)
+                    return
+                except ServoNotFound:
+                    # a PING sent while the servo restarts goes unanswered and costs a whole reply
+                    # timeout, longer on a machine that stalls (see port_handler): give up only
+                    # after REBOOT_PINGS, not after the first because its timeout ran past the deadline
+                    if attempts >= REBOOT_PINGS and time.monotonic() > deadline:
+                        raise
+
+    @contextlib.contextmanager
+    def io(self, what: str) -> Iterator[None]:
+        """The port itself failing (a USB adapter pulled, a pty closed) as ServoCommError:
+        pyserial and termios raise their own errors from inside the SDK."""
+        try:
+            yield
+        except DriverError:
+            raise
+        except Exception as exc:  # OSError, termios.error, serial.SerialException
+            raise ServoCommError(f"{what}: port {self.port_path!r} failed: {exc}") from exc
+
+    def check(self, dxl_id: int, who: str, what: str, result: int, error: int) -> None:
+        """Turn one SDK result pair into an exception (or nothing)."""
+        if result != 0:
+            raise ServoCommError(f"{what} to {who}: {self.result(result)}")
+        if error & dxt.ERRBIT_ALERT:
+            raise ServoHardwareAlert(f"{who} hardware alert: {self._alert(dxl_id, who)}")
+        if error:
+            name = dxt.ERROR_NUMBER_NAMES.get(error, f"error number {error}")
+            raise ServoInstructionError(f"{what} to {who} was rejected: {name}")
+
+    def _alert(self, dxl_id: int, who: str) -> str:
+        f = dxt.HARDWARE_ERROR_STATUS
+        with self.lock, self.io(f"READ of {f.name} from {who}"):
+            data, result, _ = self.ph.readTxRx(self.port, dxl_id, f.address, f.size)
+        if result != 0:
+            return f"Hardware Error Status unreadable ({self.result(result)})"
+        bits = int(data[0])
+        names = ", ".join(dxt.hardware_error_names(bits)) or "no bits set"
+        return f"{names} (Hardware Error Status 0x{bits:02x})"
+
+    def result(self, result: int) -> str:
+        text = str(self.ph.getTxRxResult(result)).removeprefix("[TxRxResult] ")
+        meaning = _COMM_MEANING.get(result)
+        return f"{text} (comm result {result}{': ' + meaning if meaning else ''})"
+
+    def sdk_const(self, name: str) -> int:
+        assert self._sdk is not None
+        return int(getattr(self._sdk, name))
+
+    @property
+    def stale_replies(self) -> int:
+        """Late replies to an earlier request dropped since the port opened (see
+        :func:`_packet_handler`): a servo or emulator that answers past the timeout."""
+        return 0 if self.ph is None else int(self.ph.stale)
+
+
 class DynamixelDriver(ModuleDriver):
     """Both joints of one module on two Dynamixel X-series servos, in degrees.
 
     0 degrees is tick 2048 (4096 ticks per revolution). Targets are clamped to ``limits``,
     which are also written to the servos' position limits (48/52) and, as Profile Velocity,
     their speed. With ``connect=True`` (the default) the constructor opens the port and calls
-    :meth:`open`; if that fails it closes the port again before raising.
+    :meth:`open`; if that fails it closes the port again before raising. The port is a
+    :class:`DynamixelBus` (:attr:`bus`), which another servo on the same wires (a latch) shares.
     """
 
     def __init__(
@@ -225,17 +391,12 @@ class DynamixelDriver(ModuleDriver):
         latency_timer_ms: float | None = None,
         reboot_timeout_s: float = 1.0,
     ) -> None:
-        if not isinstance(port, str) or not port:
-            raise DriverConfigError(f"port must be a device path such as /dev/ttyUSB0: {port!r}")
-        if "://" in port:
-            raise DriverConfigError(f"port {port!r} is a URL; dynamixel-sdk's PortHandler opens a device path")
+        bus = DynamixelBus(port, baudrate, latency_timer_ms=latency_timer_ms, reboot_timeout_s=reboot_timeout_s)
         for name, value in (("dof1_id", dof1_id), ("dof2_id", dof2_id)):
             if not isinstance(value, int) or not 0 <= value <= MAX_UNICAST_ID:
                 raise DriverConfigError(f"{name} must be in 0..{MAX_UNICAST_ID}, got {value!r}")
         if dof1_id == dof2_id:
             raise DriverConfigError(f"dof1_id and dof2_id must differ, both are {dof1_id}")
-        if baudrate not in SUPPORTED_BAUDRATES:
-            raise DriverConfigError(f"baudrate {baudrate!r} is not one dynamixel-sdk supports: {SUPPORTED_BAUDRATES}")
         if limits is not None:
             if len(limits) != 2:
                 raise DriverConfigError(f"limits must be two JointLimits, got {limits!r}")
@@ -246,17 +407,14 @@ class DynamixelDriver(ModuleDriver):
                         f"max_speed_dps > 0, got {lim}"
                     )
             self.limits = (limits[0], limits[1])
+        self.bus = bus
         self.port_path = port
         self.ids: tuple[int, int] = (dof1_id, dof2_id)
         self.baudrate = baudrate
         self.expected_model = expected_model
         self.reboot_timeout_s = reboot_timeout_s
         self.last_targets: tuple[float, float] | None = None
-        self._latency_timer_ms = latency_timer_ms
-        self._lock = threading.RLock()
-        self._sdk: ModuleType | None = None
-        self._port: Any = None
-        self._ph: Any = None
+        self._lock = bus.lock
         self._sync_write: Any = None
         self._sync_read: Any = None
         self._sync_feedback: Any = None
@@ -278,7 +436,7 @@ class DynamixelDriver(ModuleDriver):
         torque on. On a servo error the port stays open so :meth:`health` and
         :meth:`recover` can be used."""
         with self._lock:
-            if self._port is None:
+            if self._sync_write is None or not self.bus.is_open:
                 self._open_port()
             for joint in Joint:
                 self._ping(joint)
@@ -286,34 +444,21 @@ class DynamixelDriver(ModuleDriver):
                 self._configure(joint)
 
     def _open_port(self) -> None:
-        sdk = self._sdk = _load_sdk()
-        port = port_handler(sdk, self.port_path, self._latency_timer_ms)
-        try:
-            # setBaudRate (re)opens the port; openPort() would open it at the default rate first.
-            ok = port.setBaudRate(self.baudrate)
-        except Exception as exc:  # pyserial's SerialException and OSError
-            raise ServoCommError(f"cannot open servo port {self.port_path!r}: {exc}") from exc
-        if not ok:
-            raise ServoCommError(f"cannot set {self.baudrate} bps on {self.port_path!r}")
-        self._port = port
-        self._ph = _packet_handler(sdk)
+        self.bus.open()
+        sdk, port, ph = self.bus._sdk, self.bus.port, self.bus.ph
+        assert sdk is not None
         goal, present = dxt.GOAL_POSITION, dxt.PRESENT_POSITION
-        self._sync_write = sdk.GroupSyncWrite(port, self._ph, goal.address, goal.size)
-        self._sync_read = sdk.GroupSyncRead(port, self._ph, present.address, present.size)
+        self._sync_write = sdk.GroupSyncWrite(port, ph, goal.address, goal.size)
+        self._sync_read = sdk.GroupSyncRead(port, ph, present.address, present.size)
         # load, velocity and position are adjacent: one read from 126 to 135 gives them all
-        self._sync_feedback = sdk.GroupSyncRead(port, self._ph, dxt.PRESENT_LOAD.address, _FEEDBACK_SIZE)
+        self._sync_feedback = sdk.GroupSyncRead(port, ph, dxt.PRESENT_LOAD.address, _FEEDBACK_SIZE)
         for dxl_id in self.ids:
             self._sync_read.addParam(dxl_id)
             self._sync_feedback.addParam(dxl_id)
 
     def close(self) -> None:
         """Close the port (torque is left as it is, so the module keeps its pose)."""
-        with self._lock:
-            if self._port is not None:
-                try:
-                    self._port.closePort()
-                finally:
-                    self._port = None
+        self.bus.close()
 
     # -- ModuleDriver --
 
@@ -330,10 +475,10 @@ class DynamixelDriver(ModuleDriver):
         sync.clearParam()
         for dxl_id, deg in zip(self.ids, targets, strict=True):
             sync.addParam(dxl_id, list(dxt.deg_to_ticks(deg).to_bytes(4, "little", signed=True)))
-        with self._port_io("SYNC_WRITE of goal positions"):
+        with self.bus.io("SYNC_WRITE of goal positions"):
             result = sync.txPacket()
         if result != 0:
-            raise ServoCommError(f"SYNC_WRITE of goal positions failed: {self._result(result)}")
+            raise ServoCommError(f"SYNC_WRITE of goal positions failed: {self.bus.result(result)}")
 
     def read_positions(self) -> tuple[float, float]:
         """Both present positions from one SYNC_READ."""
@@ -360,14 +505,14 @@ class DynamixelDriver(ModuleDriver):
     def _sync_read_both(self, sync: Any, size: int, what: str) -> list[bytes]:
         """Send one prepared SYNC_READ and receive both servos' data (caller holds the lock)."""
         self._require_open()
-        ph = self._ph
-        with self._port_io(f"SYNC_READ of {what}"):
+        bus = self.bus
+        with bus.io(f"SYNC_READ of {what}"):
             result = sync.txPacket()
             if result != 0:
-                raise ServoCommError(f"SYNC_READ of {what}: {self._result(result)}")
+                raise ServoCommError(f"SYNC_READ of {what}: {bus.result(result)}")
             # GroupSyncRead.rxPacket() drops each status's error byte, so receive the
             # statuses with the packet handler to see hardware alerts.
-            replies = [ph.readRx(self._port, dxl_id, size) for dxl_id in self.ids]
+            replies = [bus.ph.readRx(bus.port, dxl_id, size) for dxl_id in self.ids]
         out = []
         for joint, (data, result, error) in zip(Joint, replies, strict=True):
             self._check(joint, f"SYNC_READ of {what}", result, error)
@@ -384,22 +529,22 @@ class DynamixelDriver(ModuleDriver):
     def stale_replies(self) -> int:
         """Late replies to an earlier request dropped since the port opened (see
         :func:`_packet_handler`): a servo or emulator that answers past the timeout."""
-        return 0 if self._ph is None else int(self._ph.stale)
+        return self.bus.stale_replies
 
     def reply_timeout_ms(self, packet_length: int) -> float:
         """How long this port waits for a status packet of ``packet_length`` bytes: the SDK's
         formula with this driver's ``latency_timer_ms`` (the SDK's own default without one)."""
         with self._lock:
             self._require_open()
-            self._port.setPacketTimeout(packet_length)
-            return float(self._port.packet_timeout)
+            self.bus.port.setPacketTimeout(packet_length)
+            return float(self.bus.port.packet_timeout)
 
     # -- health and recovery --
 
     def health(self) -> Health:
         """Ping and inspect both servos; faults are listed, never raised."""
         with self._lock:
-            if self._port is None:
+            if not self.bus.is_open:
                 return Health(faults=(f"servo port {self.port_path} is closed",))
             faults: list[str] = []
             details: dict[str, float] = {}
@@ -424,7 +569,7 @@ class DynamixelDriver(ModuleDriver):
         :class:`DriverError` if it cannot be brought back; returns :meth:`health` otherwise.
         """
         with self._lock:
-            if self._port is None:
+            if not self.bus.is_open or self._sync_write is None:
                 self._open_port()
             for joint in Joint:
                 try:
@@ -436,52 +581,20 @@ class DynamixelDriver(ModuleDriver):
                     self._ping(joint)  # one garbled packet is not a lost servo: try once more
                     alert = bool(self._read(joint, dxt.HARDWARE_ERROR_STATUS))
                 if alert:
-                    self._reboot(joint)
+                    self.bus.reboot(self.ids[joint], self._who(joint))
                 self._configure(joint)
             if self.last_targets is not None:
                 self._send_targets(self.last_targets)
             return self.health()
-
-    def _reboot(self, joint: Joint) -> None:
-        dxl_id = self.ids[joint]
-        with self._port_io(f"REBOOT of {self._who(joint)}"):
-            result, _ = self._ph.reboot(self._port, dxl_id)  # the status predates the reboot
-        if result != 0:
-            raise ServoCommError(f"REBOOT of {self._who(joint)}: {self._result(result)}")
-        deadline = time.monotonic() + self.reboot_timeout_s
-        attempts = 0
-        while True:  # the servo is silent while it restarts
-            time.sleep(0.02)
-            attempts += 1
-            try:
-                self._ping(joint)
-                return
-            except ServoNotFound:
-                # a PING sent while the servo restarts goes unanswered and costs a whole reply
-                # timeout, longer on a machine that stalls (see port_handler): give up only
-                # after REBOOT_PINGS, not after the first because its timeout ran past the deadline
-                if attempts >= REBOOT_PINGS and time.monotonic() > deadline:
-                    raise
 
     # -- bus helpers (callers hold the lock) --
 
     def _configure(self, joint: Joint) -> None:
         """Position mode, position limits and speed from ``limits``, then torque on."""
         lim = self.limits[joint]
-        eeprom = (
-            (dxt.OPERATING_MODE, dxt.MODE_POSITION),
-            (dxt.MAX_POSITION_LIMIT, dxt.deg_to_ticks(lim.max_deg)),
-            (dxt.MIN_POSITION_LIMIT, dxt.deg_to_ticks(lim.min_deg)),
+        configure_position_servo(
+            self.bus, self.ids[joint], self._who(joint), (lim.min_deg, lim.max_deg), lim.max_speed_dps
         )
-        # EEPROM is locked while torque is on, and writing it wears the servo's flash:
-        # write only what differs.
-        stale = [(f, v) for f, v in eeprom if self._read(joint, f) != v]
-        if stale:
-            self._write(joint, dxt.TORQUE_ENABLE, 0)
-            for field, value in stale:
-                self._write(joint, field, value)
-        self._write(joint, dxt.PROFILE_VELOCITY, dxt.dps_to_velocity_units(lim.max_speed_dps))
-        self._write(joint, dxt.TORQUE_ENABLE, 1)
         if self.models[joint] not in dxt.PRESENT_LOAD_MODELS:  # address 126 is Present Current
             self._current_limits[joint] = self._read(joint, dxt.CURRENT_LIMIT)
 
@@ -489,76 +602,47 @@ class DynamixelDriver(ModuleDriver):
         return dxt.load_percent(raw, self.models[joint] or 0, self._current_limits[joint])
 
     def _ping(self, joint: Joint) -> int:
-        with self._port_io(f"PING of {self._who(joint)}"):
-            model, result, error = self._ph.ping(self._port, self.ids[joint])
-        if result == self._sdk_const("COMM_RX_TIMEOUT"):
-            raise ServoNotFound(f"{self._who(joint)} did not answer a PING on {self.port_path} at {self.baudrate} bps")
-        self._check(joint, "PING", result, error)
-        if self.expected_model is not None and model != self.expected_model:
-            raise ServoModelMismatch(
-                f"{self._who(joint)} is model {_model_name(model)}, expected {_model_name(self.expected_model)}"
-            )
-        self.models[joint] = int(model)
-        return int(model)
+        model = self.bus.ping(self.ids[joint], self._who(joint), self.expected_model)
+        self.models[joint] = model
+        return model
 
     def _read(self, joint: Joint, field: dxt.Field) -> int:
-        with self._port_io(f"READ of {field.name} from {self._who(joint)}"):
-            data, result, error = self._ph.readTxRx(self._port, self.ids[joint], field.address, field.size)
-        self._check(joint, f"READ of {field.name}", result, error)
-        return int.from_bytes(bytes(data[: field.size]), "little", signed=field.signed)
+        return self.bus.read(self.ids[joint], self._who(joint), field)
 
     def _write(self, joint: Joint, field: dxt.Field, value: int) -> None:
-        data = list(value.to_bytes(field.size, "little", signed=field.signed))
-        with self._port_io(f"WRITE of {field.name} to {self._who(joint)}"):
-            result, error = self._ph.writeTxRx(self._port, self.ids[joint], field.address, field.size, data)
-        self._check(joint, f"WRITE of {field.name}={value}", result, error)
-
-    @contextlib.contextmanager
-    def _port_io(self, what: str) -> Iterator[None]:
-        """The port itself failing (a USB adapter pulled, a pty closed) as ServoCommError:
-        pyserial and termios raise their own errors from inside the SDK."""
-        try:
-            yield
-        except DriverError:
-            raise
-        except Exception as exc:  # OSError, termios.error, serial.SerialException
-            raise ServoCommError(f"{what}: port {self.port_path!r} failed: {exc}") from exc
+        self.bus.write(self.ids[joint], self._who(joint), field, value)
 
     def _check(self, joint: Joint, what: str, result: int, error: int) -> None:
-        """Turn one SDK result pair into an exception (or nothing)."""
-        if result != 0:
-            raise ServoCommError(f"{what} to {self._who(joint)}: {self._result(result)}")
-        if error & dxt.ERRBIT_ALERT:
-            raise ServoHardwareAlert(f"{self._who(joint)} hardware alert: {self._alert(joint)}")
-        if error:
-            name = dxt.ERROR_NUMBER_NAMES.get(error, f"error number {error}")
-            raise ServoInstructionError(f"{what} to {self._who(joint)} was rejected: {name}")
-
-    def _alert(self, joint: Joint) -> str:
-        f = dxt.HARDWARE_ERROR_STATUS
-        with self._port_io(f"READ of {f.name} from {self._who(joint)}"):
-            data, result, _ = self._ph.readTxRx(self._port, self.ids[joint], f.address, f.size)
-        if result != 0:
-            return f"Hardware Error Status unreadable ({self._result(result)})"
-        bits = int(data[0])
-        names = ", ".join(dxt.hardware_error_names(bits)) or "no bits set"
-        return f"{names} (Hardware Error Status 0x{bits:02x})"
+        self.bus.check(self.ids[joint], self._who(joint), what, result, error)
 
     def _who(self, joint: Joint) -> str:
         return f"{joint.name} servo id {self.ids[joint]}"
 
-    def _result(self, result: int) -> str:
-        text = str(self._ph.getTxRxResult(result)).removeprefix("[TxRxResult] ")
-        meaning = _COMM_MEANING.get(result)
-        return f"{text} (comm result {result}{': ' + meaning if meaning else ''})"
-
-    def _sdk_const(self, name: str) -> int:
-        assert self._sdk is not None
-        return int(getattr(self._sdk, name))
-
     def _require_open(self) -> None:
-        if self._port is None:
+        if not self.bus.is_open or self._sync_write is None:
             raise ServoCommError(f"servo port {self.port_path} is not open")
+
+
+def configure_position_servo(
+    bus: DynamixelBus, dxl_id: int, who: str, range_deg: tuple[float, float], speed_dps: float
+) -> None:
+    """Position mode, position limits ``range_deg`` and Profile Velocity ``speed_dps``, then
+    torque on, which holds the horn where it is (Goal Position becomes Present Position).
+    EEPROM is locked while torque is on, and writing it wears the servo's flash: only what
+    differs is written."""
+    with bus.lock:
+        eeprom = (
+            (dxt.OPERATING_MODE, dxt.MODE_POSITION),
+            (dxt.MAX_POSITION_LIMIT, dxt.deg_to_ticks(range_deg[1])),
+            (dxt.MIN_POSITION_LIMIT, dxt.deg_to_ticks(range_deg[0])),
+        )
+        stale = [(f, v) for f, v in eeprom if bus.read(dxl_id, who, f) != v]
+        if stale:
+            bus.write(dxl_id, who, dxt.TORQUE_ENABLE, 0)
+            for field, value in stale:
+                bus.write(dxl_id, who, field, value)
+        bus.write(dxl_id, who, dxt.PROFILE_VELOCITY, dxt.dps_to_velocity_units(speed_dps))
+        bus.write(dxl_id, who, dxt.TORQUE_ENABLE, 1)
 
 
 def _field(data: bytes, field: dxt.Field, base: int) -> int:

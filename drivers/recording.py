@@ -1,8 +1,10 @@
-"""A driver that records commanded angles and reports them back: the stand-in of last resort."""
+"""Stand-ins of last resort: a driver that records commanded angles and reports them back,
+and a latch that records its commands and is where it was told to be."""
 
 from __future__ import annotations
 
 from drivers.base import JointLimits, ModuleDriver
+from drivers.latch import DEFAULT_TIMEOUT_S, Latch, Position, Sensed
 
 
 class RecordingDriver(ModuleDriver):
@@ -28,3 +30,20 @@ class RecordingDriver(ModuleDriver):
 
     def set_torque(self, enabled: bool) -> None:
         self.torque = enabled
+
+
+class RecordingLatch(Latch):
+    """The latch stand-in: remembers every command and is at once where it was told to be
+    (open until told otherwise), so a module without a latch runs a dock's sequence."""
+
+    def __init__(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+        super().__init__(timeout_s)
+        self.history: list[Position] = []
+        self.adopt(Position.OPEN)
+
+    def _drive(self, target: Position) -> None:
+        self.history.append(target)
+
+    def _sense(self, target: Position | None) -> Sensed:
+        where = target or Position.OPEN
+        return Sensed(where, f"recorded {where.value}")

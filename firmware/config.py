@@ -10,7 +10,7 @@ value typed nowhere is the same at every hop: launcher, world, module process, r
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -98,6 +98,128 @@ class ChannelSpec:
         )
 
 
+#: What can hold a docked connector: a servo-driven latch (Dynamixel, on the servo bus or a
+#: port of its own), a GPIO-driven one (libgpiod), or the recording stand-in.
+LATCH_KINDS = ("servo", "gpio", "recording")
+#: The most degrees a servo latch may be off its position and count as there; the longest a
+#: latch's move may take (s).
+MAX_LATCH_TOLERANCE_DEG = 45.0
+MAX_LATCH_TIMEOUT_S = 60.0
+MAX_SERVO_ID = 252
+#: Which keys each kind of latch takes (beyond ``kind`` and ``connector``), with their defaults.
+LATCH_KEYS: dict[str, dict[str, Any]] = {
+    "servo": {
+        "id": None,  # required
+        "open_deg": None,
+        "closed_deg": None,
+        "tolerance_deg": 3.0,
+        "timeout_s": 1.0,
+        "port": None,  # None: the [servos] port
+        "baud": None,  # only with a port of its own
+        "latency_ms": None,
+    },
+    "gpio": {
+        "chip": None,
+        "output_line": None,
+        "input_line": None,
+        "output_active_low": False,
+        "input_active_low": False,
+        "timeout_s": 1.0,
+    },
+    "recording": {"timeout_s": 1.0},
+}
+
+
+@dataclass(frozen=True)
+class LatchSpec:
+    """The latch of one connector (module.toml ``[latch]``), every value checked: build one
+    with :meth:`from_mapping`, which names the key that is wrong. ``settings`` holds the
+    kind's keys (:data:`LATCH_KEYS`) with defaults filled in."""
+
+    kind: str
+    connector: int = 1
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "connector": self.connector, **self.settings}
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], where: str, servo_port: str | None = None) -> LatchSpec | None:
+        """The latch ``data`` describes (None for ``kind = "none"``); ModuleConfigError names
+        the key (``{where} id: expected an integer 0..252, got 300``). A servo latch without a
+        ``port`` of its own is on ``servo_port``, and needs one."""
+
+        def fail(key: str, message: str) -> ModuleConfigError:
+            return ModuleConfigError(f"{where} {key}: {message}")
+
+        kind = data.get("kind")
+        if kind == "none":
+            if set(data) - {"kind", "connector"}:
+                raise fail(sorted(set(data) - {"kind", "connector"})[0], 'unknown key for kind = "none"')
+            return None
+        if kind not in LATCH_KINDS:
+            raise fail("kind", f"expected one of {', '.join((*LATCH_KINDS, 'none'))}, got {kind!r}")
+        known = LATCH_KEYS[kind]
+        unknown = sorted(set(data) - set(known) - {"kind", "connector"})
+        if unknown:
+            raise fail(unknown[0], f"unknown key for kind = {kind!r} (known: kind, connector, {', '.join(known)})")
+        connector = data.get("connector", 1)
+        if not _is_int(connector) or connector < 1:
+            raise fail("connector", f"expected a connector number, got {connector!r}")
+        values = {key: data.get(key, default) for key, default in known.items()}
+        for key, value in values.items():
+            if value is None and key not in ("port", "baud", "latency_ms"):
+                raise fail(key, "missing")
+            if key in ("id",):
+                _check_int(fail, key, value, 0, MAX_SERVO_ID)
+            elif key in ("output_line", "input_line"):
+                _check_int(fail, key, value, 0, 65_535)
+            elif key == "baud" and value is not None:
+                _check_int(fail, key, value, 9600, MAX_BAUD)
+            elif key in ("open_deg", "closed_deg"):
+                _check_number(fail, key, value, -180.0, 180.0, "a number from -180 to 180 (degrees)")
+            elif key == "tolerance_deg":
+                _check_number(fail, key, value, 0.0, MAX_LATCH_TOLERANCE_DEG, "a positive number at most 45 (degrees)")
+            elif key == "timeout_s":
+                _check_number(fail, key, value, 0.0, MAX_LATCH_TIMEOUT_S, "a positive number at most 60 (seconds)")
+            elif key == "latency_ms" and value is not None:
+                _check_number(fail, key, value, 0.0, MAX_SERVO_LATENCY_MS, "a positive number at most 500 (ms)")
+            elif key in ("output_active_low", "input_active_low") and not isinstance(value, bool):
+                raise fail(key, f"expected true or false, got {value!r}")
+            elif key in ("chip", "port") and value is not None and (not isinstance(value, str) or not value):
+                raise fail(key, f"expected a device path, got {value!r}")
+        if kind == "servo":
+            if abs(values["closed_deg"] - values["open_deg"]) <= 2 * values["tolerance_deg"]:
+                raise fail(
+                    "closed_deg",
+                    f"{values['closed_deg']} is within twice tolerance_deg ({values['tolerance_deg']}) of open_deg "
+                    f"{values['open_deg']}: one would read as the other",
+                )
+            if values["port"] is None:
+                for key in ("baud", "latency_ms"):
+                    if values[key] is not None:
+                        raise fail(key, "only with a port of the latch's own")
+                if servo_port is None:
+                    raise fail("port", "missing: a servo latch is on the [servos] port, and there is none")
+        if kind == "gpio" and values["output_line"] == values["input_line"]:
+            raise fail("input_line", f"the output and the input need two lines, both are {values['input_line']}")
+        return cls(kind, int(connector), values)
+
+
+def _check_int(fail: Callable[[str, str], ModuleConfigError], key: str, value: object, low: int, high: int) -> None:
+    if not _is_int(value) or not low <= value <= high:  # type: ignore[operator]
+        raise fail(key, f"expected an integer {low}..{high}, got {value!r}")
+
+
+def _check_number(
+    fail: Callable[[str, str], ModuleConfigError], key: str, value: object, low: float, high: float, expected: str
+) -> None:
+    """A finite number in (low, high] when low is 0, else in [low, high]: TOML's nan and inf are numbers too."""
+    number = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+    if not number or not (low < value <= high if low == 0 else low <= value <= high):  # type: ignore[operator]
+        raise fail(key, f"expected {expected}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class ModuleConfig:
     """Everything one module needs to run (the firmware's configuration)."""
@@ -146,6 +268,8 @@ class ModuleConfig:
     sensor_values: Mapping[str, int] = field(default_factory=dict)
     #: cycles between two reads of the servos' present position and load (when the program reads any)
     servo_sensor_every: int = 1
+    #: the latch of its female connector (module.toml [latch]); None: no latch
+    latch: LatchSpec | None = None
     #: Which life of the module this is (0 at the first start; each restart adds one), so
     #: that the records of its lives, each counting cycles from 0, can be told apart.
     life: int = 0
@@ -195,6 +319,8 @@ class ModuleConfig:
                 value = [key.hex() for key in value]
             elif f.name == "connector_channels":
                 value = {str(c): spec.to_json() for c, spec in sorted(value.items())}
+            elif f.name == "latch":
+                value = None if value is None else value.to_json()
             out[f.name] = value
         return out
 
@@ -283,6 +409,9 @@ class ModuleConfig:
             kw["connector_channels"] = {
                 int(c): ChannelSpec.from_json(v, f"config connector_channels[{c}]") for c, v in channels.items()
             }
+        if obj.get("latch") is not None:
+            latch = _typed(obj, "latch", Mapping)
+            kw["latch"] = LatchSpec.from_mapping(latch, "config latch", kw.get("servo_port"))
         if "attach" in obj:
             attach = obj["attach"]
             if not isinstance(attach, Mapping):

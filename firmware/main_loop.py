@@ -677,6 +677,10 @@ def missing_devices(config: ModuleConfig, profile: Profile = CONRO) -> list[str]
         wanted.append((f"[connectors] {profile.connector_name(c)} device", spec.device))
         if spec.contact is not None:
             wanted.append((f"[connectors] {profile.connector_name(c)} contact", spec.contact))
+    if config.latch is not None and config.latch.settings.get("port"):
+        wanted.append(("[latch] port", config.latch.settings["port"]))
+    if config.latch is not None and config.latch.kind == "gpio":
+        wanted.append(("[latch] chip", config.latch.settings["chip"]))
     kind, options = parse_transport_spec(config.transport)
     interface = config.bus_options.get("interface")
     channel = config.bus_options.get("channel") if kind == "can" else options.get("channel")
@@ -719,10 +723,33 @@ def describe(config: ModuleConfig) -> str:
             + (f"; links negotiated over the channels of {channels}" if channels else ""),
             f"cycle {config.cycle_period * 1000:g} ms, liveness bound {config.silence_cycles} cycles",
             f"body: {body}",
+            f"latch: {describe_latch(config, program.profile)}",
             f"log: {config.log_file or 'standard error'}"
             + (f", status in {config.status_file}" if config.status_file else ""),
         ]
     )
+
+
+def describe_latch(config: ModuleConfig, profile: Profile) -> str:
+    """The ``[latch]`` in a line (``--check-config``)."""
+    spec = config.latch
+    if spec is None:
+        return "none"
+    s = spec.settings
+    where = f"on {profile.connector_name(spec.connector)}, moves within {s['timeout_s']:g} s"
+    if spec.kind == "servo":
+        port = s["port"] or f"{config.servo_port} (shared with the joints)"
+        return (
+            f"Dynamixel servo id {s['id']} on {port}, open {s['open_deg']:g} / closed {s['closed_deg']:g} degrees "
+            f"within {s['tolerance_deg']:g}, {where}"
+        )
+    if spec.kind == "gpio":
+        lows = [n for n in ("output", "input") if s[f"{n}_active_low"]]
+        low = f" ({' and '.join(lows)} active low)" if lows else ""
+        return (
+            f"GPIO {s['chip']}, output line {s['output_line']}, closed switch on line {s['input_line']}{low}, {where}"
+        )
+    return f"stand-in {spec.kind}, {where}"
 
 
 def lean_process() -> None:

@@ -52,6 +52,18 @@ is not TOML names the line and column. Relative paths are relative to the file's
     # latency_ms = 16                # the adapter's latency timer: replies wait 2 x this + 2 ms
     # stand_in = "recording"         # instead of port: record the angles ("none": drive nothing)
 
+    [latch]                          # what holds a male face docked to the female one
+    kind = "servo"                   # servo, gpio, recording (a stand-in) or none (the default)
+    # connector = "front"            # a female connector (the profile's first by default)
+    id = 3                           # servo: a Dynamixel at its own id on the [servos] port
+    open_deg = -30.0                 #   goal positions (degrees, 0 = tick 2048)
+    closed_deg = 30.0
+    tolerance_deg = 3.0              #   present position this close to a goal counts as there
+    timeout_s = 1.0                  # a move that takes longer is a fault (every kind)
+    # port = "/dev/ttyUSB1"          #   a bus of its own instead (then baud, latency_ms too)
+    # kind = "gpio": chip = "/dev/gpiochip0", output_line = 5, input_line = 6,
+    #   output_active_low = false, input_active_low = true (libgpiod v2: the gpio extra)
+
     [sensors]                        # S.pos1/pos2/load1/load2 come from the servos
     servo_every = 1                  # cycles between two reads of present position and load
     stand_in = { roll = 0, contact = 1 }   # fixed readings of sensors with no device here
@@ -88,10 +100,12 @@ from firmware.config import (
     MAX_BAUD,
     MAX_CYCLES,
     MAX_HANDSHAKE_S,
+    MAX_SERVO_ID,
     MAX_SERVO_LATENCY_MS,
     MAX_SILENCE_CYCLES,
     STAND_INS,
     ChannelSpec,
+    LatchSpec,
     ModuleConfig,
 )
 
@@ -102,8 +116,7 @@ FLASH_FILES = ("state.json", IMAGE_NAME)
 TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
 #: The transports on a shared bus, where links are negotiated over the connectors' channels.
 BUS_KINDS = ("can", "socketcan", "virtual", "udp")
-MAX_SERVO_ID = 252
-SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "sensors", "log", "hil")
+SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "latch", "sensors", "log", "hil")
 
 
 @dataclass(frozen=True)
@@ -208,6 +221,7 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
             f"[transport] kind {kw['transport']!r} has its links already"
         )
     kw.update(_servos(top.table("servos"), base))
+    kw["latch"] = _latch(top.table("latch"), profile, kw.get("servo_port"))
     kw.update(_sensors(top.table("sensors"), profile))
     kw.update(_log(top.table("log"), base))
     kw.update(_hil(top.table("hil"), profile))
@@ -379,6 +393,33 @@ def _servos(t: _Table, base: Path) -> dict[str, Any]:
     }
 
 
+def _latch(t: _Table, profile: Profile, servo_port: str | None) -> LatchSpec | None:
+    """``[latch]``: what holds the pins of a connector docked to the female face (none
+    unless the table says so). ``connector`` names a female connector (the profile's first
+    by default)."""
+    if not t.data:
+        return None
+    if "kind" not in t.data:
+        raise t.fail("kind", "missing: one of servo, gpio, recording, none")
+    data = dict(t.data)
+    female = [c for c in range(1, profile.connector_count + 1) if profile.gender(c) == "female"]
+    if "connector" in data:
+        if not isinstance(data["connector"], str):
+            raise t.fail("connector", f"expected a connector's name, got {data['connector']!r}")
+        if data["connector"] not in profile.connectors:
+            names = ", ".join(profile.connectors)
+            raise t.fail("connector", f"no such connector {data['connector']!r} (this profile's: {names})")
+        c = profile.connectors.index(data["connector"]) + 1
+        if profile.gender(c) != "female":
+            raise t.fail(
+                "connector", f"{profile.connector_name(c)} is {profile.gender(c)}: a latch holds a female face"
+            )
+        data["connector"] = c
+    elif female:
+        data["connector"] = female[0]
+    return LatchSpec.from_mapping(data, f"{t.source}: [{t.name}]", servo_port)
+
+
 def _sensors(t: _Table, profile: Profile) -> dict[str, Any]:
     """``[sensors]``: how often the servos are read as sensors, and the stand-in's fixed
     readings of sensors with no device (each a sensor of the profile, within its range)."""
@@ -504,6 +545,9 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image
             lines.append(f"latency_ms = {config.servo_latency_ms!r}")
     else:
         lines.append(f"stand_in = {_q(config.driver)}")
+    if config.latch is not None:
+        lines += ["", "[latch]", f"kind = {_q(config.latch.kind)}", f"connector = {_q(name(config.latch.connector))}"]
+        lines += [f"{k} = {_value(v)}" for k, v in config.latch.settings.items() if v is not None]
     lines += ["", "[sensors]", f"servo_every = {config.servo_sensor_every}"]
     if config.sensor_values:
         values = ", ".join(f"{k} = {v}" for k, v in config.sensor_values.items())
