@@ -388,11 +388,18 @@ class LoopReaches:
             w.send_readings(m, Readings({"docking": value}))
 
     def _read(
-        self, joints: Iterable[int], infrared: Iterable[int], *, floor: bool = False, cycle: int | None = None
+        self,
+        joints: Iterable[int],
+        infrared: Iterable[int],
+        *,
+        floor: bool = False,
+        cycle: int | None = None,
+        attitude: Iterable[int] = (),
     ) -> MotionReadings:
         """What the motions sense at world cycle ``cycle`` (default: now; the caller holds the
         physics lock)."""
-        return self.sensors.read(self.world.cycle if cycle is None else cycle, joints, infrared, floor=floor)
+        now = self.world.cycle if cycle is None else cycle
+        return self.sensors.read(now, joints, infrared, floor=floor, attitude=attitude)
 
     # ------------------------------------------------------------ each world cycle
 
@@ -428,12 +435,15 @@ class LoopReaches:
         cleared: list[CrawlingClear] = []
         front = w.profile.connector_index("front")
         world = self.physics.world
+        # the IMUs of the modules whose faces a loop along the robot closes on (Reach.relative)
+        tilted = [e[0] for m in moving if m.reach.tracked for e in (m.reach.chain.asking, m.reach.chain.target)]
         with self.physics.lock:
             readings = self._read(
                 {m for motion in moving for m in motion.reach.modules},
                 [m.reach.chain.asking[0] for m in moving] + [m.creep.module for m in moving if m.creep is not None],
                 floor=bool(trips) or any(m.reach.chain.anchor is not None or m.reach.tracked for m in moving),
                 cycle=cycle,
+                attitude=tilted,
             )
             for motion in moving:
                 motion.missed += cycle - motion.last - 1

@@ -33,6 +33,7 @@ class MotionSensors:
         self.tracker = tracker or OverheadTracker(world)
         model = world.model
         self.ir = PhysicsSensors(world, [f"ir_{c.name}{s}" for c in model.connectors for s in ("", "_align")])
+        self.imu = PhysicsSensors(world, ["roll", "pitch"])
 
     def read(
         self,
@@ -42,17 +43,20 @@ class MotionSensors:
         *,
         floor: bool,
         oracle: Iterable[tuple[End, End]] = (),
+        attitude: Iterable[int] = (),
     ) -> Readings:
         """This cycle's readings: the joint angles of ``joints``, the infrared pairs of
         ``infrared``, and (with ``floor``) the tracker's poses. ``oracle`` (measuring only,
         :attr:`firmware.motion.readings.Readings.oracle`): the face pairs whose exact relative
-        pose the world adds."""
+        pose the world adds; ``attitude``: the modules whose IMU (roll, pitch) is read."""
         angles = {m: self.world.joint_angles(m) for m in set(joints)}
         wanted = sorted(set(infrared))
         ir = dict(self.ir.read(wanted)) if wanted else {}
         poses = self.tracker.reading(cycle) if floor else FloorPoses()
         exact = {pair: self._exact(*pair) for pair in oracle}
-        return Readings(angles, ir, poses, exact)
+        tilted = sorted(set(attitude))
+        imu = {m: (r["roll"], r["pitch"]) for m, r in self.imu.read(tilted).items()} if tilted else {}
+        return Readings(angles, ir, poses, attitude=imu, oracle=exact)
 
     def _exact(self, asking: End, target: End) -> np.ndarray:
         """The target face's part in the asking face's part frame, from the world (an oracle)."""

@@ -437,11 +437,20 @@ class PhysicsRun:
         self.cut(module, connector)
         self.note(f"{self.where(module, connector)} released")
 
-    def _readings(self, joints: Iterable[int] = (), infrared: Iterable[int] = (), *, floor: bool = False) -> Readings:
+    def _readings(
+        self,
+        joints: Iterable[int] = (),
+        infrared: Iterable[int] = (),
+        *,
+        floor: bool = False,
+        attitude: Iterable[int] = (),
+    ) -> Readings:
         """What the motions sense this cycle (:class:`sim.motion_readings.MotionSensors`); with
         :attr:`oracle_poses`, the exact relative pose of every motion's faces as well."""
         oracle = [(r.chain.asking, r.chain.target) for r in self.reaches] if self.oracle_poses else []
-        return self.motion_sensors.read(self.robot.cycle, joints, infrared, floor=floor, oracle=oracle)
+        return self.motion_sensors.read(
+            self.robot.cycle, joints, infrared, floor=floor, oracle=oracle, attitude=attitude
+        )
 
     def _step_reaches(self) -> dict[int, dict[int, float]]:
         """Advance every docking motion; the joint targets they hold, per module. A motion that
@@ -452,6 +461,7 @@ class PhysicsRun:
             joints={m for r in self.reaches for m in r.modules},
             infrared=[r.chain.asking[0] for r in self.reaches] + creeping,
             floor=any(r.chain.anchor is not None or r.tracked for r in self.reaches),
+            attitude=[m for r in self.reaches if r.tracked for m in (r.chain.asking[0], r.chain.target[0])],
         )
         for reach in list(self.reaches):
             a, ac = reach.chain.asking

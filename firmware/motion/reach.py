@@ -160,9 +160,15 @@ class Reach:
             # from there the target's part as the tracker sees both on the floor
             q = {j: math.radians(readings.joint(*j)) for j in self._own_centre.joints}
             centre = self._own_centre.target_part(np.array([q[j] for j in self._own_centre.joints]))
-            a = readings.floor.part(chain.asking[0], CENTRE).transform()
+            # tilted as the asking module's IMU reads it (the pitch wave rocks it)
+            asking_tilt = readings.attitude.get(chain.asking[0], (0.0, 0.0))
+            a = readings.floor.part(chain.asking[0], CENTRE).transform(*asking_tilt)
             target_link = chain.model.connector(chain.target[1]).link
-            b = readings.floor.part(chain.target[0], target_link).transform()
+            # the target's part tilted as its module's IMU reads it (an approximation for a part
+            # on a pitch joint; the targets here lie on the yaw joint's back part)
+            b = readings.floor.part(chain.target[0], target_link).transform(
+                *readings.attitude.get(chain.target[0], (0, 0))
+            )
             out: np.ndarray = centre @ np.linalg.solve(a, b)
             return out
         return chain.target_part(self.measured(readings))

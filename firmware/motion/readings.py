@@ -51,11 +51,17 @@ class PartPose:
     y: float
     heading: float
 
-    def transform(self) -> np.ndarray:
-        """The part's frame as a 4x4 transform on the floor plane (no tilt, z = 0)."""
+    def transform(self, roll_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:
+        """The part's frame as a 4x4 transform on the floor plane (z = 0), tilted by an IMU's
+        ``roll`` and ``pitch`` if given (Z-Y-X Euler angles, as the IMU reads them)."""
         c, s = math.cos(self.heading), math.sin(self.heading)
+        cp, sp = math.cos(math.radians(pitch_deg)), math.sin(math.radians(pitch_deg))
+        cr, sr = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
         t = np.eye(4)
-        t[0, 0], t[0, 1], t[1, 0], t[1, 1] = c, -s, s, c
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+        t[:3, :3] = rz @ ry @ rx
         t[0, 3], t[1, 3] = self.x, self.y
         return t
 
@@ -128,6 +134,8 @@ class Readings:
     infrared: Mapping[int, Mapping[str, float]] = field(default_factory=dict)
     #: the overhead tracker's last broadcast
     floor: FloorPoses = field(default_factory=FloorPoses)
+    #: module -> (roll, pitch), degrees: its IMU (the ``roll``, ``pitch`` sensors)
+    attitude: Mapping[int, tuple[float, float]] = field(default_factory=dict)
     #: ORACLE, for measuring only: (asking, target) -> the target face's part in the asking
     #: face's part frame as the simulator has it exactly (4x4). No module senses this; it
     #: is filled only when an owner is told to (``sim.runner.PhysicsRun.oracle_poses``), to
