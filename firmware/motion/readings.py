@@ -11,7 +11,10 @@ A motion (:mod:`firmware.motion.reach`, :mod:`firmware.motion.crawl`,
     ``ir_<c>_align`` (degrees off square, 180 when nothing is in view), by module;
 ``floor``
     the overhead tracker's last broadcast (:class:`FloorPoses`): where each module lies on the
-    floor, as a camera over the arena sees it.
+    floor, as a camera over the arena sees it;
+``attitude``
+    a module's IMU: its ``roll`` and ``pitch`` (degrees), which tilt the tracker's planar
+    pose of its centre (:meth:`PartPose.transform`).
 
 The tracker reports, for every module it sees, the planar pose of each of its three parts
 (:class:`PartPose`: the part's centre on the floor and the heading of its x axis there),

@@ -140,3 +140,13 @@ def test_a_part_pose_turns_a_face_with_its_heading() -> None:
     pose = ModulePose(PartPose(1.0, 2.0, 0.0), PartPose(1.0, 2.0, math.pi / 2), PartPose(0.0, 0.0, 0.0))
     x, y, nx, ny = FloorPoses({4: pose}).face(DEFAULT_MODEL, 4, "front")
     assert (x, y, nx, ny) == pytest.approx((1.0, 2.0 + DEFAULT_MODEL.front.half[0], 0.0, 1.0))
+
+
+def test_an_imu_tilt_turns_a_floor_pose_as_the_imu_reads_it() -> None:
+    """Pitch > 0 is front end down (the profile's ``pitch``), roll > 0 left side up."""
+    pose = PartPose(0.5, 0.0, math.pi / 2)
+    pitched = pose.transform(0.0, 30.0)
+    assert pitched[:3, 0] == pytest.approx((0.0, math.cos(math.radians(30)), -0.5))  # x axis: forward, down
+    rolled = pose.transform(30.0, 0.0)
+    assert rolled[2, 1] == pytest.approx(0.5)  # the left (y) axis rises
+    assert pitched[:2, 3] == pytest.approx((0.5, 0.0))
