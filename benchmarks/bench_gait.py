@@ -1,5 +1,5 @@
 """Caterpillar travel in physics: the DH2 engine running examples/caterpillar.dh2 against the
-scripted Table I schedule (sim.gaits.caterpillar_schedule, written independently from the
+scripted Table I schedule (firmware.motion.gaits.caterpillar_schedule, written independently from the
 paper) on the same world, same ClockCycle and control period.
 
 A ratio near 1.0 says the engine and its hormones reproduce the paper's gait; the absolute

@@ -8,8 +8,14 @@ distance to the creeping foot (``free_distance``), and with the plan before it, 
 the tail's last two modules to put their face 3 cm in front of the foot
 (``PhysicsRun.dock_free_distance = False``). Reported: how many formed the snake, the cycle it
 formed (median and range), the docks that gave up, and the latches' distances and attitudes.
+``--variants`` runs only some of the two. ``--tracker`` gives the overhead tracker the foot's
+trip steers by (sim.tracker.OverheadTracker) noise, latency and dropouts (exact by default);
+``--oracle`` makes the docking motions read their faces' relative pose from the world's exact
+state instead of the chain's kinematics and the tracker (PhysicsRun.oracle_poses: to measure
+what the modules' own sensing costs).
 
     python -m benchmarks.bench_legs_to_snake [--seeds 0,1,2,3] [--kills none,dock,trip] [--jobs 2] [--quick]
+        [--variants free_distance,standoff] [--tracker NOISE_MM,NOISE_DEG,LATENCY,DROPOUT] [--oracle]
 
 One run is 30 to 45 s on one core. The last line is one JSON object.
 """
@@ -28,18 +34,31 @@ from benchmarks import jobs_arg, run_variants, seeds_arg, strict_json
 from dh2rt.compiler import compile_file
 from sim.legs_to_snake import KILLS, KillWinner, reconfigure
 from sim.runner import PhysicsRun
+from sim.tracker import OverheadTracker
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "legs_to_snake.dh2"
 VARIANTS = {"free_distance": True, "standoff": False}
 
 
-def one_run(seed: int, kill: str, free_distance: bool) -> dict[str, Any]:
-    """One whole reconfiguration; what happened."""
+def one_run(
+    seed: int,
+    kill: str,
+    free_distance: bool,
+    tracker: tuple[float, float, int, float] = (0, 0, 0, 0),
+    oracle: bool = False,
+) -> dict[str, Any]:
+    """One whole reconfiguration; what happened. ``tracker``: noise (mm, degrees), latency
+    (cycles) and dropout probability of the overhead tracker; ``oracle``: PhysicsRun.oracle_poses."""
     program = compile_file(str(EXAMPLE))
     hook = KillWinner(kill)
+    noise_mm, noise_deg, latency, dropout = tracker
 
     def setup(run: PhysicsRun) -> None:
         run.dock_free_distance = free_distance
+        run.oracle_poses = oracle
+        run.motion_sensors.tracker = OverheadTracker(
+            run.world, noise_m=noise_mm / 1000, noise_deg=noise_deg, latency=latency, dropout=dropout, seed=seed
+        )
 
     run, formed = reconfigure(program, seed, hook, setup=setup)
     try:
@@ -84,7 +103,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--jobs", type=int, default=2, help="runs at once, one process each (default 2)")
     parser.add_argument("--quick", action="store_true", help="seed 0 without a kill (a smoke test)")
+    parser.add_argument(
+        "--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)} (default both)"
+    )
+    parser.add_argument(
+        "--tracker",
+        default="0,0,0,0",
+        help="the overhead tracker's position noise (mm), heading noise (deg), latency (cycles), dropout "
+        "probability (default 0,0,0,0: exact)",
+    )
+    parser.add_argument(
+        "--oracle", action="store_true", help="the motions read the faces' exact relative pose from the world"
+    )
     args = parser.parse_args(argv)
+    variants = args.variants.split(",")
+    if [v for v in variants if v not in VARIANTS]:
+        parser.error(f"--variants: each one of {', '.join(VARIANTS)}, got {args.variants!r}")
+    try:
+        noise_mm, noise_deg, latency, dropout = args.tracker.split(",")
+        tracker = (float(noise_mm), float(noise_deg), int(latency), float(dropout))
+    except ValueError:
+        parser.error(f"--tracker: four numbers NOISE_MM,NOISE_DEG,LATENCY,DROPOUT, got {args.tracker!r}")
+    if min(tracker) < 0 or tracker[3] >= 1:
+        parser.error(f"--tracker: noise and latency >= 0, dropout in [0, 1), got {args.tracker!r}")
     seeds = seeds_arg(parser, args.seeds)
     kills = args.kills.split(",")
     unknown = [k for k in kills if k not in KILLS]
@@ -93,7 +134,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     jobs = jobs_arg(parser, args.jobs)
     if args.quick:
         seeds, kills = [0], ["none"]
-    cases = [(name, one_run, (seed, kill, VARIANTS[name])) for name in VARIANTS for seed in seeds for kill in kills]
+    cases = [
+        (name, one_run, (seed, kill, VARIANTS[name], tracker, args.oracle))
+        for name in variants
+        for seed in seeds
+        for kill in kills
+    ]
     print(f"{len(cases)} runs, {jobs} at a time (one run: 30 to 45 s on one core)", flush=True)
 
     def describe(name: str, r: dict[str, Any]) -> str:
@@ -104,8 +150,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if results is None:
         print("interrupted", file=sys.stderr)
         return 130
-    out: dict[str, Any] = {"bench": "legs_to_snake", "seeds": seeds, "kills": kills}
-    for name in VARIANTS:
+    out: dict[str, Any] = {
+        "bench": "legs_to_snake",
+        "seeds": seeds,
+        "kills": kills,
+        "tracker": dict(zip(("noise_mm", "noise_deg", "latency", "dropout"), tracker, strict=True)),
+        "oracle": args.oracle,
+    }
+    for name in variants:
         s = summary(results[name])
         out[name] = s
         print(
@@ -114,11 +166,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"latches {s['latch_mm']['median']} mm / {s['latch_deg']['median']} deg median, "
             f"not formed {s['not_formed'] or 'none'}"
         )
-    now, before = out["free_distance"]["cycles"]["median"], out["standoff"]["cycles"]["median"]
-    out["median_cycle_ratio"] = round(now / before, 3) if now and before else None
-    print(f"median cycle the snake formed, free_distance / standoff: {out['median_cycle_ratio']}")
+    if set(VARIANTS) <= set(variants):
+        now, before = out["free_distance"]["cycles"]["median"], out["standoff"]["cycles"]["median"]
+        out["median_cycle_ratio"] = round(now / before, 3) if now and before else None
+        print(f"median cycle the snake formed, free_distance / standoff: {out['median_cycle_ratio']}")
     print(json.dumps(strict_json(out)))
-    return 0 if out["free_distance"]["formed"] else 1
+    return 0 if any(out[name]["formed"] for name in variants) else 1
 
 
 if __name__ == "__main__":

@@ -30,7 +30,8 @@ import pybullet as p
 
 from dh2rt.profile import CONRO
 from dh2rt.topology import parse_spec
-from sim.gaits import CLOCK_CYCLE, STEPS_PER_CYCLE, caterpillar_schedule, run_caterpillar
+from firmware.motion.gaits import caterpillar_schedule
+from sim.gaits import CLOCK_CYCLE, STEPS_PER_CYCLE, run_caterpillar
 from sim.record import Recorder
 from sim.sensors import PhysicsSensors, physics_sensor_names
 from sim.world import World

@@ -2,7 +2,7 @@
 
 One round of legs to snake in physics, driven from Python as
 tests/sim/test_foot_to_tail_physics.py does: the dragon holds still, a foot lets go of the
-spine, comes to tail4's back by its own gaits (sim.crawl.Trip) and docks by motion. For each
+spine, comes to tail4's back by its own gaits (firmware.motion.crawl.Trip) and docks by motion. For each
 foot and seed, the same world twice in the same run: today's trip, which starts across
 ``DIAGONAL_M`` before the end of its line and backs diagonally past the face, and the same
 trip without the diagonal (``diagonal_m = 0``: along its line to the end, then across, as
@@ -29,7 +29,7 @@ from dh2rt.compiler import compile_source
 from dh2rt.profile import CONRO
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
-from sim.crawl import DIAGONAL_M
+from firmware.motion.crawl import DIAGONAL_M
 from sim.runner import PhysicsRun
 
 FEET = ("left_leg0", "right_leg0", "left_leg1", "right_leg1")

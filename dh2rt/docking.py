@@ -217,7 +217,7 @@ def reach_and_dock_to(world: DockingWorld, module: int, connector: int, route: S
     :data:`DOCK_DELAY` cycles later ``module``'s ``connector`` docks to connector
     ``target_conn`` of the module at the end of ``route`` (nothing is released), if the rules
     allow it then and the world says the two are aligned (logged otherwise). The physics
-    runner carries the same request out by motion (``sim.reach``)."""
+    runner carries the same request out by motion (``firmware.motion.reach``)."""
     route = tuple(route)
 
     def carry_out() -> None:

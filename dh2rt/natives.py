@@ -45,7 +45,7 @@ def dock_tail_to_foot(engine: Engine, path: Path) -> None:
 def reach_dock(engine: Engine, path: Path, mine: int, theirs: int) -> None:
     """Bend this module's connector ``mine`` (profile index) to connector ``theirs`` of the
     module at the end of ``path``-1 and dock there; nothing is released. The chain of
-    modules along the route does the bending (in physics: ``sim.reach``). Requested as the
+    modules along the route does the bending (in physics: ``firmware.motion.reach``). Requested as the
     effect ``("reach_dock", (mine, route, theirs))``."""
     route = tuple(received_at for _sent, received_at in path)
     engine.effect("reach_dock", int(mine), route, int(theirs))

@@ -37,6 +37,10 @@ table (:data:`CONRO_SENSORS`, documented in docs/language.md, *Sensors*):
   servos' present load, percent of their maximum torque, signed;
 * ``docking``: 1 while a docking motion this module asked for (``reach_dock``,
   ``dock_tail_to_foot``) is under way, 0 otherwise: the motion controller's own state.
+* ``floor_x``, ``floor_y`` (mm), ``floor_heading`` (degrees, counter-clockwise from the
+  arena's x axis, -180..180): the overhead tracker's pose of the module's centre on the floor
+  (a camera over the arena; in physics ``sim.tracker.OverheadTracker``). The docking motions
+  read every module's pose from the same tracker (``firmware.motion.readings.FloorPoses``).
 """
 
 from __future__ import annotations
@@ -268,6 +272,9 @@ CONRO_DATA: dict[str, Any] = {
             ("load1", "%", -100, 100, "DOF1 servo's present load, percent of its maximum torque, signed"),
             ("load2", "%", -100, 100, "DOF2 servo's present load, percent of its maximum torque, signed"),
             ("docking", "bool", 0, 1, "1 while a docking motion this module asked for is under way"),
+            ("floor_x", "mm", -10000, 10000, "overhead tracker: the module's centre on the floor, arena x"),
+            ("floor_y", "mm", -10000, 10000, "overhead tracker: the module's centre on the floor, arena y"),
+            ("floor_heading", "deg", -180, 180, "overhead tracker: the module's heading on the floor, left > 0"),
         )
     ],
 }

@@ -3,12 +3,15 @@
 With the PyBullet stand-in, the hardware-in-the-loop world carries a native's ``reach_dock``
 (dock my connector to a connector of the module a route leads to) out as the physics runner
 does (``sim.runner.PhysicsRun.start_reach``): the chain of modules along the route bends,
-aligns and approaches by :class:`sim.reach.Reach` on the stand-in's PyBullet world, one
-step per world cycle, and the latch closes only when the world says the faces are aligned
-within ``DOCK_TOLERANCE_M`` / ``DOCK_TOLERANCE_DEG`` *and* the asking connector's infrared
-pair sees the target within them. Then the world docks the link as for a ``dock`` event (the
+aligns and approaches by :class:`firmware.motion.reach.Reach`, one step per world cycle, fed
+what the modules sense of the stand-in's PyBullet world (their joint angles, the asking
+connector's infrared pair, the overhead tracker: :class:`sim.motion_readings.MotionSensors`).
+The motion asks for the latch when its infrared pair sees the target within
+``DOCK_TOLERANCE_M`` / ``DOCK_TOLERANCE_DEG``; the latch closes only if the world says the
+faces are aligned within them. Then the world docks the link as for a ``dock`` event (the
 emulated serial link or the link map, the contact emulator on a bus), after the latch in
-physics; a motion that gives up (``sim.reach.DEFAULT_TIMEOUT`` steps) links nothing.
+physics; a motion that gives up (``firmware.motion.reach.DEFAULT_TIMEOUT`` steps) links
+nothing.
 
 The modules move themselves: each world cycle the world sends every module of the chain a
 :class:`firmware.control.Hold` with the joint targets the motion wants of it; the module writes
@@ -19,16 +22,17 @@ its program when the motion ends. The world never writes a joint itself. docs/hi
 
 ``reach_and_dock`` (legs_to_snake's ``dock_tail_to_foot``) is carried out as the physics
 runner's ``PhysicsRun.assimilate`` does it: the foot at the end of the route lets go of the
-body at its front, :class:`sim.crawl.Trip` takes it by its own gaits to just behind the asking
-face (the tail's back), each step's joint targets held by the foot's own servos through
-``Hold`` as above; once it is there the last two modules up the asking module's robot square
-their face by a :class:`sim.reach.Reach` while the foot creeps (:class:`sim.crawl.Creep`,
+body at its front, :class:`firmware.motion.crawl.Trip` takes it by its own gaits to just behind
+the asking face (the tail's back), steering by the overhead tracker's poses, each step's joint
+targets held by the foot's own servos through ``Hold`` as above; once it is there the last two
+modules up the asking module's robot square their face by a :class:`firmware.motion.reach.Reach`
+while the foot creeps (:class:`firmware.motion.crawl.Creep`,
 held the same way); a dock that gives up sends the foot round again, up to
 ``sim.runner.BRING_ATTEMPTS`` docks. While a module's motion (a trip to its face, or a
 reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
 declares the sensor; firmware.control.Readings), and 0 once it ended.
 
-Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.reach.Contact`: both
+Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.motion_readings.Contact`: both
 faces' world poses, distance, attitude error and the infrared reading at that moment) and
 logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches.failed`.
 """
@@ -37,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -47,12 +51,15 @@ from dh2rt.profile import Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
 from firmware.control import Readings
+from firmware.motion.clearing import Clearing, spot_taken
+from firmware.motion.crawl import Creep, Trip
+from firmware.motion.kinematics import Chain
+from firmware.motion.reach import Reach
+from firmware.motion.readings import Readings as MotionReadings
 from hil.physics_stand_in import PhysicsStandIn
-from sim.clearing import Clearing, spot_taken
-from sim.crawl import Creep, Trip
-from sim.reach import Chain, Contact, Reach
+from sim.motion_readings import Contact, MotionSensors, contact
 from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
-from sim.sensors import PhysicsSensors
+from sim.tracker import OverheadTracker
 
 
 class LoopWorld(DockingWorld, Protocol):
@@ -85,7 +92,7 @@ class Motion:
     #: the world cycle it was asked at, and the one its plan was ready at
     asked: int
     planned: int
-    #: seconds the plan took (sim.reach.plan, in the world's thread)
+    #: seconds the plan took (firmware.motion.kinematics.plan, in the world's thread)
     plan_s: float
     #: the world cycle it was last stepped at, and the world cycles since its plan was ready
     #: that went by without a step (the world's thread came too late for them)
@@ -94,11 +101,13 @@ class Motion:
     #: the lone module (a foot that came, :class:`Bringing`) creeping towards the asking face
     #: meanwhile, if any
     creep: Creep | None = None
+    #: where the faces were when it ended (the trace's record, read from the world)
+    contact: Contact | None = None
 
     @property
     def modules(self) -> set[int]:
         """The modules whose joints the motion holds (the creeping foot's included)."""
-        return {m for m, _ in self.reach.chain.joints} | ({self.creep.module} if self.creep is not None else set())
+        return self.reach.modules | ({self.creep.module} if self.creep is not None else set())
 
 
 @dataclass
@@ -117,7 +126,7 @@ class Bringing:
 @dataclass
 class CrawlingClear:
     """A robot crawling clear of a module lying on the spot behind ``face`` before ``foot``
-    (the foot's end that still hangs on the body) lets go (:class:`sim.clearing.Clearing`)."""
+    (the foot's end that still hangs on the body) lets go (:class:`firmware.motion.clearing.Clearing`)."""
 
     clearing: Clearing
     face: End
@@ -158,15 +167,13 @@ class Outcome:
 class LoopReaches:
     """The docking motions of a loop world whose body is the PyBullet stand-in."""
 
-    def __init__(self, world: LoopWorld, physics: PhysicsStandIn) -> None:
+    def __init__(self, world: LoopWorld, physics: PhysicsStandIn, tracker: OverheadTracker | None = None) -> None:
         self.world = world
         self.physics = physics
-        model = physics.world.model
         with physics.lock:
-            #: The infrared pairs the motions read (every connector's), as PhysicsRun's.
-            self.ir = PhysicsSensors(
-                physics.world, [f"ir_{c.name}{s}" for c in model.connectors for s in ("", "_align")]
-            )
+            #: What the motions read (the chain's joint angles, every connector's infrared pair,
+            #: the overhead tracker), as PhysicsRun's.
+            self.sensors = MotionSensors(physics.world, tracker)
         self.motions: list[Motion] = []
         #: Every link formed by a motion, and every motion that gave up.
         self.contacts: list[Contact] = []
@@ -195,7 +202,7 @@ class LoopReaches:
         target = docking.reach_dock_target(w, module, connector, route, target_conn)
         if target is None:
             return False
-        here, where = target
+        _, where = target
         if not w.profile.can_link(connector, target_conn):
             w.note(f"reach_dock {where}: both connectors are {w.profile.gender(connector)}")
             return False
@@ -203,22 +210,10 @@ class LoopReaches:
         if any(m in motion.modules for motion in self.motions for m, _ in chain.joints):
             w.note(f"reach_dock {where}: another docking motion owns part of the chain")
             return False
-        world = self.physics.world
-
-        def aligned() -> bool:  # called inside Reach.step, which the caller runs under the lock
-            return world.aligned(module, connector, here, target_conn, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
-
         cycle, started = w.cycle, time.perf_counter()
-        reach = Reach(
-            world,
-            self.ir,
-            chain,
-            aligned,
-            DOCK_TOLERANCE_M,
-            DOCK_TOLERANCE_DEG,
-            start_cycle=cycle,
-            lock=self.physics.lock,
-        )
+        with self.physics.lock:  # the readings; not the plan (pure kinematics), which takes a while
+            readings = self._read({m for m, _ in chain.joints}, {module})
+        reach = Reach(chain, readings, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, start_cycle=cycle)
         plan_s, planned = time.perf_counter() - started, w.cycle
         self.motions.append(Motion(reach, where, cycle, planned, plan_s, last=planned - 1))
         modules = sorted({m for m, _ in chain.joints})
@@ -234,7 +229,7 @@ class LoopReaches:
         """``reach_and_dock(connector, route)`` by motion, as ``sim.runner.PhysicsRun.assimilate``
         does (legs_to_snake's ``dock_tail_to_foot``): the foot at the end of ``route`` lets go
         of the body at its front and comes to ``module``'s ``connector`` by its own gaits
-        (:class:`sim.crawl.Trip`, its joints held through :class:`firmware.control.Hold`), then the
+        (:class:`firmware.motion.crawl.Trip`, its joints held through :class:`firmware.control.Hold`), then the
         last two modules up ``module``'s robot square their face while the foot creeps
         (:meth:`reach_other`); a dock that gives up sends the foot round again, up to
         ``BRING_ATTEMPTS`` docks. False (logged) if the rules say no: the route leads nowhere,
@@ -279,9 +274,11 @@ class LoopReaches:
         return self.bring(foot_end[0], face, self.squaring_route(face[0]))
 
     def spot_taken(self, face: End, foot: int) -> int | None:
-        """:func:`sim.clearing.spot_taken` in this world (the caller holds the physics lock)."""
+        """:func:`firmware.motion.clearing.spot_taken` by the overhead tracker (the caller holds
+        the physics lock)."""
         w = self.world
-        return spot_taken(self.physics.world, w.peer_of, w.profile, w.topology.size, face, foot)
+        floor = self.sensors.tracker.reading(w.cycle)
+        return spot_taken(floor, self.physics.world.model, w.peer_of, w.profile, w.topology.size, face, foot)
 
     def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
         """A released ``foot`` (a lone module) sets off to ``target``, a free face of another
@@ -303,11 +300,17 @@ class LoopReaches:
 
     def _set_off(self, foot: int, target: End, route: tuple[int, ...]) -> None:
         b = target[0]
-        with self.physics.lock:  # the trip reads where the foot and the face are
-            trip = Trip(
-                self.physics.world, foot, target, body=lambda: self.body_up(b), others=lambda: self.off_path(b, foot)
-            )
         cycle = self.world.cycle
+        with self.physics.lock:  # the trip reads where the foot and the face are
+            floor = self.sensors.tracker.reading(cycle)
+        trip = Trip(
+            floor,
+            foot,
+            target,
+            model=self.physics.world.model,
+            body=lambda: self.body_up(b),
+            others=lambda: self.off_path(b, foot),
+        )
         self.trips.append(Bringing(trip, route, cycle, cycle - 1))
         self.sync_docking()
 
@@ -337,19 +340,14 @@ class LoopReaches:
         if not w.profile.can_link(connector, front):
             w.note(f"reach_dock {where}: both connectors are {w.profile.gender(connector)}")
             return False
-        world = self.physics.world
-        chain = Chain.to_other(world.model, (module, connector), route, w.peer_of, (foot, front), free_distance=True)
-
-        def aligned() -> bool:  # inside Reach.step, under the lock
-            return world.aligned(module, connector, foot, front, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
-
+        model = self.physics.world.model
+        chain = Chain.to_other(model, (module, connector), route, w.peer_of, (foot, front), free_distance=True)
         cycle, started = w.cycle, time.perf_counter()
-        reach = Reach(
-            world, self.ir, chain, aligned, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, start_cycle=cycle,
-            lock=self.physics.lock,
-        )  # fmt: skip
+        with self.physics.lock:
+            readings = self._read({m for m, _ in chain.joints}, {module}, floor=True)
+        reach = Reach(chain, readings, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, start_cycle=cycle)
         plan_s, planned = time.perf_counter() - started, w.cycle
-        creep = Creep(self.ir, foot, world.model.connector(front).name)
+        creep = Creep(foot, model.connector(front).name)
         self.motions.append(Motion(reach, where, cycle, planned, plan_s, last=planned - 1, creep=creep))
         w.note(f"reach_dock {where}: bending; {w.where(foot, front)} creeps towards it")
         return True
@@ -389,6 +387,20 @@ class LoopReaches:
             self.docking_sent[m] = value
             w.send_readings(m, Readings({"docking": value}))
 
+    def _read(
+        self,
+        joints: Iterable[int],
+        infrared: Iterable[int],
+        *,
+        floor: bool = False,
+        cycle: int | None = None,
+        attitude: Iterable[int] = (),
+    ) -> MotionReadings:
+        """What the motions sense at world cycle ``cycle`` (default: now; the caller holds the
+        physics lock)."""
+        now = self.world.cycle if cycle is None else cycle
+        return self.sensors.read(now, joints, infrared, floor=floor, attitude=attitude)
+
     # ------------------------------------------------------------ each world cycle
 
     def stepped_in(self, cycle: int) -> bool:
@@ -422,25 +434,39 @@ class LoopReaches:
         arrived: list[Bringing] = []
         cleared: list[CrawlingClear] = []
         front = w.profile.connector_index("front")
+        world = self.physics.world
+        # the IMUs of the modules whose faces a loop along the robot closes on (Reach.relative)
+        tilted = [e[0] for m in moving if m.reach.tracked for e in (m.reach.chain.asking, m.reach.chain.target)]
         with self.physics.lock:
+            readings = self._read(
+                {m for motion in moving for m in motion.reach.modules},
+                [m.reach.chain.asking[0] for m in moving] + [m.creep.module for m in moving if m.creep is not None],
+                floor=bool(trips) or any(m.reach.chain.anchor is not None or m.reach.tracked for m in moving),
+                cycle=cycle,
+                attitude=tilted,
+            )
             for motion in moving:
                 motion.missed += cycle - motion.last - 1
                 motion.last = cycle
                 reach = motion.reach
-                (a, _), (b, _) = reach.chain.asking, reach.chain.target
+                (a, ac), (b, bc) = reach.chain.asking, reach.chain.target
                 if not all(w.running(m) for m in {a, b} | motion.modules):
                     self.motions.remove(motion)
                     w.note(f"reach_dock {motion.where}: a module of the chain stopped; motion abandoned")
                     continue
-                targets = reach.step(cycle)
+                if reach.asks_latch(readings) and world.aligned(a, ac, b, bc, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG):
+                    targets = reach.latch()
+                else:
+                    targets = reach.step(readings)
                 if reach.done:
+                    motion.contact = contact(world, cycle, (a, ac), (b, bc), reach.infrared(readings))
                     self.motions.remove(motion)
                     done.append(motion)
                     continue
                 for m, dofs in targets.items():
                     holds.setdefault(m, {}).update(dofs)
                 if motion.creep is not None:
-                    d1, d2 = motion.creep.step()
+                    d1, d2 = motion.creep.step(readings)
                     holds.setdefault(motion.creep.module, {}).update({0: d1, 1: d2})
             for bringing in trips:
                 bringing.missed += cycle - bringing.last - 1
@@ -451,7 +477,7 @@ class LoopReaches:
                     self.trips.remove(bringing)
                     w.note(f"bring {w.where(trip.module, front)}: a module stopped; trip abandoned")
                     continue
-                d1, d2 = trip.step()
+                d1, d2 = trip.step(readings.floor)
                 if not trip.done:
                     holds.setdefault(trip.module, {}).update({0: d1, 1: d2})
                     continue
@@ -495,8 +521,7 @@ class LoopReaches:
     def _arrived(self, bringing: Bringing, cycle: int) -> None:
         w, trip = self.world, bringing.trip
         front = w.profile.connector_index("front")
-        with self.physics.lock:
-            s, lat, heading = trip.state()
+        s, lat, heading = trip.state()
         self.arrivals.append(Arrival(trip.module, trip.target, bringing.asked, cycle, trip.cycles, bringing.missed))
         w.note(
             f"bring {w.where(trip.module, front)}: arrived after {trip.cycles} steps, world cycles "
@@ -509,7 +534,7 @@ class LoopReaches:
     def _finish(self, motion: Motion, cycle: int) -> None:
         w, reach = self.world, motion.reach
         (a, ac), (b, bc) = reach.chain.asking, reach.chain.target
-        contact = reach.contact
+        contact = motion.contact
         assert contact is not None
         how = (
             f"{contact.distance_m * 1000:.1f} mm, {contact.attitude_deg:.1f} deg apart; infrared "

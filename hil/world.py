@@ -33,10 +33,10 @@ this world as the docking world (DOCK_DELAY world cycles later for the first two
 ``reach_and_dock`` the foot's link is cut and the asking connector docked to it), so
 ``legs_to_snake`` and ``snake_to_t`` reconfigure in the loop. With the PyBullet stand-in a
 ``reach_dock`` is carried out by motion instead (:mod:`hil.reach_loop`): the chain's modules
-hold the joint targets of a :class:`sim.reach.Reach` stepped once per world cycle, and the
+hold the joint targets of a :class:`firmware.motion.reach.Reach` stepped once per world cycle, and the
 link is docked only once the faces latched in physics, within the physics runner's tolerance;
 and a ``reach_and_dock`` as ``sim.runner.PhysicsRun.assimilate`` does it: the foot lets go
-of the body, comes to the asking face by its own gaits (:class:`sim.crawl.Trip`, held on its
+of the body, comes to the asking face by its own gaits (:class:`firmware.motion.crawl.Trip`, held on its
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
 sensor reads 1 meanwhile (pushed by the world).
 

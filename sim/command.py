@@ -78,7 +78,7 @@ PYBULLET = PybulletSimulator()
 
 def traced(run: PhysicsRun, module: int, pos: list[float]) -> dict[str, object]:
     """A module's extra trace fields: its position and, in the cycle a docking motion of its
-    latched, ``dock``: where both faces were at that moment (:meth:`sim.reach.Contact.as_dict`)."""
+    latched, ``dock``: where both faces were at that moment (:meth:`sim.motion_readings.Contact.as_dict`)."""
     out: dict[str, object] = {"pos": pos}
     for contact in run.contacts:
         if contact.asking[0] == module and contact.cycle == run.robot.cycle - 1:

@@ -17,16 +17,20 @@ Docking follows the world: a ``cut`` undocks both the logical link and the physi
 a ``dock`` event stays logical only if the two connectors are physically aligned within
 tolerance, and is undone otherwise. A native action's ``reach_dock`` (dock my connector to a
 connector of the module a route leads to) is carried out by the modules' own motion
-(:class:`sim.reach.Reach`): the chain of modules along the route bends, aligns and approaches,
-its joints owned by the motion until the latch closes (faces within the tolerance below, and
-the asking connector's infrared pair seeing the target) or the motion gives up. Every link
+(:class:`firmware.motion.reach.Reach`, fed each cycle with what the modules sense:
+:class:`sim.motion_readings.MotionSensors`): the chain of modules along the route bends,
+aligns and approaches, its joints owned by the motion until the latch closes (the motion asks
+for it when the asking connector's infrared pair sees the target within the tolerance below;
+the latch closes when physics has the faces aligned within it) or the motion gives up. Every link
 formed so is recorded in :attr:`PhysicsRun.contacts` with both faces' world poses and errors
 at that moment. ``release`` cuts a module's link at one of its connectors. ``reach_and_dock``
 (legs to snake's ``dock_tail_to_foot``) is carried out by motion as well
 (:meth:`PhysicsRun.assimilate`): the foot lets go of the body, comes to the asking face by its
-own gaits (:class:`sim.crawl.Trip`) and the two dock while it creeps; the asking module's
+own gaits (:class:`firmware.motion.crawl.Trip`, steering by the overhead tracker:
+:class:`sim.tracker.OverheadTracker`) and the two dock while it creeps; the asking module's
 ``docking`` sensor reads 1 meanwhile. If a module lies apart on the spot behind the face (a
-foot that died docking), the robot crawls clear of it first (:class:`sim.clearing.Clearing`).
+foot that died docking; the tracker says where it lies), the robot crawls clear of it first
+(:class:`firmware.motion.clearing.Clearing`).
 
 ``dh2rt run PROGRAM --sim pybullet`` runs it through :mod:`sim.command`.
 """
@@ -41,11 +45,15 @@ from dh2rt.docking import End
 from dh2rt.events import Event
 from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
-from sim.clearing import Clearing, spot_taken
-from sim.crawl import DIAGONAL_M, Creep, Trip
-from sim.reach import Chain, Contact, Reach
+from firmware.motion.clearing import Clearing, spot_taken
+from firmware.motion.crawl import DIAGONAL_M, Creep, Trip
+from firmware.motion.kinematics import Chain
+from firmware.motion.reach import Reach
+from firmware.motion.readings import Readings
+from sim.motion_readings import Contact, MotionSensors, contact
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
+from sim.tracker import OverheadTracker
 from sim.world import World
 
 #: Physics steps per DH2 control cycle: 12 steps at 240 Hz = 50 ms per cycle.
@@ -57,6 +65,8 @@ STEPS_PER_CYCLE = 12
 #: winner killed on its trip: the next foot pressed against the dead one for 1,700 cycles,
 #: before the trip steered round a module lying beside the robot).
 BRING_ATTEMPTS = 3
+#: The overhead tracker's sensors (dh2rt.profile's table), filled from sim.tracker.
+FLOOR_SENSORS = ("floor_x", "floor_y", "floor_heading")
 #: How far apart two connectors may be for a logical dock to hold physically.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
@@ -74,6 +84,7 @@ class PhysicsRun:
         steps_per_cycle: int = STEPS_PER_CYCLE,
         gui: bool = False,
         settle: Callable[[], None] | None = None,
+        tracker: OverheadTracker | None = None,
     ) -> None:
         self.robot = robot
         self.world = world or World(robot.topology, gui=gui, seed=robot.seed)
@@ -100,10 +111,9 @@ class PhysicsRun:
         robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: self._assimilate_effect(m, args)
         robot.effect_handlers["reach_dock"] = lambda _r, m, args: self.start_reach(m, *args)
         robot.effect_handlers["release"] = lambda _r, m, args: self.release(m, *args)
-        #: The infrared pairs the docking motions read (every connector's).
-        self._ir = PhysicsSensors(
-            self.world, [f"ir_{c.name}{s}" for c in self.world.model.connectors for s in ("", "_align")]
-        )
+        #: What the docking motions read: the chain's joint angles, the infrared pairs (every
+        #: connector's), and the overhead tracker (exact unless ``tracker`` says otherwise).
+        self.motion_sensors = MotionSensors(self.world, tracker)
         #: Docking motions under way.
         self.reaches: list[Reach] = []
         #: The lone modules that creep towards a docking motion's face, by the motion's id.
@@ -118,16 +128,31 @@ class PhysicsRun:
         self.clearings: list[tuple[Clearing, End, End]] = []
         #: Times each foot brought so far has set off (see BRING_ATTEMPTS).
         self.attempts: dict[int, int] = {}
-        #: How far before its line's end a foot's trip starts across (sim.crawl.DIAGONAL_M; 0:
+        #: How far before its line's end a foot's trip starts across (firmware.motion.crawl.DIAGONAL_M; 0:
         #: at the end, the trip before; benchmarks/bench_trips.py compares the two).
         self.trip_diagonal_m = DIAGONAL_M
         #: Whether a dock with a creeping foot leaves the distance to the foot
-        #: (sim.reach.Chain.free_distance; False: the plan puts the face STANDOFF_M in front
+        #: (firmware.motion.kinematics.Chain.free_distance; False: the plan puts the face STANDOFF_M in front
         #: of the foot, the dock before; benchmarks/bench_legs_to_snake.py compares the two).
         self.dock_free_distance = True
+        #: ORACLE, for measuring only: the docking motions read their faces' relative pose from
+        #: the world's exact state (as before they were sans-IO) instead of the chain's
+        #: kinematics of its measured angles and the tracker (firmware.motion.readings.Readings.oracle).
+        self.oracle_poses = False
+        #: Whether a docking chain along the robot closes its loop on the overhead tracker's
+        #: view of both faces' modules (firmware.motion.reach.Reach.tracked; False: on the
+        #: chain's kinematics of its measured angles alone, which the docks' give defeats:
+        #: docs/physics.md, *What each step reads*).
+        self.closed_by_tracker = True
         #: Every link formed by a docking motion, and every motion that gave up.
         self.contacts: list[Contact] = []
         self.failed: list[Contact] = []
+        #: (name, the engine's slot, its spec) of each overhead tracker sensor the program reads
+        self._floor_slots = [
+            (n, program.sensor_names.index(n), profile.sensor(n))
+            for n in FLOOR_SENSORS
+            if n in program.sensor_names and n in profile.sensor_names
+        ]
         #: The engines' slot of the ``docking`` sensor, if the program declares it.
         self._docking_slot = (
             program.sensor_names.index("docking")
@@ -176,7 +201,7 @@ class PhysicsRun:
         target = docking.reach_dock_target(self, module, connector, route, target_conn)
         if target is None:
             return
-        here, where = target
+        _, where = target
         if not self.robot.profile.can_link(connector, target_conn):
             self.note(f"reach_dock {where}: both connectors are {self.robot.profile.gender(connector)}")
             return
@@ -185,16 +210,10 @@ class PhysicsRun:
         if busy & {m for m, _ in chain.joints}:
             self.note(f"reach_dock {where}: another docking motion owns part of the chain")
             return
+        readings = self._readings(joints={m for m, _ in chain.joints}, infrared={module})
+        cycle, tracked = self.robot.cycle, self.closed_by_tracker
         self.reaches.append(
-            Reach(
-                self.world,
-                self._ir,
-                chain,
-                lambda: self.aligned(module, connector, here, target_conn),
-                DOCK_TOLERANCE_M,
-                DOCK_TOLERANCE_DEG,
-                start_cycle=self.robot.cycle,
-            )
+            Reach(chain, readings, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, start_cycle=cycle, tracked=tracked)
         )
         self.note(f"reach_dock {where}: bending")
 
@@ -212,7 +231,7 @@ class PhysicsRun:
         a body that no route reaches (a module lying apart); the joints that move are those
         along ``route`` from ``module`` up its own robot. With ``creep`` the target is a lone
         module whose face is the front: it creeps towards the asking face meanwhile
-        (:class:`sim.crawl.Creep`, for a face beyond the straight chain's reach). False
+        (:class:`firmware.motion.crawl.Creep`, for a face beyond the straight chain's reach). False
         (logged) if the rules say no."""
         b, bc = target
         where = f"{self.where(module, connector)} -> {self.where(b, bc)}"
@@ -224,25 +243,19 @@ class PhysicsRun:
             return False
         free = creep and self.dock_free_distance  # the creeping foot closes the distance
         chain = Chain.to_other(self.world.model, (module, connector), route, self.peer_of, target, free_distance=free)
+        readings = self._readings(joints={m for m, _ in chain.joints}, infrared={module}, floor=True)
         reach = Reach(
-            self.world,
-            self._ir,
-            chain,
-            lambda: self.aligned(module, connector, b, bc),
-            DOCK_TOLERANCE_M,
-            DOCK_TOLERANCE_DEG,
-            timeout=timeout,
-            start_cycle=self.robot.cycle,
+            chain, readings, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG, timeout=timeout, start_cycle=self.robot.cycle
         )
         self.reaches.append(reach)
         if creep:
-            self.creeps[id(reach)] = Creep(self._ir, b, self.world.model.connector(bc).name)
+            self.creeps[id(reach)] = Creep(b, self.world.model.connector(bc).name)
         self.note(f"reach_dock {where}: bending" + (f"; {self.robot.where(b, bc)} creeps towards it" if creep else ""))
         return True
 
     def bring(self, foot: int, target: End, route: tuple[int, ...]) -> bool:
         """A released ``foot`` (a lone module) comes to ``target``, a free face of another body
-        (the tail's back), and the two dock: :class:`sim.crawl.Trip` takes the foot to just
+        (the tail's back), and the two dock: :class:`firmware.motion.crawl.Trip` takes the foot to just
         behind the face, then ``target``'s module bends along ``route`` up its own robot while
         the foot creeps (:meth:`reach_other` with ``creep``). False (logged) if the rules say
         no."""
@@ -313,8 +326,9 @@ class PhysicsRun:
         return self.bring(foot_end[0], face, self.squaring_route(face[0]))
 
     def spot_taken(self, face: End, foot: int) -> int | None:
-        """:func:`sim.clearing.spot_taken` in this world."""
-        return spot_taken(self.world, self.peer_of, self.robot.profile, self.robot.size, face, foot)
+        """:func:`firmware.motion.clearing.spot_taken` by the overhead tracker's poses."""
+        floor = self.motion_sensors.tracker.reading(self.robot.cycle)
+        return spot_taken(floor, self.world.model, self.peer_of, self.robot.profile, self.robot.size, face, foot)
 
     def _step_clearings(self, held: dict[int, dict[int, float]]) -> None:
         for entry in list(self.clearings):
@@ -366,9 +380,10 @@ class PhysicsRun:
         """A foot's trip to just behind ``target``, along ``target``'s robot as it lies."""
         b = target[0]
         return Trip(
-            self.world,
+            self.motion_sensors.tracker.reading(self.robot.cycle),
             foot,
             target,
+            model=self.world.model,
             body=lambda: self.body_up(b),
             others=lambda: self.off_path(b, foot),
             diagonal_m=self.trip_diagonal_m,
@@ -383,6 +398,7 @@ class PhysicsRun:
         return docking.off_path(self.peer_of, self.robot.profile, module, len(self.robot.engines), foot)
 
     def _step_trips(self, held: dict[int, dict[int, float]]) -> None:
+        floor = self.motion_sensors.tracker.reading(self.robot.cycle)
         for entry in list(self.trips):
             trip, route = entry
             b, bc = trip.target
@@ -391,7 +407,7 @@ class PhysicsRun:
                 front = self.robot.profile.connector_index("front")
                 self.note(f"bring {self.where(trip.module, front)}: a module stopped; trip abandoned")
                 continue
-            dofs = trip.step()
+            dofs = trip.step(floor)
             if not trip.done:
                 held.setdefault(trip.module, {}).update({0: dofs[0], 1: dofs[1]})
                 continue
@@ -421,14 +437,42 @@ class PhysicsRun:
         self.cut(module, connector)
         self.note(f"{self.where(module, connector)} released")
 
+    def _readings(
+        self,
+        joints: Iterable[int] = (),
+        infrared: Iterable[int] = (),
+        *,
+        floor: bool = False,
+        attitude: Iterable[int] = (),
+    ) -> Readings:
+        """What the motions sense this cycle (:class:`sim.motion_readings.MotionSensors`); with
+        :attr:`oracle_poses`, the exact relative pose of every motion's faces as well."""
+        oracle = [(r.chain.asking, r.chain.target) for r in self.reaches] if self.oracle_poses else []
+        return self.motion_sensors.read(
+            self.robot.cycle, joints, infrared, floor=floor, oracle=oracle, attitude=attitude
+        )
+
     def _step_reaches(self) -> dict[int, dict[int, float]]:
-        """Advance every docking motion; the joint targets they hold, per module."""
+        """Advance every docking motion; the joint targets they hold, per module. A motion that
+        asks for the latch gets it when physics has the faces aligned (:meth:`aligned`)."""
         held: dict[int, dict[int, float]] = {}
+        creeping = [c.module for c in self.creeps.values()]
+        readings = self._readings(
+            joints={m for r in self.reaches for m in r.modules},
+            infrared=[r.chain.asking[0] for r in self.reaches] + creeping,
+            floor=any(r.chain.anchor is not None or r.tracked for r in self.reaches),
+            attitude=[m for r in self.reaches if r.tracked for m in (r.chain.asking[0], r.chain.target[0])],
+        )
         for reach in list(self.reaches):
             a, ac = reach.chain.asking
             b, bc = reach.chain.target
             alive = self.running(a) and self.running(b)
-            targets = reach.step(self.robot.cycle - 1) if alive else {}  # the cycle just run
+            targets: dict[int, dict[int, float]] = {}
+            if alive:
+                if reach.asks_latch(readings) and self.aligned(a, ac, b, bc):
+                    targets = reach.latch()
+                else:
+                    targets = reach.step(readings)
             creep = self.creeps.get(id(reach))
             if not alive:
                 self.note(f"reach_dock {self.where(a, ac)}: a module of the chain stopped; motion abandoned")
@@ -438,8 +482,8 @@ class PhysicsRun:
             if reach.done:
                 self.reaches.remove(reach)
                 self.creeps.pop(id(reach), None)
-                contact = reach.contact
-                assert contact is not None
+                # the cycle just run
+                contact = self._contact(reach.chain.asking, reach.chain.target, reach.infrared(readings))
                 free = self.peer_of((a, ac)) is None and self.peer_of((b, bc)) is None
                 if reach.latched and free:
                     self.dock(a, ac, b, bc)
@@ -461,9 +505,13 @@ class PhysicsRun:
             for m, dofs in targets.items():
                 held.setdefault(m, {}).update(dofs)
             if creep is not None:
-                d1, d2 = creep.step()
+                d1, d2 = creep.step(readings)
                 held.setdefault(creep.module, {}).update({0: d1, 1: d2})
         return held
+
+    def _contact(self, asking: End, target: End, infrared: tuple[float, float]) -> Contact:
+        """The trace's record of a latch or a give-up in the cycle just run."""
+        return contact(self.world, self.robot.cycle - 1, asking, target, infrared)
 
     # ------------------------------------------------------------ events
 
@@ -491,6 +539,8 @@ class PhysicsRun:
             for m, e in enumerate(engines):
                 if e is not None and "docking" not in sensed.get(m, {}):
                     e.sensors[slot] = int(m in busy)
+        if self._floor_slots:
+            self._fill_floor()
         if not self._sensor_slots:
             return
         running = [m for m, e in enumerate(engines) if e is not None]
@@ -499,6 +549,20 @@ class PhysicsRun:
             assert e is not None
             held = sensed.get(m, {})
             for name, slot, spec in self._sensor_slots:
+                if name not in held:
+                    e.sensors[slot] = spec.reading(values[name])
+
+    def _fill_floor(self) -> None:
+        """``floor_x``, ``floor_y`` (mm), ``floor_heading`` (degrees) of every running module
+        from the overhead tracker, except those sense events set."""
+        floor = self.motion_sensors.tracker.reading(self.robot.cycle)
+        for m, e in enumerate(self.robot.engines):
+            if e is None:
+                continue
+            pose = floor.pose(m).centre
+            values = {"floor_x": pose.x * 1000, "floor_y": pose.y * 1000, "floor_heading": math.degrees(pose.heading)}
+            held = self.robot.sensed.get(m, {})
+            for name, slot, spec in self._floor_slots:
                 if name not in held:
                     e.sensors[slot] = spec.reading(values[name])
 

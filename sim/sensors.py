@@ -51,7 +51,7 @@ import pybullet as p
 
 from dh2rt.errors import PhysicsWorldError
 from drivers.base import SensorSource
-from sim.conro import CENTRE, ConroModel
+from firmware.motion.body import CENTRE, ConroModel
 from sim.world import World
 
 #: How far a CONRO infrared pair reaches (face centre to face centre), metres.

@@ -28,7 +28,8 @@ from dh2rt.closing import Closing
 from dh2rt.errors import PhysicsWorldError, SimulationError
 from dh2rt.topology import Link, Topology
 from drivers.pybullet_driver import PyBulletDriver
-from sim.conro import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConroModel, ModuleBody, Vec3, build_module
+from firmware.motion.body import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConroModel, Vec3
+from sim.conro import ModuleBody, build_module
 
 Quat = tuple[float, float, float, float]
 _IDENTITY: Quat = (0.0, 0.0, 0.0, 1.0)

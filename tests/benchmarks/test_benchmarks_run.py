@@ -107,6 +107,9 @@ def test_trips_benchmark_help() -> None:
         (["--kills", "none,late"], "--kills: late not one of none, trip, dock"),
         (["--seeds", "1;2"], "--seeds: expected"),
         (["--jobs", "-1"], "--jobs"),
+        (["--tracker", "1,2,3"], "--tracker: four numbers"),
+        (["--tracker", "1,2,3,1.5"], "dropout in [0, 1)"),
+        (["--variants", "straight"], "--variants: each one of free_distance, standoff"),
     ],
 )
 def test_legs_to_snake_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:

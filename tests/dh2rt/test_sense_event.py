@@ -51,11 +51,15 @@ def test_conro_declares_its_sensors_with_units_and_ranges() -> None:
         "load1",
         "load2",
         "docking",
+        "floor_x",
+        "floor_y",
+        "floor_heading",
     )
     assert CONRO.sensor("roll") == SensorSpec("roll", "deg", -180, 180, CONRO.sensor("roll").doc)
     assert (CONRO.sensor("ir_left").unit, CONRO.sensor("ir_left").high) == ("mm", 100)
     assert (CONRO.sensor("load2").low, CONRO.sensor("load2").high) == (-100, 100)
     assert (CONRO.sensor("yaw").unit, CONRO.sensor("yaw").low, CONRO.sensor("yaw").high) == ("deg", -720, 720)
+    assert (CONRO.sensor("floor_x").unit, CONRO.sensor("floor_heading").high) == ("mm", 180)
     with pytest.raises(TopologyError, match=r"profile conro has no sensor 'light' \(it has: roll, pitch, yaw, "):
         CONRO.sensor("light")
 

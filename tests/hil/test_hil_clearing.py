@@ -1,4 +1,4 @@
-"""The robot crawls clear of a dead foot in the loop (hil.reach_loop, sim.clearing).
+"""The robot crawls clear of a dead foot in the loop (hil.reach_loop, firmware.motion.clearing).
 
 legs_to_snake on the dragon with the PyBullet stand-in; left_leg0 is killed, let go of the
 body and laid behind the tail's back, front to it, where a foot killed as its dock began

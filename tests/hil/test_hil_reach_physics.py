@@ -1,7 +1,7 @@
 """reach_dock by motion in the loop (hil.reach_loop): module processes on the PyBullet stand-in.
 
 Each module drives its servos with dynamixel-sdk over a pty to an emulator whose joints are
-PyBullet joints; a ``reach_dock`` starts sim.reach's motion on the stand-in's world, stepped
+PyBullet joints; a ``reach_dock`` starts firmware.motion.reach's motion on the stand-in's world, stepped
 once per world cycle, the chain's modules holding its joint targets (firmware.control.Hold), and
 the link is docked only once the faces latched in physics within the runner's tolerance.
 The cycle period is the physics runner's (50 ms: sim.runner.STEPS_PER_CYCLE at 240 Hz), for
@@ -23,9 +23,9 @@ from dh2rt.runtime import ModuleRuntime
 from dh2rt.testing import runtime_chain, step_all
 from dh2rt.topology import parse_spec
 from drivers.recording import RecordingDriver
+from firmware.motion.reach import DEFAULT_TIMEOUT
 from hil.pace import PACE
 from hil.world import World
-from sim.reach import DEFAULT_TIMEOUT
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from tests.marks import LONG
 

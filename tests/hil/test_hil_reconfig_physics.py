@@ -10,7 +10,7 @@ runner's period, for which the motions' and the gaits' rates are set.
   their front to a side of the spine modules, the snake splits off: a quadruped and a
   3-module snake, as in one process (tests/sim/test_snake_to_quadruped_physics.py).
 * legs_to_snake on dragon (``reach_and_dock``, carried out as ``PhysicsRun.assimilate``): the
-  winning foot lets go of the body, comes behind the tail by its own gaits (sim.crawl.Trip,
+  winning foot lets go of the body, comes behind the tail by its own gaits (firmware.motion.crawl.Trip,
   through its own servos) and the tail's end squares its back while the foot creeps; the
   tail's ``docking`` sensor, pushed by the world, pauses its countdown meanwhile, so it
   accepts no second foot. The first round only: a whole reconfiguration takes about 7,000

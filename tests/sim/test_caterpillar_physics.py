@@ -6,13 +6,8 @@ import pytest
 
 from dh2rt.errors import GaitError
 from dh2rt.topology import parse_spec
-from sim.gaits import (
-    CLOCK_CYCLE,
-    STEPS_PER_CYCLE,
-    caterpillar_schedule,
-    delay_wave_schedule,
-    run_caterpillar,
-)
+from firmware.motion.gaits import caterpillar_schedule, delay_wave_schedule
+from sim.gaits import CLOCK_CYCLE, STEPS_PER_CYCLE, run_caterpillar
 from sim.world import World
 
 

@@ -1,4 +1,4 @@
-"""sim.clearing: the robot crawls whole gait cycles of the caterpillar's wave, lies straight,
+"""firmware.motion.clearing: the robot crawls whole gait cycles of the caterpillar's wave, lies straight,
 and looks again, until nothing lies on the spot (or its budget runs out); in physics, a dead
 foot laid behind the dragon's tail is left behind before the next foot lets go. Whole
 reconfigurations with a foot killed as it docks: test_legs_to_snake_physics.py."""
@@ -14,8 +14,8 @@ from dh2rt.events import parse_event
 from dh2rt.profile import CONRO
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
-from sim.clearing import SETTLE_CYCLES, Clearing
-from sim.gaits import caterpillar_schedule
+from firmware.motion.clearing import SETTLE_CYCLES, Clearing
+from firmware.motion.gaits import caterpillar_schedule
 from sim.runner import PhysicsRun
 from tests.conftest import EXAMPLES
 

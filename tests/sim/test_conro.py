@@ -13,7 +13,8 @@ import pytest
 from dh2rt.errors import DriverError
 from dh2rt.profile import CONRO
 from drivers.pybullet_driver import PyBulletDriver
-from sim.conro import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConnectorSpec, ConroModel, build_module
+from firmware.motion.body import BACK, CENTRE, DEFAULT_MODEL, FRONT, ConnectorSpec, ConroModel
+from sim.conro import build_module
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Docking by the modules' own motion in physics (sim.reach through sim.runner.PhysicsRun).
+"""Docking by the modules' own motion in physics (firmware.motion.reach through sim.runner.PhysicsRun).
 
 A 3-module snake and a module lying apart: the lone module is placed where the snake's tail
 could reach if it bent (its yaws at the angles given), facing it, offset and turned a little;
@@ -57,7 +57,7 @@ CASES = [
     (0, (50.0, 30.0), 0.0, 0.0, 0.0),
     (1, (-45.0, -35.0), 0.005, 8.0, 0.01),
     (2, (60.0, 0.0), -0.005, -10.0, 0.005),
-    # did not latch within 300 cycles before the close phase was bounded (sim.reach.CLOSE_CYCLES)
+    # did not latch within 300 cycles before the close phase was bounded (firmware.motion.reach.CLOSE_CYCLES)
     (3, (-30.0, -50.0), 0.0, 12.0, 0.015),
 ]
 

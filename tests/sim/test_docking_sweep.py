@@ -1,4 +1,4 @@
-"""Docking by motion, swept over layouts and seeds (sim.reach through sim.runner.PhysicsRun).
+"""Docking by motion, swept over layouts and seeds (firmware.motion.reach through sim.runner.PhysicsRun).
 
 A snake and a module lying apart. Each layout picks the asking face (the snake's tail
 ``back``, a male face, or its head's ``front``, the female one), the lone module's face it
@@ -10,7 +10,7 @@ round and each of the lone module's faces.
 
 For every layout the test checks what the issue asks of every link made by motion: it
 formed (the motion latched), only when the two faces' world poses were within the runner's
-tolerance at that moment (the :class:`sim.reach.Contact` recorded then, checked against its
+tolerance at that moment (the :class:`sim.motion_readings.Contact` recorded then, checked against its
 own world positions), with the asking face's infrared pair seeing the target, male to female.
 Male to male and female to female are refused before anything moves.
 """

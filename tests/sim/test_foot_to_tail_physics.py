@@ -1,11 +1,12 @@
 """The foot comes to the tail (legs to snake in physics, issue 13 item 3): one round, by motion.
 
-A released foot of the dragon travels by its own gaits (sim.crawl: back off, turn, crawl
+A released foot of the dragon travels by its own gaits (firmware.motion.crawl: back off, turn, crawl
 backwards beside the tail past its end, square up behind it) and then docks: the tail's last
-two modules square their back face to it (sim.reach) while the foot creeps front first
-(sim.crawl.Creep) - the tail lying straight cannot lengthen by bending, so the foot has to
-close the gap. The foot's trip reads where the tail's end is from the world (a stand-in for
-the kinematics and odometry a module would use); the dock reads the infrared pairs. Every
+two modules square their back face to it (firmware.motion.reach) while the foot creeps front first
+(firmware.motion.crawl.Creep) - the tail lying straight cannot lengthen by bending, so the foot has to
+close the gap. The foot's trip reads where the tail's end is from the overhead tracker
+(sim.tracker, exact here); the dock reads the chain's joint angles, the tracker and the
+infrared pairs. Every
 latch must have closed with the two faces within the runner's tolerance at that moment (the
 record PhysicsRun.contacts keeps, the trace's ``dock`` line). The lone-module gaits are
 measured on a 1-module snake; the dock alone with the foot put behind the tail by hand.
@@ -25,8 +26,8 @@ from dh2rt.compiler import compile_source
 from dh2rt.profile import CONRO
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
-from sim.conro import CENTRE
-from sim.crawl import back_off, creep, turn
+from firmware.motion.body import CENTRE
+from firmware.motion.gaits import back_off, creep, turn
 from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
 from tests.marks import sweep
 
@@ -54,7 +55,7 @@ def lone_travel(seed: int, gait: str, cycles: int = 100) -> float:
 
 
 def lone_turn(seed: int, direction: int, cycles: int = 200) -> float:
-    """Degrees a lone module turned (counter-clockwise > 0) under :func:`sim.crawl.turn`."""
+    """Degrees a lone module turned (counter-clockwise > 0) under :func:`firmware.motion.gaits.turn`."""
     run = PhysicsRun(Robot(STILL, parse_spec("snake:1"), seed=seed))
     w = run.world
 

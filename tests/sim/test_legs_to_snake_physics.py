@@ -2,9 +2,9 @@
 
 The program's protocol is the paper's (LTS, RCT, TAR, ALT: one foot per round); in physics
 its ``dock_tail_to_foot`` is carried out by motion (PhysicsRun.assimilate): the winning foot
-lets go of the body, comes to the tail's back by its own gaits (sim.crawl.Trip, along the
+lets go of the body, comes to the tail's back by its own gaits (firmware.motion.crawl.Trip, along the
 robot as it lies and round the legs still on it), and the two dock while the tail's last
-modules square their face and the foot creeps (sim.reach, sim.crawl.Creep). The tail's
+modules square their face and the foot creeps (firmware.motion.reach, firmware.motion.crawl.Creep). The tail's
 countdown to re-arm pauses while that motion is under way (``S.docking``); the head holds
 still while feet are left and starts the wave at SNK. Every latch must have closed with the
 faces within tolerance at that moment (PhysicsRun.contacts, the trace's ``dock`` record).
@@ -54,8 +54,8 @@ def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(s
     def at_each_dock(run: PhysicsRun) -> None:
         for reach in run.reaches:
             if reach.cycles == 1:
-                joints = zip(reach.chain.joints, reach.measured(), strict=True)
-                pitches.extend(abs(math.degrees(v)) for (_m, dof), v in joints if dof == 0)
+                angles = [run.world.joint_angles(m)[dof] for m, dof in reach.chain.joints]
+                pitches.extend(abs(v) for (_m, dof), v in zip(reach.chain.joints, angles, strict=True) if dof == 0)
 
     run, formed = reconfigure(seed, at_each_dock)
     robot = run.robot
@@ -91,7 +91,7 @@ def test_the_winning_foot_killed_mid_dock_the_next_round_completes(when: str, se
     round it and none gives up (at seed 11 the next foot, hanging beside it, turned in place
     between it and the body until its trip gave up, twice, before they did). A foot that
     died docking lies on the spot behind the tail's back, where the next foot must park: the
-    robot crawls clear of it first (sim.clearing)."""
+    robot crawls clear of it first (firmware.motion.clearing)."""
     kill_the_winner = KillWinner(when)
     killed = kill_the_winner.killed
     run, formed = reconfigure(seed, kill_the_winner)

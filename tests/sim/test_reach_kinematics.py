@@ -1,4 +1,4 @@
-"""The docking motion's kinematics (sim.reach), on numbers alone: no world, no physics.
+"""The docking motion's kinematics (firmware.motion.kinematics), on numbers alone: no world, no physics.
 
 A creep dock (the tail's last two modules square their back face to a lone foot that creeps
 towards it, legs to snake in physics) plans with ``Chain.free_distance``: the distance along
@@ -16,8 +16,9 @@ import pytest
 
 from dh2rt.docking import End
 from dh2rt.profile import CONRO
-from sim.conro import DEFAULT_MODEL
-from sim.reach import ROT_WEIGHT_M, STANDOFF_M, Chain, mated_turn, plan
+from firmware.motion.body import DEFAULT_MODEL
+from firmware.motion.kinematics import ROT_WEIGHT_M, Chain, mated_turn, plan
+from firmware.motion.reach import STANDOFF_M
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
 #: Three tail modules in a row, 0 the tail's end: each one's front docked to the next's back.

@@ -18,7 +18,7 @@ from dh2rt.profile import CONRO
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import Topology, parse_spec
-from sim.conro import BACK, FRONT
+from firmware.motion.body import BACK, FRONT
 from sim.gaits import run_caterpillar
 from sim.runner import PhysicsRun
 from sim.sensors import IR_NEAR_M, NOTHING_IN_VIEW_DEG, PhysicsSensors, physics_sensor_names
@@ -254,8 +254,10 @@ def test_only_what_is_named_is_read() -> None:
         assert PhysicsSensors(w, ["light"]).read([0, 1]) == {0: {}, 1: {}}
         got = PhysicsSensors(w, ["ir_left_align"]).read([1])
         assert set(got[1]) == {"ir_left", "ir_left_align"}
-        # every sensor but the docking motion's state, which the runner fills (sim.runner)
-        assert set(physics_sensor_names(w.model)) == set(CONRO.sensor_names) - {"docking"}
+        # every sensor but the docking motion's state, which the runner fills (sim.runner), and
+        # the overhead tracker's, which sim.tracker fills
+        tracker = {"floor_x", "floor_y", "floor_heading"}
+        assert set(physics_sensor_names(w.model)) == set(CONRO.sensor_names) - {"docking"} - tracker
 
 
 def test_sensor_geometry_matches_the_world() -> None:

@@ -1,8 +1,8 @@
-"""sim.crawl.Trip's choices of where to go, on a world held still (no physics).
+"""firmware.motion.crawl.Trip's choices of where to go, on a floor held still (no physics).
 
 The tail lies along +x with its back face at the origin (normal -x); the foot's front is put
-where each test says, its heading along +x unless said. Trip reads only poses, so a table of
-poses is its whole world here; what the gaits then do on the floor is measured in
+where each test says, its heading along +x unless said. Trip reads only the tracker's poses, so a
+table of poses is its whole world here; what the gaits then do on the floor is measured in
 tests/sim/test_foot_to_tail_physics.py and tests/sim/test_legs_to_snake_physics.py.
 """
 
@@ -10,19 +10,19 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 
-from sim.crawl import (
+from firmware.motion.body import DEFAULT_MODEL
+from firmware.motion.crawl import (
     ACROSS_BEHIND_M,
     ALONGSIDE_M,
     DIAGONAL_LEAN_DEG,
     DIAGONAL_M,
     OBSTACLE_CLEAR_M,
     Trip,
-    back_off,
-    turn,
 )
+from firmware.motion.gaits import back_off, turn
+from firmware.motion.readings import FloorPoses, ModulePose, PartPose
 
 FOOT, TAIL, LEG = 0, 1, 2
 #: Centres of the tail's modules up the robot from the face (m).
@@ -30,34 +30,31 @@ BODY = {TAIL: (0.05, 0.0), 3: (0.155, 0.0), 4: (0.26, 0.0), 5: (0.365, 0.0)}
 
 
 class StillWorld:
-    """The poses :class:`sim.crawl.Poses` asks for, set by hand."""
+    """What the overhead tracker would report, set by hand: the foot's front face and heading,
+    the tail's back face at the origin (normal -x), the body's and the leg's centres."""
 
     def __init__(self, front: tuple[float, float], heading_deg: float = 0.0) -> None:
         self.front = front
         self.heading = math.radians(heading_deg)
         self.leg = (0.30, 0.065)
 
-    def connector_pose(
-        self, module: int, connector: int | str
-    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        if module == FOOT:
-            return (*self.front, 0.0), (math.cos(self.heading), math.sin(self.heading), 0.0)
-        return (0.0, 0.0, 0.0), (-1.0, 0.0, 0.0)
-
-    def part_transform(self, module: int, link: int) -> np.ndarray:
-        c, s = math.cos(self.heading), math.sin(self.heading)
-        t = np.eye(4)
-        t[:2, :2] = [[c, -s], [s, c]]
-        return t
-
-    def module_position(self, module: int) -> tuple[float, float, float]:
-        x, y = self.leg if module == LEG else BODY[module]
-        return x, y, 0.0
+    def floor(self) -> FloorPoses:
+        h = self.heading
+        fx = DEFAULT_MODEL.front.half[0]
+        front = PartPose(self.front[0] - fx * math.cos(h), self.front[1] - fx * math.sin(h), h)
+        modules = {FOOT: ModulePose(PartPose(front.x, front.y, h), front, PartPose(front.x, front.y, h))}
+        for m, (x, y) in {**BODY, LEG: self.leg}.items():
+            centre = PartPose(x, y, 0.0)
+            modules[m] = ModulePose(centre, centre, centre)
+        # the tail's back face at the origin, facing -x: its back part's centre half a box behind
+        back = PartPose(DEFAULT_MODEL.back.half[0], 0.0, 0.0)
+        modules[TAIL] = ModulePose(modules[TAIL].centre, modules[TAIL].front, back)
+        return FloorPoses(modules)
 
 
 def trip(world: StillWorld, *, leg: bool = False) -> Trip:
     t = Trip(
-        world,
+        world.floor(),
         FOOT,
         (TAIL, 2),  # its back
         body=lambda: [TAIL, 3, 4, 5],
@@ -84,7 +81,7 @@ def test_the_foot_starts_across_before_the_line_ends(lat: float, before: float) 
     s = AIM + before * early(lat)
     world = StillWorld((s, lat))
     t = trip(world)
-    targets = t.step()
+    targets = t.step(world.floor())
     assert t.phase == "aside"
     want = math.degrees(math.atan2(lat - t.park[1], s - AIM))
     assert DIAGONAL_LEAN_DEG - 1 < want < 90
@@ -95,7 +92,7 @@ def test_the_foot_starts_across_before_the_line_ends(lat: float, before: float) 
 def test_before_that_it_keeps_backing_along(lat: float) -> None:
     world = StillWorld((AIM + early(lat) + 0.01, lat))
     t = trip(world)
-    t.step()
+    t.step(world.floor())
     assert t.phase == "along"
 
 
@@ -105,9 +102,9 @@ def test_beside_the_target_module_and_close_to_it_it_backs_straight_along() -> N
     world = StillWorld((0.03, ALONGSIDE_M - 0.01))
     t = trip(world)
     t.phase = "aside"
-    assert t.step() == back_off(t.cycles)
+    assert t.step(world.floor()) == back_off(t.cycles)
     world.front = (-0.01, ALONGSIDE_M - 0.01)  # past the face: in towards the spot
-    assert t.step() == turn(t.cycles, +1)
+    assert t.step(world.floor()) == turn(t.cycles, +1)
 
 
 def test_with_a_leg_on_the_body_near_it_goes_along_to_the_end() -> None:
@@ -115,10 +112,10 @@ def test_with_a_leg_on_the_body_near_it_goes_along_to_the_end() -> None:
     world = StillWorld((AIM + 0.10, 0.10))
     world.leg = (AIM + 0.10 + 0.05, 0.065)
     t = trip(world, leg=True)
-    t.step()
+    t.step(world.floor())
     assert t.phase == "along"
     world.front = (AIM - 0.001, 0.17)
-    t.step()
+    t.step(world.floor())
     assert t.phase == "aside"
 
 
@@ -143,14 +140,14 @@ def test_a_module_lying_beside_the_robot_is_steered_round_like_a_leg(
     first), it is not in the way."""
     world = StillWorld((hung, 0.03), heading_deg=-90.0)  # hanging, its front on the body
     world.leg = where  # the module lying apart, in the LEG slot of others
-    t = Trip(world, FOOT, (TAIL, 2), body=lambda: [TAIL, 3, 4, 5], others=lambda: [LEG])
+    t = Trip(world.floor(), FOOT, (TAIL, 2), body=lambda: [TAIL, 3, 4, 5], others=lambda: [LEG])
     world.front = (hung, 0.03 + t.backoff_m + 0.005)  # backed off its 8 cm
-    t.step()
+    t.step(world.floor())
     assert t.phase == ("back off" if in_the_way else "along")
     if in_the_way:
-        assert t.step() == back_off(t.cycles)  # on out, away from the body
+        assert t.step(world.floor()) == back_off(t.cycles)  # on out, away from the body
         world.front = (hung, where[1] + OBSTACLE_CLEAR_M)  # out past it
-        t.step()
+        t.step(world.floor())
         assert t.phase == "along"
 
 
@@ -161,7 +158,7 @@ def test_a_little_too_far_back_it_moves_across_not_about(behind: float, turns_ab
     world = StillWorld((AIM - behind, 0.06), heading_deg=90.0)
     t = trip(world)
     t.phase = "aside"
-    targets = t.step()
+    targets = t.step(world.floor())
     assert t.phase == "aside"
     if turns_about:
         assert targets == turn(t.cycles, +1), "the spot is behind its back's side: it turns"
@@ -176,6 +173,6 @@ def test_it_squares_anywhere_in_the_box_behind_the_face(s: float, lat: float, sq
     world = StillWorld((s, lat))
     t = trip(world)
     t.phase = "aside"
-    t.step()
+    t.step(world.floor())
     assert (t.phase == "square") is square
     assert t.arrived is square, "square already: arrived in the same cycle"

@@ -1,40 +1,30 @@
-"""A lone module's own motion: how a released foot moves, turns, and closes a dock itself.
+"""A lone module's own motion: how a released foot comes to a face and closes a dock itself.
 
-A module on its own has two joints and three boxes. Measured in this world (docs/physics.md,
-*Legs to snake, geometry*), seeds 0 to 5 (every seed but 0 turns the world's axes, against
-which the floor's pyramid friction differs):
-
-:func:`back_off`
-    DOF1 = 45 + 40 sin(2 pi c / 8), DOF2 = 0: the front body paddles and the module slides
-    away from its front, 7.9 to 9.8 cm in 100 cycles (18.2 to 19.4 cm in 200).
-:func:`creep`
-    DOF1 = 45 sin(2 pi c / 8), DOF2 = 0 (the caterpillar's flap): the module moves front
-    first, 4.5 to 6.1 cm in 200 cycles, turning at most 10 degrees. The only way a front
-    (the female face) approaches something. A square wave between +60 and -30 degrees did
-    2.5 to 9.3 cm, unevenly.
-:func:`turn`
-    DOF1 = 30 + 40 sin(2 pi c / 12), DOF2 = 40 sin(2 pi c / 12 + pi / 2), mirrored: +222 to
-    +254 degrees in 200 cycles (-241 to -249 mirrored), moving 7 to 10 cm meanwhile. Found
-    by a sweep (period, phase, amplitudes); the gaits tried before it turned either way
-    depending on the seed.
-
-:class:`Trip` takes a released foot to just behind a free face; :class:`Creep` is the
+The foot moves by the gaits of :mod:`firmware.motion.gaits` (:func:`back_off`, :func:`creep`,
+:func:`turn`). :class:`Trip` takes a released foot to just behind a free face; :class:`Creep` is the
 foot's half of the dock that follows, whose target lies beyond a straight chain's reach (a
 chain lying straight cannot lengthen by bending): while the other side's docking motion
-(:class:`sim.reach.Reach`) squares its face to the foot, the foot creeps front first; it
+(:class:`firmware.motion.reach.Reach`) squares its face to the foot, the foot creeps front first; it
 holds still, its front square, once its front's infrared pair reads the face within
 :data:`HOLD_MM`, and creeps again if the reading grows past :data:`RESUME_MM` or the face
 drops out of view for :data:`LOST_CYCLES` cycles.
+
+Both are sans-IO: :class:`Creep` reads the foot's front infrared pair, :class:`Trip` the
+overhead tracker's poses (:class:`firmware.motion.readings.FloorPoses`: the foot's, the
+target module's, and those of the robot's modules it passes); each returns the foot's joint
+targets a cycle.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any, Protocol
 
-#: The gaits' period (control cycles).
-PERIOD = 8
+from dh2rt.docking import End
+from firmware.motion.body import DEFAULT_MODEL, ConroModel
+from firmware.motion.gaits import back_off, creep, turn
+from firmware.motion.readings import FloorPoses, Readings
+
 #: The foot holds still (front square) once its front infrared reads the target this close (mm).
 HOLD_MM = 12.0
 #: ... and creeps again once the reading is beyond this (mm).
@@ -43,31 +33,15 @@ RESUME_MM = 22.0
 LOST_CYCLES = 16
 
 
-def back_off(cycle: int) -> tuple[float, float]:
-    """The lone module's joint targets (DOF1, DOF2 degrees) to slide away from its front."""
-    return 45.0 + 40.0 * math.sin(2.0 * math.pi * cycle / PERIOD), 0.0
-
-
-def creep(cycle: int) -> tuple[float, float]:
-    """The lone module's joint targets (DOF1, DOF2 degrees) to move front first, slowly."""
-    return 45.0 * math.sin(2.0 * math.pi * cycle / PERIOD), 0.0
-
-
-class Infrared(Protocol):
-    """What :class:`Creep` reads: ``read([m])[m]`` maps ``ir_<c>`` to millimetres (0: nothing)."""
-
-    def read(self, modules: list[int]) -> dict[int, dict[str, float]]: ...
-
-
 class Creep:
     """A lone module creeping front first towards what its front infrared sees.
 
-    Stepped once a control cycle by its owner; :meth:`step` returns the joint targets
-    (degrees) the module holds this cycle.
+    Stepped once a control cycle by its owner with that cycle's readings (the module's
+    front infrared pair); :meth:`step` returns the joint targets (degrees) the module holds
+    this cycle.
     """
 
-    def __init__(self, sensors: Infrared, module: int, connector_name: str = "front") -> None:
-        self.sensors = sensors
+    def __init__(self, module: int, connector_name: str = "front") -> None:
         self.module = module
         self._ir = f"ir_{connector_name}"
         self.cycles = 0
@@ -76,12 +50,12 @@ class Creep:
         #: Cycles spent creeping (not holding).
         self.crept = 0
 
-    def reading_mm(self) -> float:
-        return float(self.sensors.read([self.module])[self.module][self._ir])
+    def reading_mm(self, readings: Readings) -> float:
+        return readings.ir(self.module, self._ir)
 
-    def step(self) -> tuple[float, float]:
+    def step(self, readings: Readings) -> tuple[float, float]:
         self.cycles += 1
-        mm = self.reading_mm()
+        mm = self.reading_mm(readings)
         if self.holding:
             self._lost = self._lost + 1 if mm == 0 else 0
             if mm > RESUME_MM or self._lost >= LOST_CYCLES:
@@ -99,9 +73,6 @@ class Creep:
 OBSTACLE_CLEAR_M = 0.10
 OBSTACLE_AHEAD_M = 0.30
 
-#: The turning gait's period (control cycles); see the module docs.
-TURN_PERIOD = 12
-
 #: How far before the end of the line along (m, in ``s``) the foot starts across towards its
 #: spot: it then backs diagonally past the face instead of going past it and then across
 #: (two turns of about 90 degrees in place, each drifting the foot; docs/physics.md).
@@ -115,25 +86,6 @@ DIAGONAL_LEAN_DEG = 25.0
 ALONGSIDE_M = 0.05
 #: A foot at most this far too far back (m) moves across to its spot instead of turning about.
 ACROSS_BEHIND_M = 0.05
-
-
-def turn(cycle: int, direction: int) -> tuple[float, float]:
-    """The lone module's joint targets to turn in place: ``direction`` +1 to its left
-    (counter-clockwise from above), -1 to its right."""
-    x = 2.0 * math.pi * cycle / TURN_PERIOD
-    return 30.0 + 40.0 * math.sin(x), direction * 40.0 * math.sin(x + math.pi / 2.0)
-
-
-class Poses(Protocol):
-    """What :class:`Trip` reads of the world (a :class:`sim.world.World`)."""
-
-    def connector_pose(
-        self, module: int, connector: int | str
-    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]: ...
-
-    def part_transform(self, module: int, link: int) -> Any: ...
-
-    def module_position(self, module: int) -> tuple[float, float, float]: ...
 
 
 class Trip:
@@ -185,17 +137,18 @@ class Trip:
     target module: it followed a tail only while the tail lay straight (a second round, with
     the first foot docked a little askew, drifted out and ran the foot into the tail's side).
 
-    Where the face is relative to the foot is read from the world (the foot's estimate of it
-    from the chain's joint angles at release and its own odometry is not modelled); the
+    Where the face and the foot are is the overhead tracker's (``floor``: the first
+    reading, then each :meth:`step`'s; :class:`firmware.motion.readings.FloorPoses`); the
     last centimetres are the dock's (:class:`Creep`, the foot's infrared).
     """
 
     def __init__(
         self,
-        world: Poses,
+        floor: FloorPoses,
         module: int,
-        target: tuple[int, int],
+        target: End,
         *,
+        model: ConroModel = DEFAULT_MODEL,
         backoff_m: float = 0.08,
         clear_m: float = 0.10,
         park: tuple[float, float] = (-0.03, 0.005),
@@ -205,7 +158,8 @@ class Trip:
         margin_m: float = 0.03,
         diagonal_m: float = DIAGONAL_M,
     ) -> None:
-        self.world = world
+        self.floor = floor
+        self.model = model
         self.module = module
         self.target = target
         self.body = body
@@ -223,8 +177,7 @@ class Trip:
         #: +1 if the foot travels on the target module's left, -1 on its right (decided when
         #: it has backed off).
         self.side = 1
-        (fx, fy, _), _ = world.connector_pose(module, "front")
-        self._start = (fx, fy)
+        self._start = self._front()
         self.phase = "back off"
         self.cycles = 0
         self._turning = 0
@@ -235,16 +188,20 @@ class Trip:
         #: Whether the foot got to the spot (False: the budget ran out).
         self.arrived = False
 
+    def _front(self) -> tuple[float, float]:
+        """The foot's front face on the floor."""
+        fx, fy, _, _ = self.floor.face(self.model, self.module, "front")
+        return fx, fy
+
     def _frame(self) -> tuple[float, float, float]:
         """The foot's front in the target face's frame (s, lat unmirrored) and its heading off
         the target module's (radians, unmirrored)."""
-        (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
-        t = self.world.part_transform(self.module, -1)
-        (px, py, _), (nx, ny, _) = self.world.connector_pose(*self.target)
+        fx, fy = self._front()
+        px, py, nx, ny = self.floor.face(self.model, *self.target)
         norm = math.hypot(nx, ny) or 1.0
         ux, uy = -nx / norm, -ny / norm
         rx, ry = fx - px, fy - py
-        heading = math.atan2(float(t[1, 0]), float(t[0, 0])) - math.atan2(uy, ux)
+        heading = self.floor.heading(self.module) - math.atan2(uy, ux)
         return rx * ux + ry * uy, -rx * uy + ry * ux, (heading + math.pi) % (2 * math.pi) - math.pi
 
     def _path_frame(self) -> tuple[float, float, float]:
@@ -252,16 +209,15 @@ class Trip:
         centres (the nearest segment; the first one extends beyond the face)."""
         if self.body is None:
             return self._frame()
-        (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
-        t = self.world.part_transform(self.module, -1)
-        psi = math.atan2(float(t[1, 0]), float(t[0, 0]))
+        fx, fy = self._front()
+        psi = self.floor.heading(self.module)
         s, lat, direction = self._on_path(self._polyline(), fx, fy)
         return s, lat, (psi - direction + math.pi) % (2 * math.pi) - math.pi
 
     def _polyline(self) -> list[tuple[float, float]]:
-        (px, py, _), _ = self.world.connector_pose(*self.target)
+        px, py, _, _ = self.floor.face(self.model, *self.target)
         body = self.body() if self.body is not None else []
-        return [(px, py)] + [self.world.module_position(m)[:2] for m in body]
+        return [(px, py)] + [self.floor.centre(m) for m in body]
 
     @staticmethod
     def _on_path(points: list[tuple[float, float]], fx: float, fy: float) -> tuple[float, float, float]:
@@ -291,13 +247,13 @@ class Trip:
         ahead of the foot to a little behind it. A module whose centre lies further out
         than that from the line :attr:`clear_m` beside the path is not in the way; nor is
         one beyond the face (a foot killed as it docked: the robot crawls clear of it first,
-        :mod:`sim.clearing`, and the foot's way to its spot is the diagonal's)."""
+        :mod:`firmware.motion.clearing`, and the foot's way to its spot is the diagonal's)."""
         if self.others is None or self.body is None:
             return self.clear_m
         points = self._polyline()
         clear = self.clear_m
         for m in self.others():
-            ox, oy, _ = self.world.module_position(m)
+            ox, oy = self.floor.centre(m)
             so, lo, _ = self._on_path(points, ox, oy)
             lo *= self.side
             if 0 < lo < self.clear_m + OBSTACLE_CLEAR_M and max(0.0, s - OBSTACLE_AHEAD_M) < so <= s + 0.08:
@@ -306,12 +262,15 @@ class Trip:
 
     def state(self, *, path: bool = False) -> tuple[float, float, float]:
         """(s, lat, heading) with lat and heading mirrored to the foot's side; with ``path``
-        against the target's robot as it lies (:meth:`_path_frame`), else the face's frame."""
+        against the target's robot as it lies (:meth:`_path_frame`), else the face's frame; from
+        the last reading."""
         s, lat, heading = self._path_frame() if path else self._frame()
         return s, lat * self.side, heading * self.side
 
-    def step(self) -> tuple[float, float]:
-        """Advance by one control cycle; the foot's joint targets (DOF1, DOF2 degrees)."""
+    def step(self, floor: FloorPoses) -> tuple[float, float]:
+        """Advance by one control cycle with the tracker's ``floor``; the foot's joint targets
+        (DOF1, DOF2 degrees)."""
+        self.floor = floor
         targets = self._step()
         if not self.done or self.arrived:
             self.spent[self.phase] = self.spent.get(self.phase, 0) + 1
@@ -335,8 +294,7 @@ class Trip:
             self.done = True
             return 0.0, 0.0
         if self.phase == "back off":
-            (fx, fy, _), _ = self.world.connector_pose(self.module, "front")
-            if math.dist((fx, fy), self._start) <= self.backoff_m:
+            if math.dist(self._front(), self._start) <= self.backoff_m:
                 return back_off(c)
             s, lat, _heading = self._path_frame()
             self.side = 1 if lat >= 0 else -1

@@ -1,63 +1,30 @@
-"""Docking by the modules' own motion: a chain of modules bends one free connector onto another.
+"""The chain's forward kinematics, from the body's description and the chain's joint angles.
 
 A dock request names the asking connector (a free face of one module) and a target (a free
 face of a module the route leads to, through docked links). The modules between them form a
-kinematic chain: every pitch (DOF1) and yaw (DOF2) joint the route passes through. This module
-knows that chain only from the robot's own geometry (:mod:`sim.conro`: the three boxes, the
-hinges, the connector faces; a docked pair's faces coincide, normals opposite) and the chain's
-joint angles, which each module measures itself (``pos1``, ``pos2``): where the target face is
-relative to the asking face follows from proprioception alone, as the loop closes on the
-robot itself.
+kinematic chain: every pitch (DOF1) and yaw (DOF2) joint the route passes through. The chain
+is known from the robot's own geometry (:mod:`firmware.motion.body`: the three boxes, the
+hinges, the connector faces; a docked pair's faces coincide, normals opposite) and its joint
+angles, which each module measures itself (``pos1``, ``pos2``): where the target face is
+relative to the asking face follows from proprioception alone.
 
 :class:`Chain` is that forward kinematics in numpy (4x4 transforms), with a numerical
 Jacobian; :func:`solve` is damped least squares over the chain's joints within their limits,
-pitch joints held near 0 (the robot lies on the floor; yaws do the bending when they can).
-
-:class:`Reach` is the motion, one control cycle at a time, in three phases:
-
-``bend``
-    joint targets move, at most :data:`MAX_STEP_DEG` a cycle, towards the configuration that
-    puts the asking face :data:`STANDOFF_M` in front of the target, square to it (for a
-    target that creeps towards the face itself, on the face's axis and square at whatever
-    distance: :attr:`Chain.free_distance`);
-``approach``
-    the standoff shrinks to zero (and a little past it, :data:`PRESS_M`) while the chain
-    keeps the faces square;
-``align``
-    the asking connector's infrared pair guides the last millimetres: the kinematic solution
-    is corrected by the error the infrared reading shows (distance beyond contact, faces off
-    square), a small search over the chain's joints that lowers the reading.
-
-A chain that closes a loop on its own robot runs a pitch wave in every phase
-(:data:`WIGGLE_DEG`): its modules are pressed and unloaded in turn, so that its yaws are not
-stalled by the floor's friction on the modules they drag.
-
-The latch closes only when the world says the faces are aligned within the runner's
-tolerance (:meth:`sim.world.World.aligned`) *and* the asking connector's infrared pair sees a
-face within that distance and angle; nothing is ever teleported. A reach that does not latch
-within ``timeout`` cycles gives up.
+pitch joints held near 0 (the robot lies on the floor; yaws do the bending when they can);
+:func:`plan` tries a few starting curls; :func:`dls_step` is one correction step.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from dh2rt.docking import End
-from sim.conro import BACK, CENTRE, FRONT, ConroModel
+from firmware.motion.body import BACK, CENTRE, FRONT, ConroModel
 
-#: How far in front of the target face the asking face stops before the approach (metres).
-STANDOFF_M = 0.03
-#: How far past contact the approach aims (metres): the faces press lightly.
-PRESS_M = 0.004
-#: Largest joint target change per control cycle while closing in (degrees): 40 deg/s.
-MAX_STEP_DEG = 2.0
 #: Joint targets are kept this far inside the servo range (degrees).
 LIMIT_MARGIN_DEG = 5.0
 #: How many metres one radian of attitude error counts as in the least squares. At 0.05 a
@@ -65,28 +32,6 @@ LIMIT_MARGIN_DEG = 5.0
 #: position and drifted onto another branch: 1 of 40 layouts stalled, none at 0.1
 #: (tests/sim/test_docking_sweep.py's layouts, seed 7).
 ROT_WEIGHT_M = 0.1
-#: Largest joint target change per cycle while bending to the planned configuration (degrees).
-BEND_STEP_DEG = 2.0
-#: The bend is done when every joint is within this of its target (degrees) ...
-SETTLED_DEG = 6.0
-#: ... or after this many cycles of waiting.
-SETTLE_CYCLES = 60
-#: How fast the standoff closes during the approach (metres per control cycle).
-APPROACH_M_PER_CYCLE = 0.0015
-#: Cycles the close phase may take before the approach starts anyway (two yaws cannot always
-#: square the faces and place them at once: the approach then closes what is left).
-CLOSE_CYCLES = 40
-#: The pitch wave the chain runs while it moves (degrees, amplitude): a yaw that has to drag
-#: three or four modules over the floor (friction 0.9, about 0.5 N m) stalls the 0.3 N m
-#: servos; with the chain's pitch joints swinging, adjacent modules in antiphase, each
-#: module is pressed and unloaded in turn and the yaws advance while the friction drops.
-WIGGLE_DEG = 20.0
-#: ... and its period (control cycles).
-WIGGLE_PERIOD = 6
-#: Fraction of the least-squares correction applied each cycle.
-GAIN = 0.3
-#: Cycles a reach may take before it gives up.
-DEFAULT_TIMEOUT = 400
 
 Joint = tuple[int, int]  # (module, dof index 0 = DOF1 pitch, 1 = DOF2 yaw)
 
@@ -144,7 +89,7 @@ class _Step:
 class Chain:
     """The forward kinematics from an asking face to a target face along a route.
 
-    Frames are the parts' centre-of-mass frames (:mod:`sim.conro`: box centres). Everything is
+    Frames are the parts' centre-of-mass frames (:mod:`firmware.motion.body`: box centres). Everything is
     relative to the asking connector's part, so the chain needs no world pose at all.
     """
 
@@ -158,7 +103,7 @@ class Chain:
     anchor: tuple[int, int] | None = None
     beyond: np.ndarray = field(default_factory=lambda: np.eye(4))
     #: The distance along the asking face's normal is not the chain's to close: the target
-    #: creeps towards the face itself (:class:`sim.crawl.Creep`), and :meth:`error_of` counts
+    #: creeps towards the face itself (:class:`firmware.motion.crawl.Creep`), and :meth:`error_of` counts
     #: only how far the target is off the face's axis and how far off square. A chain lying
     #: straight cannot lengthen: asked to put its face 3 cm (:data:`STANDOFF_M`) in front of
     #: a foot parked 4 to 6 cm behind, two tail modules that were feet docked a little askew
@@ -184,6 +129,14 @@ class Chain:
         target closes the distance itself (:attr:`free_distance`)."""
         chain = cls(model, asking, target, free_distance=free_distance)
         chain.anchor = chain._follow(model, asking, route, peer_of)
+        return chain
+
+    @classmethod
+    def to_own_centre(cls, model: ConroModel, asking: End) -> Chain:
+        """The asking module's own centre part, seen from its asking face's part: no dock on
+        the way, only the module's own joint (if the face is not on the centre)."""
+        chain = cls(model, asking, asking)
+        chain._inside(asking[0], model.connector(asking[1]).link, CENTRE)
         return chain
 
     @classmethod
@@ -369,199 +322,3 @@ def plan(chain: Chain, q0: np.ndarray, limits_rad: np.ndarray, standoff: float) 
         if err < best_err:
             best, best_err = q, err
     return best
-
-
-@dataclass(frozen=True, slots=True)
-class Contact:
-    """Where the two faces were when a latch closed (or a reach gave up): world poses and
-    errors, for the trace."""
-
-    cycle: int
-    asking: End
-    target: End
-    asking_face: tuple[float, float, float]
-    target_face: tuple[float, float, float]
-    asking_normal: tuple[float, float, float]
-    target_normal: tuple[float, float, float]
-    distance_m: float
-    attitude_deg: float
-    ir_mm: float
-    ir_align_deg: float
-
-    def as_dict(self) -> dict[str, object]:
-        return {
-            "cycle": self.cycle,
-            "asking": list(self.asking),
-            "target": list(self.target),
-            "asking_face": [round(v, 5) for v in self.asking_face],
-            "target_face": [round(v, 5) for v in self.target_face],
-            "asking_normal": [round(v, 4) for v in self.asking_normal],
-            "target_normal": [round(v, 4) for v in self.target_normal],
-            "distance_mm": round(self.distance_m * 1000, 2),
-            "attitude_deg": round(self.attitude_deg, 2),
-            "ir_mm": round(self.ir_mm, 1),
-            "ir_align_deg": round(self.ir_align_deg, 1),
-        }
-
-
-class Reach:
-    """One docking motion in a world, stepped once per control cycle by its owner.
-
-    ``world`` is a :class:`sim.world.World`; ``sensors`` reads the asking connector's infrared
-    pair (a :class:`sim.sensors.PhysicsSensors` that provides ``ir_<c>`` and
-    ``ir_<c>_align``); ``aligned`` is the latch check (the runner's tolerance). :meth:`step`
-    returns the joint targets (degrees) the chain's modules should hold this cycle; when
-    :attr:`done` is set, :attr:`contact` says where the faces were.
-
-    ``lock``, if given, is held around the world reads the constructor makes and not around
-    the plan (pure kinematics, about a quarter of a second for snake_to_t's 12 joints): a world whose physics
-    other threads share (the loop's stand-in, hil.reach_loop) is not held up meanwhile. The
-    owner holds it around :meth:`step` itself.
-    """
-
-    def __init__(
-        self,
-        world: object,
-        sensors: object,
-        chain: Chain,
-        aligned: Callable[[], bool],
-        tolerance_m: float,
-        tolerance_deg: float,
-        *,
-        timeout: int = DEFAULT_TIMEOUT,
-        start_cycle: int = 0,
-        wiggle_deg: float | None = None,
-        lock: AbstractContextManager[Any] | None = None,
-    ) -> None:
-        from sim.sensors import PhysicsSensors
-        from sim.world import World
-
-        assert isinstance(world, World) and isinstance(sensors, PhysicsSensors)
-        self.world = world
-        self.sensors = sensors
-        self.chain = chain
-        self.aligned = aligned
-        self.tolerance_m = tolerance_m
-        self.tolerance_deg = tolerance_deg
-        self.timeout = timeout
-        self.start_cycle = start_cycle
-        #: The pitch wave's amplitude: :data:`WIGGLE_DEG` for a loop that closes on the robot
-        #: itself, none towards a body lying apart (a pitch wave makes the chain crawl, the
-        #: caterpillar's gait, and that would carry the asking face away from it).
-        self.wiggle_deg = wiggle_deg if wiggle_deg is not None else (0.0 if chain.anchor is not None else WIGGLE_DEG)
-        model = world.model
-        self.limits = chain.limits_rad()
-        name = model.connector(chain.asking[1]).name
-        self._ir = (f"ir_{name}", f"ir_{name}_align")
-        self.phase = "bend"
-        self._settling = 0  # cycles spent in the settle phase
-        self._closing = 0  # cycles spent in the close phase
-        self.cycles = 0
-        self.done = False
-        self.latched = False
-        self.contact: Contact | None = None
-        self.standoff = STANDOFF_M
-        with lock if lock is not None else contextlib.nullcontext():
-            self.command = self.measured()
-            self.relative()  # measures chain.beyond for a target on another body
-        #: The configuration the bend heads for: the chain's kinematics solved from a few
-        #: starting curls (the loop may close either way round), the best kept.
-        self.plan = plan(chain, self.command, self.limits, STANDOFF_M)
-        self._correction = np.zeros(3)  # metres: the infrared's view of what kinematics misses
-
-    def measured(self) -> np.ndarray:
-        """The chain's joint angles (radians) as the modules measure them."""
-        return np.array([math.radians(self.world.joint_angles(m)[dof]) for m, dof in self.chain.joints])
-
-    def infrared(self) -> tuple[float, float]:
-        """The asking connector's reading: distance (mm, 0 = nothing) and angle off square."""
-        m = self.chain.asking[0]
-        r = self.sensors.read([m])[m]
-        return r[self._ir[0]], r[self._ir[1]]
-
-    def relative(self) -> np.ndarray:
-        """The target connector's part in the asking connector's part frame, as it is now:
-        what the chain's kinematics, corrected for its docks' give, put there."""
-        a = self.world.part_transform(self.chain.asking[0], self.world.model.connector(self.chain.asking[1]).link)
-        b = self.world.part_transform(self.chain.target[0], self.world.model.connector(self.chain.target[1]).link)
-        if self.chain.anchor is not None:
-            anchor = self.world.part_transform(*self.chain.anchor)
-            self.chain.beyond = np.linalg.solve(anchor, b)
-        out: np.ndarray = np.linalg.solve(a, b)
-        return out
-
-    def snapshot(self, cycle: int) -> Contact:
-        a, ac = self.chain.asking
-        b, bc = self.chain.target
-        pa, na = self.world.connector_pose(a, ac)
-        pb, nb = self.world.connector_pose(b, bc)
-        ir, ir_align = self.infrared()
-        return Contact(
-            cycle,
-            (a, ac),
-            (b, bc),
-            pa,
-            pb,
-            na,
-            nb,
-            math.dist(pa, pb),
-            self.world.attitude_error_deg(a, ac, b, bc),
-            ir,
-            ir_align,
-        )
-
-    def targets(self) -> dict[int, dict[int, float]]:
-        """module -> {dof: degrees} of the current command."""
-        out: dict[int, dict[int, float]] = {}
-        for (m, dof), v in zip(self.chain.joints, self.command, strict=True):
-            out.setdefault(m, {})[dof] = math.degrees(float(v))
-        if self.wiggle_deg and not self.done:
-            # the pitch wave: adjacent modules in antiphase, so each is unloaded in turn
-            swing = self.wiggle_deg * math.sin(2 * math.pi * self.cycles / WIGGLE_PERIOD)
-            pitches = [m for m, dof in self.chain.joints if dof == 0]
-            for k, m in enumerate(pitches):
-                out[m][0] += swing if k % 2 == 0 else -swing
-        return out
-
-    def ir_sees(self) -> bool:
-        ir, ir_align = self.infrared()
-        return 0 < ir <= self.tolerance_m * 1000 and ir_align <= self.tolerance_deg
-
-    def step(self, cycle: int) -> dict[int, dict[int, float]]:
-        """Advance the motion by one control cycle; the joint targets to hold."""
-        self.cycles += 1
-        if self.aligned() and self.ir_sees():
-            self.done = self.latched = True
-            self.contact = self.snapshot(cycle)
-            return self.targets()
-        if self.cycles > self.timeout:
-            self.done = True
-            self.contact = self.snapshot(cycle)
-            return self.targets()
-        q_now = self.measured()
-        e = self.chain.error_of(self.relative(), self.standoff)
-        if self.phase == "bend":
-            gap = self.plan - self.command
-            step = np.clip(gap, -math.radians(BEND_STEP_DEG), math.radians(BEND_STEP_DEG))
-            self.command = self.command + step
-            if float(np.max(np.abs(gap))) > math.radians(BEND_STEP_DEG):
-                return self.targets()
-            self.phase, self._settling = "settle", 0
-        if self.phase == "settle":
-            # the servos drag the chain over the floor: wait until they are where they were sent
-            self._settling += 1
-            lag = float(np.max(np.abs(q_now - self.command)))
-            if lag > math.radians(SETTLED_DEG) and self._settling < SETTLE_CYCLES:
-                return self.targets()
-            self.phase, self._closing = "close", 0
-        if self.phase == "close":
-            self._closing += 1
-            square = float(np.linalg.norm(e[:3])) < 0.008 and float(np.linalg.norm(e[3:])) < 0.3 * ROT_WEIGHT_M
-            if square or self._closing >= CLOSE_CYCLES:
-                self.phase = "approach"
-        if self.phase == "approach":
-            self.standoff = max(-PRESS_M, self.standoff - APPROACH_M_PER_CYCLE)
-        dq = dls_step(self.chain, q_now, e, self.standoff, damping=0.05, pitch_weight=0.02)
-        step = np.clip(GAIN * dq, -math.radians(MAX_STEP_DEG), math.radians(MAX_STEP_DEG))
-        self.command = np.clip(self.command + step, -self.limits, self.limits)
-        return self.targets()

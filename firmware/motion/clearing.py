@@ -1,6 +1,6 @@
 """The robot crawls clear of a body lying on the spot a foot must come to.
 
-In legs to snake a foot comes to the tail's back by its own gaits (:class:`sim.crawl.Trip`)
+In legs to snake a foot comes to the tail's back by its own gaits (:class:`firmware.motion.crawl.Trip`)
 and parks just behind it. A foot killed while it docks there stays where it died, 7 to 8 cm
 behind the tail's back: on the spot the next foot must reach. Turning the tail's face aside
 instead (its yaw at 45 or 80 degrees, so that the spot moves off the dead foot) was tried
@@ -8,7 +8,7 @@ and not kept: the trips to a turned face gave up at two seeds of three (docs/phy
 
 So before the next foot lets go of the body, the robot crawls forward: its body (from the
 head to the tail's end) runs the caterpillar's wave, Table I as the program runs it
-(:func:`sim.gaits.caterpillar_schedule` at the program's ClockCycle of 40 cycles) one gait
+(:func:`firmware.motion.gaits.caterpillar_schedule` at the program's ClockCycle of 40 cycles) one gait
 cycle at a time; after each it lies straight for :data:`SETTLE_CYCLES` and looks whether
 anything still lies on the spot (in the wave the tail's face swings through 45 degrees and
 the spot with it). The legs still on the body hold their
@@ -18,7 +18,7 @@ behind the tail's back (from 12 to 14 cm).
 
 :class:`Clearing` is stepped once a control cycle by its owner (``sim.runner.PhysicsRun``,
 or ``hil.reach_loop.LoopReaches`` once a world cycle in the loop), which says what lies
-where (``taken``, usually :func:`spot_taken`).
+where (``taken``, usually :func:`spot_taken` of the overhead tracker's poses).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ from collections.abc import Callable, Sequence
 from dh2rt import docking
 from dh2rt.docking import End
 from dh2rt.profile import Profile
-from sim.crawl import Poses
-from sim.gaits import caterpillar_schedule
+from firmware.motion.body import ConroModel
+from firmware.motion.gaits import caterpillar_schedule
+from firmware.motion.readings import FloorPoses
 
 #: The caterpillar program's ClockCycle (examples/caterpillar.dh2), control cycles.
 CLOCK_CYCLE = 40
@@ -45,21 +46,27 @@ SPOT_HALF_WIDTH_M = 0.08
 
 
 def spot_taken(
-    world: Poses, peer_of: Callable[[End], End | None], profile: Profile, size: int, face: End, foot: int
+    floor: FloorPoses,
+    model: ConroModel,
+    peer_of: Callable[[End], End | None],
+    profile: Profile,
+    size: int,
+    face: End,
+    foot: int,
 ) -> int | None:
     """A module lying apart (not ``foot``, not on ``face``'s robot; modules 0 to ``size`` - 1)
     whose centre is on the spot behind ``face`` (:data:`SPOT_DEPTH_M` out along its normal,
-    :data:`SPOT_HALF_WIDTH_M` either side), or None. Read from the world, as
-    :class:`sim.crawl.Trip` reads where the face is: the emulated infrared sees faces, not
-    bodies, and a foot that died pitched shows its face to none."""
+    :data:`SPOT_HALF_WIDTH_M` either side), or None. Read from the overhead tracker
+    (``floor``), as :class:`firmware.motion.crawl.Trip` reads where the face is: the infrared
+    sees faces, not bodies, and a foot that died pitched shows its face to none."""
     robot = docking.robot_of(peer_of, profile, face[0])
-    (px, py, _), (nx, ny, _) = world.connector_pose(*face)
+    px, py, nx, ny = floor.face(model, *face)
     norm = math.hypot(nx, ny) or 1.0  # the face's heading on the floor (it tilts as the robot crawls)
     nx, ny = nx / norm, ny / norm
     for m in range(size):
         if m == foot or m in robot:
             continue
-        x, y, _ = world.module_position(m)
+        x, y = floor.centre(m)
         out, aside = (x - px) * nx + (y - py) * ny, -(x - px) * ny + (y - py) * nx
         if 0.0 < out <= SPOT_DEPTH_M and abs(aside) <= SPOT_HALF_WIDTH_M:
             return m
