@@ -33,7 +33,7 @@ import pybullet as p
 
 from dh2rt.errors import TopologyError
 from dh2rt.topology import parse_spec
-from sim.conro import DEFAULT_MODEL
+from firmware.motion.body import DEFAULT_MODEL
 from sim.world import World
 
 Image = npt.NDArray[np.uint8]
