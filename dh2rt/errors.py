@@ -41,6 +41,7 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── ServoHardwareAlert              the servo reports a hardware error
     │   ├── ServoInstructionError           the servo rejected an instruction
     │   ├── FlashError                      the module's flash holds no bootable program, or was misused
+    │   ├── LatchFault                      a connector latch jammed, stalled or raised a hardware alert
     │   └── NoTrackerReading                the overhead tracker has not seen a marker, or not lately
     ├── SimulationError (RuntimeError)      the physics stand-in failed
     │   ├── PhysicsWorldError (ValueError)  a module, connector or setting of the world does not exist
@@ -268,6 +269,11 @@ class ServoInstructionError(DriverError):
 class FlashError(DriverError):
     """The module's flash directory holds no program it may boot (nothing confirmed, or the
     confirmed image fails its checks), or was asked for a step its state does not allow."""
+
+
+class LatchFault(DriverError):
+    """A connector latch (:mod:`drivers.latch`) is at fault until its next command: jammed,
+    stalled, or its servo raised a hardware alert."""
 
 
 class NoTrackerReading(DriverError):

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Final, Protocol, Self
 
-from dh2rt.errors import DriverConfigError, DriverError, ServoHardwareAlert
+from dh2rt.errors import DriverConfigError, DriverError, LatchFault, ServoHardwareAlert
 from drivers import dxl_table as dxt
 
 if TYPE_CHECKING:
@@ -79,10 +79,6 @@ class Position(enum.Enum):
     OPEN = "open"
     CLOSED = "closed"
     BETWEEN = "between"
-
-
-class LatchFault(DriverError):
-    """A latch is at fault until its next command (jammed, stalled, a hardware alert)."""
 
 
 @dataclass(frozen=True, slots=True)
