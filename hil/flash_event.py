@@ -270,8 +270,9 @@ class FlashEvents:
         short = [row for row in self.rows(ev) if row.outcome not in _RUNS_IT]
         if not short:  # the robot runs it; the flasher's own reports said otherwise: name those
             told = [m.describe() for m in r.modules if not m.committed]
-            return "every module runs it, but the flasher did not see every one commit: " + (
-                "; ".join(told[:3]) if told else "no report said otherwise"
+            heard = f"it heard from {len(r.modules)} of {self.world.topology.size} modules"
+            return f"every module runs it, but the flasher did not see every one commit ({heard})" + (
+                ": " + "; ".join(told[:3]) if told else ""
             )
         # named as every report names a module: by its path (the world's name beside it)
         named = ", ".join(f"{row.path or '(no path)'} [{row.module}] {row.outcome}" for row in short[:3])
