@@ -73,6 +73,8 @@ _HOLDING = frozenset({Role.RECEIVING, Role.STAGING, Role.STAGED, Role.CURRENT, R
 #: running program: an offer is judged against ``running`` then, so that an image of the same
 #: version reaches the flash and is judged there, tampered or not).
 _INCOMING = frozenset({Role.RECEIVING, Role.STAGING, Role.STAGED})
+#: Roles in which a module unnamed (restarted mid-transfer) asks its source for its name
+_NAMED_BY_SOURCE = _INCOMING | {Role.SWITCHED}
 #: Roles that report themselves once every neighbour offered the image has, and as what.
 _RESOLVED_OUTCOME = {Role.STAGED: Outcome.STAGED, Role.CURRENT: Outcome.CURRENT, Role.SWITCHED: Outcome.COMMITTED}
 
@@ -370,6 +372,14 @@ class Rollout(Node):
     def _on_offer(self, port: Port, sender: int, offer: Offer) -> None:
         info = ImageInfo(offer.image, offer.version, offer.length, offer.segment_size)
         name = (*offer.path, (sender, port.connector))
+        if offer.path and offer.path[-1] == (port.connector, sender):
+            # split horizon: the offerer took the image (and its name) through this very link,
+            # from this module before a restart. Its name runs through this module, so taking
+            # it would name this module after itself: reports would wait on each other for ever
+            # (and the entry point would hear of this module twice). Another neighbour serves it.
+            self.counters.looped += 1
+            self._send(port.connector, Decline(info.image, DeclineReason.HAVE, self.running.version))
+            return
         if self._job is not None and self._from_parent(self._job, info, port.connector):
             self._offered_again(port, self._job, name)
             return
@@ -801,6 +811,8 @@ class Rollout(Node):
 
     def _tick_job(self) -> None:
         job = self._job
+        if job is not None and job.name is None and job.source is not None and job.role in _NAMED_BY_SOURCE:
+            self._ask_name(job, self._ports[job.source])
         if job is None or job.role is not Role.RECEIVING:
             return
         source = None if job.source is None else self._ports[job.source]
@@ -812,6 +824,14 @@ class Rollout(Node):
             job.requested = self._tick
             for port in self._ports.values():
                 self._request(port)
+
+    def _ask_name(self, job: _Job, port: Port) -> None:
+        """A module restarted with part of the image takes the rest from whoever sends it
+        segments, with or without an OFFER; unnamed, it could never report. Probe the source
+        every ``rto_ticks`` until its OFFER names this module."""
+        if job.requested is None or self._tick - job.requested >= self.timing.rto_ticks:
+            job.requested = self._tick
+            self._request(port)
 
     def _request(self, port: Port) -> None:
         """Probe the neighbour on ``port``: what does it hold of the image? (Its OFFER says,

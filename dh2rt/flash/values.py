@@ -186,4 +186,5 @@ class RolloutCounters:
     corrupt_images: int = 0  # complete images whose id did not match (started over)
     reports_forwarded: int = 0
     reports_dropped: int = 0  # misrouted, or addressed past the entry point
+    looped: int = 0  # offers declined because the offerer's name ran through this module
     units_sent: int = 0  # link units (Pacing.cost) of every frame sent

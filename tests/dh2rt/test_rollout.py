@@ -273,6 +273,53 @@ def test_a_module_that_never_returns_is_named_in_the_report(images: Images) -> N
     failed = [m for m in flasher.report() if not m.committed]
     assert [(m.path, m.outcome) for m in failed] == [(snake_path(4), Outcome.SILENT)]
     assert describe_path(failed[0].path) == "1>1 2>1 2>1 2>1 2>1"
+#: (seed, victim, fraction of the image it had received when killed): every victim and seed
+#: at the start of its transfer, and the cases a sweep of 288 found stuck after the first fix
+RESTARTS = [(seed, victim, 0.0) for seed in range(3) for victim in (2, 3, 5)] + [(4, 5, 0.2), (4, 5, 0.5)]
+
+
+@pytest.mark.parametrize(("seed", "victim", "fraction"), RESTARTS)
+def test_a_module_restarted_mid_transfer_is_named_once_and_reports(
+    images: Images, seed: int, victim: int, fraction: float
+) -> None:
+    """Killed while receiving, the victim has persisted less than it passed on, so the
+    module behind it holds more of the image and may offer it first when the victim comes
+    back. That offerer's name runs through the victim: taken, the victim would be named after
+    itself, reports would wait on each other for ever (seen: the flasher stuck in SENDING
+    with every module staged) or the entry point would hear of the victim twice, once
+    silent (seen in the loop: "heard from 9 of 8 modules"). Split horizon: the victim declines
+    an offer whose name came through the link it arrives on. And a victim that finishes the
+    image from segments still in flight, before any OFFER named it, asks its source for its
+    name (it could not report without one)."""
+    world = World("snake:8", SERIAL, images, seed=seed, image=images.v2)
+    world.run(until=_when_receiving(world, victim, fraction))
+    world.modules[victim].kill()
+    world.run_until(world.t + 10 * PERIOD)
+    world.modules[victim].restart()
+    world.run()
+    assert world.flasher.succeeded, world.summary()
+    assert world.versions() == [2] * 8
+    assert sorted(m.path for m in world.flasher.report()) == sorted(snake_path(k) for k in range(8))
+
+
+def test_an_offer_named_through_the_link_it_arrives_on_is_declined(images: Images) -> None:
+    """Split horizon in one state machine: the neighbour on connector 2 offers an image it
+    was named after through that same link (its name ends with this module's connector 2
+    sending to its connector 1), so this module declines (HAVE) and counts it."""
+    node = Rollout([1, 2], Program.from_image(images.v1), pacing=SERIAL.pacing, segment_size=80)
+    node.hello(2, 1, 1, b"", 0.0)
+    image = tw.image_id(images.v2)
+    offer = tw.Offer(2, image, len(images.v2), 80, 3, False, ((CABLE, 1), (2, 1), (2, 1)))
+    node.receive(2, tw.encode(1, offer), 0.0)
+    sent = [tw.decode(a.data).message for a in node.tick(PERIOD) if isinstance(a, Send) and a.connector == 2]
+    assert tw.Decline(image, tw.DeclineReason.HAVE, 1) in sent
+    assert node.role is None and node.counters.looped == 1
+    # the same offer sent through the offerer's other connector (its name came in on 1, the
+    # offer leaves by 2: the module before it is not this one) is taken
+    node.receive(2, tw.encode(2, offer), PERIOD)
+    assert node.role is Role.RECEIVING and node.counters.looped == 1
+
+
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -371,15 +418,16 @@ def test_a_module_that_faults_on_trial_is_reported_reverted(images: Images) -> N
 
 
 def _stage_alone(images: Images, module: Rollout, ticks: int) -> list[tuple[int, Action]]:
-    """Feed ``module`` the whole image through connector 1 and tick it; its actions, each
-    with the count of ticks it had when it took them."""
+    """Feed ``module`` the whole image through connector 1 (from its neighbour's connector 2,
+    as in a snake) and tick it; its actions, each with the count of ticks it had when it
+    took them."""
     info = ImageInfo(tw.image_id(images.v2), 2, len(images.v2), 80)
     out: list[tuple[int, Action]] = []
     module.tick(0.0)
     frames: list[tw.Message] = [tw.Offer(2, info.image, info.length, 80, info.count, False, ((1, 1),))]
     frames += [tw.Segment(info.tag, i, images.v2[slice(*info.span(i))]) for i in range(info.count)]
     for frame in frames:
-        for action in module.receive(1, tw.encode(1, frame), 0.001):
+        for action in module.receive(1, tw.encode(2, frame), 0.001):
             out.append((module.tick_count, action))
             if isinstance(action, Stage):
                 out += [(module.tick_count, a) for a in module.staged(True, "ok", "", 0.001)]
@@ -603,7 +651,7 @@ def test_a_partial_image_is_cut_again_for_a_source_that_segments_otherwise(image
     module.tick(0.0)
     assert module.received == 160
     offer = tw.Offer(2, info.image, len(data), 56, 7, False, ((1, 1),))
-    actions = module.receive(1, tw.encode(1, offer), 0.0) + module.tick(PERIOD)
+    actions = module.receive(1, tw.encode(2, offer), 0.0) + module.tick(PERIOD)
     persisted = [a for a in actions if isinstance(a, Persist)]
     assert persisted == [Persist(ImageInfo(info.image, 2, len(data), 56), 0, data[:112])]
     requests = [m for a in actions if isinstance(a, Send) and isinstance(m := tw.decode(a.data).message, tw.Request)]
