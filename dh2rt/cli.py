@@ -43,6 +43,7 @@ from dh2rt.cmdline import (
     EXIT_USAGE,
     STDOUT,
     TRACE_SUFFIXES,
+    VARS_HELP,
     Progress,
     StopAtCycleEnd,
     add_run_options,
@@ -120,6 +121,7 @@ def build_parser(commands: dict[str, EntryPoint] | None = None) -> argparse.Argu
     simulators = registered(SIMULATOR_GROUP)
     run.add_argument("--sim", choices=sorted(simulators), help="run the modules' joints in physics")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
+    run.add_argument("--vars", action="store_true", help=VARS_HELP)
     add_simulator_options(run, simulators)
 
     image = sub.add_parser(
@@ -469,7 +471,7 @@ def cmd_run(ns: argparse.Namespace) -> int:
         err(str(exc))
         return EXIT_USAGE
     # a trace on standard output keeps it to itself: the summary goes to standard error
-    print_summary(robot, elapsed, as_json=ns.json, out=sys.stderr if ns.trace == STDOUT else None)
+    print_summary(robot, elapsed, as_json=ns.json, out=sys.stderr if ns.trace == STDOUT else None, show_vars=ns.vars)
     if interrupted:
         if stop.forced:
             err(f"interrupted during cycle {robot.cycle}: modules may be at different cycles")

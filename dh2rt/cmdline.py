@@ -15,7 +15,7 @@ import math
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -273,7 +273,27 @@ def timed_run(body: Callable[[], None], trace: TraceWriter | None = None) -> tup
     return time.perf_counter() - started, interrupted
 
 
-def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[str] | None = None) -> None:
+#: The help of ``--vars`` (``dh2rt run`` and the launcher)
+VARS_HELP = (
+    "after the summary's table, each module's variables (V.*) and sensors (S.*) by name (--json always has them)"
+)
+
+
+def variable_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Each running module's variables and sensors, ``m0: V.waiting=0 V.quiet=3 S.roll=0``, for
+    a text summary (``--vars``); none when the program declares neither."""
+    out: list[str] = []
+    for r in rows:
+        values = [f"V.{k}={v}" for k, v in r.get("variables", {}).items()]
+        values += [f"S.{k}={v}" for k, v in r.get("sensors", {}).items()]
+        if values and r.get("alive", True):
+            out.append(f"  {r['name']}: {' '.join(values)}")
+    return (["variables and sensors:", *out]) if out else []
+
+
+def print_summary(
+    robot: Robot, elapsed: float, as_json: bool = False, out: IO[str] | None = None, *, show_vars: bool = False
+) -> None:
     out = out or sys.stdout
     rows = robot.summary()
     if as_json:
@@ -315,6 +335,9 @@ def print_summary(robot: Robot, elapsed: float, as_json: bool = False, out: IO[s
             f"{r['sent']:>6} {r['forwarded']:>5} {r['faults']:>6}",
             file=out,
         )
+    if show_vars:
+        for line in variable_lines(rows):
+            print(line, file=out)
     faulted = [r for r in rows if r.get("faults")]
     if faulted:
         print(f"receptor faults in {len(faulted)} module(s):", file=out)

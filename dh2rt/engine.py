@@ -165,6 +165,14 @@ class Engine:
             "faults": self.n_faults,
         }
 
+    def variables(self) -> dict[str, int]:
+        """V by name: the program's variables as they stand (empty when it declares none)."""
+        return dict(zip(self.program.var_names, self.vars, strict=True))
+
+    def named_sensors(self) -> dict[str, int]:
+        """S by name, as the last cycle read them (empty when the program declares none)."""
+        return dict(zip(self.program.sensor_names, self.sensors, strict=True))
+
     def var(self, name: str) -> int:
         return self.vars[self._slot(self.program.var_names, name, "variable")]
 

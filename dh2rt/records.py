@@ -7,7 +7,8 @@ front is free), ``name``, ``type`` (name), ``T`` (alias number or null), ``timer
 "0"), ``received`` (hormone, connector it arrived at, connector it was sent through, path) and
 ``sent`` (hormone, connector, and for replies the route still to go). Physics runs add
 ``pos`` ([x, y, z] metres); the module runtime adds ``t`` (its clock when the cycle began).
-A program that declares sensors adds ``sensors`` (``{"roll": deg, ...}``: S as that cycle read it).
+A program that declares sensors adds ``sensors`` (``{"roll": deg, ...}``: S as that cycle read it);
+one that declares variables adds ``variables`` (``{"waiting": 0, ...}``: V as that cycle left it).
 A cycle in which receptor actions failed has ``faults``: ``["receptor NAME: message", ...]``.
 
 It reads an engine only, so that the in-process robot (:mod:`dh2rt.trace`) and the module
@@ -67,7 +68,9 @@ def cycle_json(
         "sent": [emission_json(x, p) for x in sent],
     }
     if engine.sensors:  # S, as the cycle read it, when the program declares sensors
-        record["sensors"] = dict(zip(engine.program.sensor_names, engine.sensors, strict=True))
+        record["sensors"] = engine.named_sensors()
+    if engine.vars:  # V, as the cycle left it, when the program declares variables
+        record["variables"] = engine.variables()
     if faults:
         record["faults"] = list(faults)
     return record

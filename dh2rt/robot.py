@@ -506,8 +506,8 @@ class Robot:
             yield self.cycle - 1
 
     def summary(self) -> list[dict[str, Any]]:
-        """Per-module state: type, actuators, counters, and the module's last fault (as
-        ``cycle N: receptor R: message``, or None)."""
+        """Per-module state: type, actuators, counters, the module's last fault (as
+        ``cycle N: receptor R: message``, or None), and its variables and sensors by name."""
         last = {f.module: f for f in self.faults}
         rows = []
         for m, e in enumerate(self.engines):
@@ -526,6 +526,8 @@ class Robot:
                     "DOF2": e.dof[1],
                     **e.counters,
                     "last_fault": last[m].describe(self.topology.names) if m in last else None,
+                    "variables": e.variables(),
+                    "sensors": e.named_sensors(),
                 }
             )
         return rows

@@ -716,6 +716,7 @@ class ModuleRuntime:
             "actuator_fault": self.actuator_fault,
             "last_fault": self.last_fault,
             "sensors": self.sensing.values(),
+            "variables": e.variables(),
             "last_sensor_fault": self.sensing.last_fault,
         }
 

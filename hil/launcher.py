@@ -44,11 +44,13 @@ from dh2rt.cmdline import (
     EXIT_OK,
     EXIT_USAGE,
     TRACE_SUFFIXES,
+    VARS_HELP,
     add_bus_arguments,
     add_cycle_argument,
     add_run_options,
     int_in,
     output_path,
+    variable_lines,
 )
 from dh2rt.compiler import compile_file
 from dh2rt.errors import DH2Error, HilWorldError, OptionError, ProgramError
@@ -156,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: a key of this run's)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
+    p.add_argument("--vars", action="store_true", help=VARS_HELP + "; on a terminal, the live table too")
     p.add_argument(
         "--log",
         type=Path,
@@ -497,7 +500,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             now = time.monotonic()
             if now - last_draw >= (0.5 if tty else 2.0):
                 last_draw = now
-                _draw(world, progress, tty)
+                _draw(world, progress, tty, ns.vars)
                 if not late_warned:
                     late_warned = _warn_if_late(world)
             time.sleep(world.idle(0.02))
@@ -526,7 +529,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     wrong += [f"{e.text}: not every module committed ({flashes.failure(e)})"
               for e in flashes.events if not flashes.event_succeeded(e)]  # fmt: skip
     _write_log(log_path, world, wrong)
-    _summary(world, elapsed, out, ns.json, wrong, log_path, flashes)
+    _summary(world, elapsed, out, ns.json, wrong, log_path, flashes, show_vars=ns.vars)
     if views is not None:
         views.finish(f"{program.name} on {topology.spec} over {ns.transport}", progress)
     if interrupted:
@@ -661,7 +664,7 @@ def _write_trace(path: Path, records: list[dict[str, Any]]) -> None:
             f.write("\n")
 
 
-def _table(world: World) -> list[str]:
+def _table(world: World, show_vars: bool = False) -> list[str]:
     lines = [
         f"{'module':<8} {'state':<8} {'cycle':>6} {'type':<10} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
         f"{'frames/s':>9} {'errors':>6} {'version':>7} {'sha256':<16}"
@@ -673,7 +676,7 @@ def _table(world: World) -> list[str]:
             f"{r['DOF2']:>6.0f} {r['frames_per_s']:>9.0f} {r['errors']:>6} {_or_dash(r.get('version')):>7} "
             f"{_or_dash(r.get('sha256'))[:16]:<16}"
         )
-    return lines
+    return lines + (variable_lines(world.rows()) if show_vars else [])
 
 
 def _or_dash(value: object) -> str:
@@ -692,13 +695,13 @@ def check_flash_events(events: list[FlashEvent], transport: str, cycles: int | N
             raise OptionError(f"--event {ev.text}: cycle {ev.cycle} never happens: the run's last is {cycles - 1}")
 
 
-def _draw(world: World, out: IO[str], tty: bool) -> None:
+def _draw(world: World, out: IO[str], tty: bool, show_vars: bool = False) -> None:
     if tty:
         out.write("\x1b[H\x1b[2J")
         out.write(
             f"dh2rt hil: {world.program.name} on {world.topology.spec} over {world.spec}, world cycle {world.cycle}\n"
         )
-        out.write("\n".join(_table(world)) + "\n")
+        out.write("\n".join(_table(world, show_vars)) + "\n")
     else:
         cycles = [r["cycle"] for r in world.rows()]
         out.write(f"world cycle {world.cycle}: module cycles {min(cycles)}..{max(cycles)}\n")
@@ -721,7 +724,7 @@ def _reaches(world: World) -> dict[str, Any] | None:
 
 def _summary(
     world: World, elapsed: float, out: IO[str], as_json: bool, wrong: list[str], log_path: Path,
-    flashes: FlashEvents | None = None,
+    flashes: FlashEvents | None = None, *, show_vars: bool = False,
 ) -> None:  # fmt: skip
     rows = world.rows()
     if as_json:
@@ -751,7 +754,7 @@ def _summary(
         f"{world.program.name} on {world.topology.spec} over {world.spec}: {world.topology.size} modules, "
         f"{elapsed:.2f} s, cycle {s_to_ms(world.cycle_period):.0f} ms, seed {world.seed}\n"
     )
-    out.write("\n".join(_table(world)) + "\n")
+    out.write("\n".join(_table(world, show_vars)) + "\n")
     totals: dict[str, int] = {}
     for r in rows:
         for k in (

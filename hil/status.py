@@ -77,6 +77,9 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 # the program it runs, booted from its flash (a rollout may have switched it)
                 "version": v.program.get("version"),
                 "sha256": v.program.get("sha256"),
+                # V and S by name, as its last status gave them
+                "variables": s.get("variables", {}),
+                "sensors": s.get("sensors", {}),
             }
         )
     return out

@@ -297,3 +297,31 @@ def test_simulators_bring_their_own_run_options(
     assert "--wind: these options need --sim fake" in capsys.readouterr().err
     assert main(["run", program, "--cycles", "1", "--sim", "fake", "--wind", "3"]) == 0
     assert fake.ran_with == [3.0]
+
+
+def test_variables_and_sensors_are_in_the_trace_the_json_summary_and_with_vars_the_text(
+    examples: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Legs to snake's V.waiting and V.quiet, and its S.docking, by name (issue 29): in every
+    trace record as the cycle left them, in --json's rows as the run ended, and with --vars
+    after the text summary's table."""
+    trace = tmp_path / "t.jsonl"
+    run = ["run", str(examples / "legs_to_snake.dh2"), "--topology", "dragon", "--cycles", "300",
+           "--event", "5:inject:tail2:LTS"]  # fmt: skip
+    assert main([*run, "--trace", str(trace), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["modules"]
+    records = [json.loads(x) for x in trace.read_text().splitlines()]
+    assert all(set(r["variables"]) == {"waiting", "quiet"} and set(r["sensors"]) == {"docking"} for r in records)
+    # the program changed them: a foot waited to re-arm, a tail counted quiet cycles
+    assert max(r["variables"]["waiting"] for r in records) > 0
+    assert max(r["variables"]["quiet"] for r in records) > 1
+    last = {r["name"]: r["variables"] for r in records}
+    assert {r["name"]: r["variables"] for r in rows} == last
+    assert main([*run, "--vars"]) == 0
+    text = capsys.readouterr().out
+    assert "variables and sensors:" in text
+    for r in rows:
+        v = r["variables"]
+        assert f"  {r['name']}: V.waiting={v['waiting']} V.quiet={v['quiet']} S.docking=0" in text.splitlines()
+    assert main(run) == 0
+    assert "variables and sensors:" not in capsys.readouterr().out  # only when asked

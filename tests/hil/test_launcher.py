@@ -203,6 +203,10 @@ def test_legs_to_snake_reconfigures_in_the_loop(capsys: pytest.CaptureFixture[st
     types = sorted(m["type"] for m in summary["modules"])
     assert types == ["body"] * (len(types) - 2) + ["head", "tail"], types
     assert sum("docked to" in line for line in summary["log"]) == 4  # one leg per round
+    # each module's V and S by name, from its last status (issue 29)
+    for m in summary["modules"]:
+        assert set(m["variables"]) == {"waiting", "quiet"} and set(m["sensors"]) == {"docking"}, m
+        assert all(isinstance(v, int) for v in m["variables"].values()), m
 
 
 @LONG  # a whole reconfiguration in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
