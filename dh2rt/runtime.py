@@ -54,7 +54,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
@@ -184,6 +184,7 @@ class ModuleRuntime:
         record: bool = False,
         module: int = 0,
         name: str = "",
+        cpu_clock: Callable[[], float] = time.process_time,
     ) -> None:
         if cycle_period <= 0:
             raise ValueError(f"cycle_period {cycle_period!r} must be positive")
@@ -218,6 +219,13 @@ class ModuleRuntime:
         #: cycles per lateness bucket (LATENESS_EDGES_MS) since the first
         self.lateness_counts = [0] * (len(LATENESS_EDGES_MS) + 1)
         self.first_cycle_at: float | None = None
+        #: the module's own work between recent cycle starts: CPU seconds its process used from
+        #: one cycle's start to the next (``cpu_clock``). A cycle that started late after little
+        #: work was held by the machine (another process had the processor); one that started
+        #: late after as much work as the delay was held by the module itself
+        self.work: deque[float] = deque(maxlen=LATENESS_WINDOW)
+        self.cpu_clock = cpu_clock
+        self._cpu_at: float | None = None
         #: how far late starts moved the schedule in all (s): cycles_skipped is its whole periods
         self._shifted_s = 0.0
         self.records: list[dict[str, Any]] = []
@@ -595,6 +603,10 @@ class ModuleRuntime:
                 if stop_event is not None and stop_event.is_set():
                     break
             now = self.clock()
+            cpu = self.cpu_clock()
+            if self._cpu_at is not None:
+                self.work.append(cpu - self._cpu_at)
+            self._cpu_at = cpu
             late = now - deadline
             self.lateness.append(late)
             self.lateness_counts[bisect.bisect_left(_LATENESS_EDGES_S, late)] += 1
@@ -686,15 +698,13 @@ class ModuleRuntime:
     def lateness_ms(self) -> dict[str, float] | None:
         """How late the last LATENESS_WINDOW cycles started after their deadline, in ms:
         median, 99th percentile (nearest rank) and worst; None before the first cycle."""
-        if not self.lateness:
-            return None
-        ordered = sorted(self.lateness)
-        n = len(ordered)
+        return _percentiles_ms(self.lateness)
 
-        def rank(q: float) -> float:
-            return round(ordered[min(n - 1, max(0, math.ceil(q * n) - 1))] * 1000, 3)
-
-        return {"p50": rank(0.50), "p99": rank(0.99), "max": round(ordered[-1] * 1000, 3)}
+    def work_ms(self) -> dict[str, float] | None:
+        """The module's own work (CPU time of its process) between the last LATENESS_WINDOW
+        cycle starts, in ms: median, 99th percentile and worst; None before the second cycle.
+        Beside :meth:`lateness_ms` it tells who held a late cycle: the module, or the machine."""
+        return _percentiles_ms(self.work)
 
     def status(self) -> dict[str, Any]:
         """A status line: type, T, DOF1/DOF2, ConnectorStatus, counters."""
@@ -710,6 +720,7 @@ class ModuleRuntime:
             "DOF2": e.dof[1],
             "status": list(e.status),
             "lateness_ms": self.lateness_ms(),
+            "work_ms": self.work_ms(),
             "lateness_hist": {"edges_ms": list(LATENESS_EDGES_MS), "counts": list(self.lateness_counts)},
             "first_cycle_at": self.first_cycle_at,
             "counters": self.counters,
@@ -733,6 +744,19 @@ class ModuleRuntime:
 
     def close(self) -> None:
         self.transport.close()
+
+
+def _percentiles_ms(values: Iterable[float]) -> dict[str, float] | None:
+    """Median, 99th percentile (nearest rank) and worst of ``values`` (s), in ms; None if empty."""
+    ordered = sorted(values)
+    n = len(ordered)
+    if not n:
+        return None
+
+    def rank(q: float) -> float:
+        return round(ordered[min(n - 1, max(0, math.ceil(q * n) - 1))] * 1000, 3)
+
+    return {"p50": rank(0.50), "p99": rank(0.99), "max": round(ordered[-1] * 1000, 3)}
 
 
 def _by_connector(a: Arrival) -> int:

@@ -71,6 +71,9 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 "counters": c,
                 # how late its cycles started (p50, p99, max ms): tests judge timing with it
                 "lateness_ms": s.get("lateness_ms"),
+                # the module's own work (CPU ms of its process) between cycle starts: beside
+                # lateness_ms, who held a late cycle (the module, or the machine)
+                "work_ms": s.get("work_ms"),
                 "actuator_fault": s.get("actuator_fault"),
                 "last_fault": s.get("last_fault"),
                 "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),

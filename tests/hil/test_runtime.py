@@ -6,6 +6,7 @@ A's cycle n is in B's mailbox for B's cycle n, so every count here is exact.
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections.abc import Iterator
@@ -213,6 +214,36 @@ def test_run_paces_cycles_on_the_injected_clock(caterpillar: CompiledProgram, cl
 
     rt.run(cycles=3, sleep=slow_sleep)
     assert rt.counters["late_cycles"] == 2  # the first of the three started on time
+
+
+def test_work_between_cycle_starts_tells_a_module_held_by_itself_from_one_held_by_the_machine(
+    caterpillar: CompiledProgram, closing: list[ModuleRuntime]
+) -> None:
+    """Two late cycles at a 10 ms period: one 30 ms late after a wait in which the machine ran
+    something else (the module's CPU clock stood still), one 21 ms late after 21 ms of the
+    module's own work (its CPU clock ran with the wall clock). lateness_ms sees both alike;
+    work_ms only the second."""
+    clock = FakeClock(step=0.0)
+    cpu = FakeClock(step=0.0)
+    codec = FrameCodec(caterpillar.vocabulary, 4)
+    rt = ModuleRuntime(
+        caterpillar, InprocTransport(codec, bus=InprocBus()), cycle_period=0.01, clock=clock, cpu_clock=cpu
+    )
+    closing.append(rt)
+    # each wait: (the machine holds the module, the module works on), in s
+    waits = itertools.chain([(0.0, 0.0), (0.03, 0.0), (0.0, 0.0), (0.0, 0.021)], itertools.repeat((0.0, 0.0)))
+
+    def sleep(seconds: float) -> None:
+        held, worked = next(waits)
+        clock.now += seconds + held + worked
+        cpu.now += worked + 0.001  # and a millisecond of each cycle's own step
+
+    assert rt.run(cycles=6, sleep=sleep) == 6
+    work, late = rt.work_ms(), rt.lateness_ms()
+    assert work is not None and late is not None
+    assert work["p50"] == pytest.approx(1.0) and work["max"] == pytest.approx(22.0)
+    assert late["max"] == pytest.approx(30.0)
+    assert rt.status()["work_ms"] == work
 
 
 @pytest.mark.parametrize("overshoot", [0.006, 0.007, 0.013, 0.025])

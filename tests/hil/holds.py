@@ -1,0 +1,38 @@
+"""Who held a module whose link was lost: the module itself, or the machine.
+
+A link is lost when a neighbour stays silent for the liveness bound (``silence_cycles``
+periods). On a robot each module has its own processor, and only its own work can hold it;
+in the loop eight module processes share two cores with the world and whatever else runs,
+and the scheduler can leave one out for that long. The modules report both sides: how late
+each cycle started (``lateness_ms``) and how much CPU their process used from one cycle start
+to the next (``work_ms``, :meth:`dh2rt.runtime.ModuleRuntime.work_ms`). A late start after
+little work was the machine's; a long stretch of the module's own work is dh2rt's, whatever
+the machine.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def assert_no_module_held_itself(summary: dict[str, Any], silence_cycles: int = 3) -> None:
+    """No module's own work between two cycle starts came near the liveness bound (the
+    rollout loading or compiling mid-run once held modules that long, issue 27), and every lost
+    link is explained by a module the machine held (its worst start as late as the bound less a
+    period) or by the link emulator's relay held as long."""
+    rows = summary["modules"]
+    period_s = float(summary["cycle_period"])  # as run (hil.pace may have stretched it)
+    bound_ms = silence_cycles * period_s * 1000
+    worked = {r["name"]: (r.get("work_ms") or {}).get("max", 0.0) for r in rows}
+    assert all(w < bound_ms / 2 for w in worked.values()), ("a module's own work held it", worked, bound_ms)
+    lost = {r["name"]: r["counters"]["links_lost"] for r in rows if r["counters"].get("links_lost")}
+    if not lost:
+        return
+    near = bound_ms - period_s * 1000
+    late = {r["name"]: (r.get("lateness_ms") or {}).get("max", 0.0) for r in rows}
+    held = {name: ms for name, ms in late.items() if ms >= near}
+    relay = float(summary.get("relay_held_ms") or 0.0)
+    assert held or relay >= near, (
+        "links lost with no module or relay held by the machine as long as the liveness bound",
+        lost, late, worked, relay, [line for line in summary["log"] if "silent for" in line][:5],
+    )  # fmt: skip
