@@ -26,6 +26,7 @@ from dh2rt.topology import parse_spec
 from hil.netns import namespace_problem
 from hil.pace import ALLOWANCE_FLOOR_S, PACE, Baseline
 from hil.world import World, module_pids
+from tests.hil.holds import assert_no_module_held_itself
 
 ROOT = Path(__file__).resolve().parents[2]
 PROGRAM = ROOT / "examples" / "caterpillar.dh2"
@@ -147,8 +148,27 @@ def check_clean_links(summary: dict[str, Any]) -> None:
         assert c["refused"] == 0 and c["engine_faults"] == 0, row
 
 
+#: Runs a wave test may take when the machine held a module past its liveness bound
+WAVE_ATTEMPTS = 3
+
+
+def launch_unheld(transport: str, cycles: int, tmp_path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """A run in which no link was lost. A run that lost one is judged (tests/hil/holds.py): the
+    module's own work must not have held it, and the machine's holds must explain the loss;
+    then the robot legitimately split for a moment, the wave is not the in-process one, and
+    the run is made again (at most WAVE_ATTEMPTS runs, then the test fails)."""
+    held: list[dict[str, float]] = []
+    for _ in range(WAVE_ATTEMPTS):
+        summary, records = launch(transport, cycles, tmp_path)
+        if not any(r["counters"]["links_lost"] for r in summary["modules"]):
+            return summary, records
+        assert_no_module_held_itself(summary)
+        held.append({r["name"]: (r["lateness_ms"] or {}).get("max", 0.0) for r in summary["modules"]})
+    pytest.fail(f"a link lost in each of {WAVE_ATTEMPTS} runs, each time with a module held by the machine: {held}")
+
+
 def test_serial_processes_reproduce_the_robot_wave(tmp_path: Path, timer_baseline: Baseline) -> None:
-    summary, records = launch("serial", 150, tmp_path)
+    summary, records = launch_unheld("serial", 150, tmp_path)
     check_clean_links(summary)
     check_wave_matches_robot(records, 150, summary, timer_baseline)
 
@@ -158,7 +178,7 @@ def test_udp_processes_reproduce_the_robot_wave(tmp_path: Path, timer_baseline: 
     if problem is not None:
         pytest.skip(f"udp_multicast runs only in a private network namespace: {problem}")
     # the launcher re-executes itself (and so every module process) under unshare -rn
-    summary, records = launch("udp", 150, tmp_path)
+    summary, records = launch_unheld("udp", 150, tmp_path)
     check_clean_links(summary)
     check_wave_matches_robot(records, 150, summary, timer_baseline)
 
