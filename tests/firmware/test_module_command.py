@@ -24,6 +24,7 @@ from dh2rt.bundled import compile_bundled
 from dh2rt.signed_image import pack, public_key_path, read_private_key, write_key_pair
 from hil.link_emulator import LinkEmulator
 from hil.servo_emulator import ServoEmulator
+from tests.hil.holds import assert_rows_not_held_by_themselves
 from tests.marks import sweep
 from tools.capture_sink import FileSink
 from tools.reading import open_capture
@@ -384,6 +385,7 @@ def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: i
             for p in procs:  # power off all at once (one by one, the last would miss the first)
                 p.send_signal(signal.SIGTERM)
             results = [stop(p, signalled=True) for p in procs]
+            relay_held_ms = links.held_s * 1000
         finally:
             for p in procs:
                 if p.poll() is None:
@@ -395,10 +397,11 @@ def test_modules_alone_on_serial_links_find_each_other_and_run_the_wave(count: i
     ]
     assert all(lines[-1]["event"] == "final" for _, lines in results)
     assert [r["type"] for r in running] == ["head"] + ["body"] * (count - 2) + ["tail"]
-    assert all(r["counters"]["links_lost"] == 0 and r["counters"]["refused"] == 0 for r in running), [
-        (r["module"], r["counters"]["links_lost"], r["counters"]["refused"], r["counters"]["late_cycles"])
-        for r in running
-    ]
+    assert all(r["counters"]["refused"] == 0 for r in running), [(r["name"], r["counters"]) for r in running]
+    # no link lost, unless the machine held a module (or the relay) as long as the liveness
+    # bound: eight processes share two cores here, where a robot has a processor a module
+    # (CI once saw every module start one cycle late at the same moment, and one link lost)
+    assert_rows_not_held_by_themselves(running, period_s=0.030, silence_cycles=6, relay_held_ms=relay_held_ms)
     # Table I on the wire: the head's X(A) goes down link 0, the next module answers with X(B)
     # on link 1 within a cycle or two, and so on down the snake
     hormones = [h for h in open_capture(tmp_path / "snake.pcapng").hops() if h.kind == "hormone"]
