@@ -726,7 +726,7 @@ class ModuleRuntime:
             "counters": self.counters,
             "actuator_fault": self.actuator_fault,
             "last_fault": self.last_fault,
-            "sensors": self.sensing.values(),
+            "sensors": e.named_sensors(),
             "variables": e.variables(),
             "last_sensor_fault": self.sensing.last_fault,
         }

@@ -227,8 +227,3 @@ class SensorFeed:
         if message != self._last_message:
             self._log(f"sensor fault: {message}")
             self._last_message = message
-
-    def values(self) -> dict[str, int]:
-        """The declared sensors' current values (for the status line)."""
-        sensors = self.engine.sensors
-        return {name: sensors[slot] for name, (slot, _spec) in self._slots.items()}

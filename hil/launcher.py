@@ -669,14 +669,15 @@ def _table(world: World, show_vars: bool = False) -> list[str]:
         f"{'module':<8} {'state':<8} {'cycle':>6} {'type':<10} {'T':>3} {'DOF1':>6} {'DOF2':>6} "
         f"{'frames/s':>9} {'errors':>6} {'version':>7} {'sha256':<16}"
     ]
-    for r in world.rows():
+    rows = world.rows()
+    for r in rows:
         alias = "" if r["T"] is None else str(r["T"])
         lines.append(
             f"{r['name']:<8} {r['state']:<8} {r['cycle']:>6} {r['type']:<10} {alias:>3} {r['DOF1']:>6.0f} "
             f"{r['DOF2']:>6.0f} {r['frames_per_s']:>9.0f} {r['errors']:>6} {_or_dash(r.get('version')):>7} "
             f"{_or_dash(r.get('sha256'))[:16]:<16}"
         )
-    return lines + (variable_lines(world.rows()) if show_vars else [])
+    return lines + (variable_lines(rows) if show_vars else [])
 
 
 def _or_dash(value: object) -> str:
