@@ -1,8 +1,14 @@
 """Docking by motion in the loop: a ``reach_dock`` carried out by the modules' own motion.
 
+The docking sequence is :class:`firmware.motion.docking.Docking`, the same the physics runner
+drives (``sim.runner.PhysicsRun.docking``); :class:`LoopReaches` keeps only the loop's side of
+it: the readings, read from the stand-in's world under its lock; the targets, sent as holds;
+the ``docking`` readings pushed; the records. The world answers the latch
+(:meth:`hil.world.World.latch`).
+
 With the PyBullet stand-in, the hardware-in-the-loop world carries a native's ``reach_dock``
 (dock my connector to a connector of the module a route leads to) out as the physics runner
-does (``sim.runner.PhysicsRun.start_reach``): the chain of modules along the route bends,
+does (``firmware.motion.docking.Docking.start_reach``): the chain of modules along the route bends,
 aligns and approaches by :class:`firmware.motion.reach.Reach`, one step per world cycle, fed
 what the modules sense of the stand-in's PyBullet world (their joint angles, the asking
 connector's infrared pair, the overhead tracker: :class:`sim.motion_readings.MotionSensors`).
@@ -21,14 +27,14 @@ its program when the motion ends. The world never writes a joint itself. docs/hi
 ("Docking by motion in the loop") says why and what it costs.
 
 ``reach_and_dock`` (legs_to_snake's ``dock_tail_to_foot``) is carried out as the physics
-runner's ``PhysicsRun.assimilate`` does it: the foot at the end of the route lets go of the
+runner does it (``firmware.motion.docking.Docking.assimilate``): the foot at the end of the route lets go of the
 body at its front, :class:`firmware.motion.crawl.Trip` takes it by its own gaits to just behind
 the asking face (the tail's back), steering by the overhead tracker's poses, each step's joint
 targets held by the foot's own servos through ``Hold`` as above; once it is there the last two
 modules up the asking module's robot square their face by a :class:`firmware.motion.reach.Reach`
 while the foot creeps (:class:`firmware.motion.crawl.Creep`,
 held the same way); a dock that gives up sends the foot round again, up to
-``sim.runner.BRING_ATTEMPTS`` docks. While a module's motion (a trip to its face, or a
+``firmware.motion.docking.BRING_ATTEMPTS`` docks. While a module's motion (a trip to its face, or a
 reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
 declares the sensor; firmware.control.Readings), and 0 once it ended.
 

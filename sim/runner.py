@@ -15,17 +15,21 @@ same PyBullet joints runs the full firmware path).
 
 Docking follows the world: a ``cut`` undocks both the logical link and the physical latch;
 a ``dock`` event stays logical only if the two connectors are physically aligned within
-tolerance, and is undone otherwise. A native action's ``reach_dock`` (dock my connector to a
-connector of the module a route leads to) is carried out by the modules' own motion
-(:class:`firmware.motion.reach.Reach`, fed each cycle with what the modules sense:
-:class:`sim.motion_readings.MotionSensors`): the chain of modules along the route bends,
+tolerance, and is undone otherwise. The docking sequence itself is not here: it is
+:class:`firmware.motion.docking.Docking` (:attr:`PhysicsRun.docking`), written once for this
+runner and the loop (``hil.reach_loop``), sans-IO; this runner answers what it asks (each
+cycle's readings, :class:`sim.motion_readings.MotionSensors`; the latch, :meth:`PhysicsRun.latch`;
+the records, :meth:`PhysicsRun.ended`) and writes the joint targets it returns to the joints.
+A native action's ``reach_dock`` (dock my connector to a connector of the module a route
+leads to) is carried out by the modules' own motion (:class:`firmware.motion.reach.Reach`):
+the chain of modules along the route bends,
 aligns and approaches, its joints owned by the motion until the latch closes (the motion asks
 for it when the asking connector's infrared pair sees the target within the tolerance below;
 the latch closes when physics has the faces aligned within it) or the motion gives up. Every link
 formed so is recorded in :attr:`PhysicsRun.contacts` with both faces' world poses and errors
 at that moment. ``release`` cuts a module's link at one of its connectors. ``reach_and_dock``
 (legs to snake's ``dock_tail_to_foot``) is carried out by motion as well
-(:meth:`PhysicsRun.assimilate`): the foot lets go of the body, comes to the asking face by its
+(:meth:`firmware.motion.docking.Docking.assimilate`): the foot lets go of the body, comes to the asking face by its
 own gaits (:class:`firmware.motion.crawl.Trip`, steering by the overhead tracker:
 :class:`sim.tracker.OverheadTracker`) and the two dock while it creeps; the asking module's
 ``docking`` sensor reads 1 meanwhile. If a module lies apart on the spot behind the face (a
