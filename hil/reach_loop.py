@@ -54,8 +54,9 @@ from dh2rt.profile import Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
 from firmware.control import Readings
-from firmware.motion.docking import Docking, Motion, Needs
+from firmware.motion.docking import Docking
 from firmware.motion.readings import Readings as MotionReadings
+from firmware.motion.underway import Motion, Needs
 from hil.physics_stand_in import PhysicsStandIn
 from sim.motion_readings import Contact, MotionSensors, Verdicts
 from sim.tracker import OverheadTracker

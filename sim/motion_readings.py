@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dh2rt.docking import End
-from firmware.motion.docking import Motion
 from firmware.motion.readings import FloorPoses, Readings
+from firmware.motion.underway import Motion
 from sim.sensors import PhysicsSensors
 from sim.tracker import OverheadTracker
 from sim.world import World

@@ -51,8 +51,9 @@ from dh2rt.robot import Robot
 from drivers.base import ModuleDriver
 from firmware.motion.docking import DOCK_TOLERANCE_DEG as DOCK_TOLERANCE_DEG
 from firmware.motion.docking import DOCK_TOLERANCE_M as DOCK_TOLERANCE_M
-from firmware.motion.docking import Docking, Motion, Needs
+from firmware.motion.docking import Docking
 from firmware.motion.readings import Readings
+from firmware.motion.underway import Motion, Needs
 from sim.motion_readings import Contact, MotionSensors, Verdicts
 from sim.record import Sample
 from sim.sensors import PhysicsSensors

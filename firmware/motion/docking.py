@@ -44,6 +44,7 @@ from firmware.motion.crawl import DIAGONAL_M, Creep, Trip
 from firmware.motion.kinematics import Chain
 from firmware.motion.reach import DEFAULT_TIMEOUT, Reach
 from firmware.motion.readings import Readings
+from firmware.motion.underway import Arrival, Bringing, CrawlingClear, Motion, Needs, Outcome, Targets
 
 #: How many times a foot that comes to a face (:meth:`Docking.bring`) sets off before it gives
 #: up: a trip or a dock that gives up sends it round again from where it is. A foot left lying
@@ -55,19 +56,6 @@ BRING_ATTEMPTS = 3
 #: How far apart two connectors may be for the latch to close.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
-
-Targets = dict[int, dict[int, float]]
-
-
-@dataclass(frozen=True)
-class Needs:
-    """What the motions read this cycle: joint angles of ``joints``, infrared pairs of
-    ``infrared``, the overhead tracker if ``floor``, the IMU of ``attitude``."""
-
-    joints: frozenset[int] = frozenset()
-    infrared: tuple[int, ...] = ()
-    floor: bool = False
-    attitude: tuple[int, ...] = ()
 
 
 class LatchWorld(DockingWorld, Protocol):
@@ -94,84 +82,6 @@ class DockingOwner(Protocol):
     def ended(self, motion: Motion, linked: bool, readings: Readings) -> None:
         """A reach ended, linked or not (``readings``: its last cycle's): the owner's record."""
         ...
-
-
-@dataclass
-class Motion:
-    """One reach under way (``reach_dock``, or the dock of a foot that came)."""
-
-    reach: Reach
-    #: ``asking -> target`` in words
-    where: str
-    #: the cycle it was asked at, and the one its plan was ready at
-    asked: int
-    planned: int
-    #: seconds the plan took, by the owner's clock (:attr:`Docking.clock`)
-    plan_s: float
-    #: the cycle it was last stepped at, and the cycles since its plan was ready that went by
-    #: without a step (an owner whose thread came too late for them)
-    last: int = -1
-    missed: int = 0
-    #: the lone module (a foot that came) creeping towards the asking face meanwhile, if any
-    creep: Creep | None = None
-
-    @property
-    def modules(self) -> set[int]:
-        """The modules whose joints the motion holds (the creeping foot's included)."""
-        return self.reach.modules | ({self.creep.module} if self.creep is not None else set())
-
-
-@dataclass
-class Bringing:
-    """A released foot on its way, by its own gaits, to a free face."""
-
-    trip: Trip
-    #: the route up the target's robot whose joints square its face once the foot is there
-    route: tuple[int, ...]
-    #: the cycle it set off at, and the one it was last stepped at
-    asked: int
-    last: int
-    missed: int = 0
-
-
-@dataclass
-class CrawlingClear:
-    """A robot crawling clear of a module lying on the spot behind ``face`` before ``foot``
-    (the foot's end that still hangs on the body) lets go."""
-
-    clearing: Clearing
-    face: End
-    foot: End
-    asked: int
-    last: int
-    missed: int = 0
-
-
-@dataclass(frozen=True)
-class Arrival:
-    """A foot's trip that got to its spot: the foot, the face, cycles (set off, arrived), the
-    trip's steps and the cycles it missed."""
-
-    foot: int
-    target: End
-    asked: int
-    arrived: int
-    steps: int
-    missed: int
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """How a reach ended: cycles (asked, plan ready, latched or given up), its steps, the
-    cycles it missed, the plan's seconds, whether it linked."""
-
-    asked: int
-    planned: int
-    ended: int
-    steps: int
-    missed: int
-    plan_s: float
-    latched: bool
 
 
 @dataclass

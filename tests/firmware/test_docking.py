@@ -16,8 +16,9 @@ import pytest
 from dh2rt.docking import End
 from dh2rt.profile import CONRO
 from firmware.motion.body import DEFAULT_MODEL
-from firmware.motion.docking import BRING_ATTEMPTS, Docking, Motion, Needs, Targets
+from firmware.motion.docking import BRING_ATTEMPTS, Docking
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose, Readings
+from firmware.motion.underway import Motion, Needs, Targets
 
 C = CONRO.connector_index
 FRONT, BACK, LEFT = C("front"), C("back"), C("left")
