@@ -123,21 +123,21 @@ def lying_along_x(modules: dict[int, float]) -> FloorPoses:
 
 
 def test_a_reach_dock_bends_asks_the_latch_and_links() -> None:
-    """``reach_dock`` along a snake of five: the chain's modules hold the motion's targets
+    """``reach_dock`` along a snake of three: the chain's modules hold the motion's targets
     each cycle; once the asking face's infrared sees the face the latch is asked, closes,
     the link is negotiated and the verdict is linked."""
-    bench = Bench(snake(5))
-    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:5])
-    assert docking.start_reach(4, BACK, (FRONT,) * 4, FRONT)
-    assert docking.docking_modules() == {4} and docking.busy
+    bench = Bench(snake(3))
+    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:3])
+    assert docking.start_reach(2, BACK, (FRONT, FRONT), FRONT)
+    assert docking.docking_modules() == {2} and docking.busy
     for _ in range(3):
         held = bench.step(docking)
-        assert set(held) == {0, 1, 2, 3, 4} and not bench.latches
-    bench.ir[(4, "back")] = (12.0, 5.0)  # the face is in view, within the tolerance
+        assert set(held) == {0, 1, 2} and not bench.latches
+    bench.ir[(2, "back")] = (12.0, 5.0)  # the face is in view, within the tolerance
     bench.step(docking)
-    assert bench.latches == [(4, BACK, 0, FRONT)]
-    assert bench.verdicts == [((4, BACK), (0, FRONT), True)]
-    assert bench.peer_of((4, BACK)) == (0, FRONT)
+    assert bench.latches == [(2, BACK, 0, FRONT)]
+    assert bench.verdicts == [((2, BACK), (0, FRONT), True)]
+    assert bench.peer_of((2, BACK)) == (0, FRONT)
     (outcome,) = docking.outcomes
     assert outcome.latched and outcome.steps == 4 and outcome.missed == 0
     assert not docking.busy and not docking.docking_modules() and bench.step(docking) == {}
@@ -204,11 +204,11 @@ def test_a_foot_that_dies_on_its_trip_is_abandoned_not_sent_again() -> None:
 
 
 def test_a_module_of_the_chain_that_dies_abandons_the_reach_without_a_verdict() -> None:
-    bench = Bench(snake(5))
-    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:5])
-    assert docking.start_reach(4, BACK, (FRONT,) * 4, FRONT)
+    bench = Bench(snake(3))
+    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:3])
+    assert docking.start_reach(2, BACK, (FRONT, FRONT), FRONT)
     bench.step(docking)
-    bench.dead.add(2)
+    bench.dead.add(1)
     bench.step(docking)
     assert "motion abandoned" in bench.log[-1] and not docking.busy
     assert not bench.verdicts and not docking.outcomes and not bench.latches
@@ -252,9 +252,9 @@ def test_a_second_foot_for_the_same_face_is_refused() -> None:
 def test_a_late_owner_steps_a_missed_cycle_once_and_counts_it(due: bool) -> None:
     """An owner stepping cycle 2 after cycle 0 (its thread came late): each motion makes one
     step, and the cycle it missed is counted; one not due does not step twice a cycle."""
-    bench = Bench(snake(5))
-    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:5])
-    assert docking.start_reach(4, BACK, (FRONT,) * 4, FRONT)
+    bench = Bench(snake(3))
+    docking = Docking(bench, bench, DEFAULT_MODEL, CONRO, NAMES[:3])
+    assert docking.start_reach(2, BACK, (FRONT, FRONT), FRONT)
     assert docking.step(0)  # asked at cycle 0: its first step is cycle 0's
     (motion,) = docking.motions
     steps = motion.reach.cycles
