@@ -70,8 +70,8 @@ def in_one_process(seed: int, at: str) -> dict[str, Any]:
         asked = None
         while not (run.contacts or run.failed) and robot.cycle < CYCLES:
             run.run(1, [])
-            if asked is None and run.reaches:
-                asked = run.reaches[0].start_cycle
+            if asked is None and run.docking.motions:
+                asked = run.docking.motions[0].reach.start_cycle
         run.run(20, [])
         types = [e.topo_type.name for e in robot.engines if e is not None]
         out: dict[str, Any] = {"t": types[3] == "head" and types[2] == "tail" and types[7] == "tail"}

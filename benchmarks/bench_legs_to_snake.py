@@ -6,7 +6,7 @@ first winning foot killed 400 cycles into its trip (``trip``) and killed as its 
 (``dock``). Each run twice, in the same benchmark: with today's dock, whose plan leaves the
 distance to the creeping foot (``free_distance``), and with the plan before it, which asked
 the tail's last two modules to put their face 3 cm in front of the foot
-(``PhysicsRun.dock_free_distance = False``). Reported: how many formed the snake, the cycle it
+(``PhysicsRun.docking.options.free_distance = False``). Reported: how many formed the snake, the cycle it
 formed (median and range), the docks that gave up, and the latches' distances and attitudes.
 ``--variants`` runs only some of the two. ``--tracker`` gives the overhead tracker the foot's
 trip steers by (sim.tracker.OverheadTracker) noise, latency and dropouts (exact by default);
@@ -54,7 +54,7 @@ def one_run(
     noise_mm, noise_deg, latency, dropout = tracker
 
     def setup(run: PhysicsRun) -> None:
-        run.dock_free_distance = free_distance
+        run.docking.options.free_distance = free_distance
         run.oracle_poses = oracle
         run.motion_sensors.tracker = OverheadTracker(
             run.world, noise_m=noise_mm / 1000, noise_deg=noise_deg, latency=latency, dropout=dropout, seed=seed

@@ -8,7 +8,7 @@ foot and seed, the same world twice in the same run: today's trip, which starts 
 trip without the diagonal (``diagonal_m = 0``: along its line to the end, then across, as
 the trip before it did; its other rules are today's).
 Reported: how many docked, the cycles from the release to the latch (median and range), and
-the cycles the feet turned in place (the finished trips' accounts, ``PhysicsRun.trips_done``).
+the cycles the feet turned in place (the finished trips' accounts, ``PhysicsRun.docking.trips_done``).
 
     python -m benchmarks.bench_trips [--seeds 0,1,2,3,4,5] [--legs left_leg0,...] [--jobs 2] [--quick]
 
@@ -43,7 +43,7 @@ def one_round(seed: int, leg: str, diagonal_m: float) -> dict[str, Any]:
     still = compile_source("program still\nconst ClockCycle = 40\n")
     dragon = parse_spec("dragon")
     run = PhysicsRun(Robot(still, dragon, seed=seed))
-    run.trip_diagonal_m = diagonal_m
+    run.docking.options.trip_diagonal_m = diagonal_m
     front, back = CONRO.connector_index("front"), CONRO.connector_index("back")
     foot, tail = dragon.names.index(leg), dragon.names.index("tail4")
     try:
@@ -51,7 +51,7 @@ def one_round(seed: int, leg: str, diagonal_m: float) -> dict[str, Any]:
             run.cycle()
         cycles = run.bring_home(foot, (tail, back), (front, front), ROUND_CYCLES)
         docked = run.robot.peer_of((tail, back)) == (foot, front)
-        turning = sum(n for trip in run.trips_done for n in trip.turning.values())
+        turning = sum(n for trip in run.docking.trips_done for n in trip.turning.values())
         return {"seed": seed, "leg": leg, "docked": docked, "cycles": cycles, "turning": turning}
     finally:
         run.close()

@@ -718,8 +718,8 @@ def _reaches(world: World) -> dict[str, Any] | None:
     return {
         "contacts": [c.as_dict() for c in r.contacts],
         "failed": [c.as_dict() for c in r.failed],
-        "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.outcomes],
-        "arrivals": [asdict(a) for a in r.arrivals],
+        "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.docking.outcomes],
+        "arrivals": [asdict(a) for a in r.docking.arrivals],
     }
 
 

@@ -35,7 +35,8 @@ this world as the docking world (DOCK_DELAY world cycles later for the first two
 ``reach_dock`` is carried out by motion instead (:mod:`hil.reach_loop`): the chain's modules
 hold the joint targets of a :class:`firmware.motion.reach.Reach` stepped once per world cycle, and the
 link is docked only once the faces latched in physics, within the physics runner's tolerance;
-and a ``reach_and_dock`` as ``sim.runner.PhysicsRun.assimilate`` does it: the foot lets go
+and a ``reach_and_dock`` as the physics runner does it
+(:meth:`firmware.motion.docking.Docking.assimilate`, the sequence both drive): the foot lets go
 of the body, comes to the asking face by its own gaits (:class:`firmware.motion.crawl.Trip`, held on its
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
 sensor reads 1 meanwhile (pushed by the world).

@@ -70,7 +70,7 @@ def reconfigure(
         run.cycle()
         if on_cycle is not None:
             on_cycle(run)
-        if not run.trips and not run.reaches and snake_of(robot) is not None and len(run.contacts) >= 3:
+        if not run.docking.trips and not run.docking.motions and snake_of(robot) is not None and len(run.contacts) >= 3:
             return run, robot.cycle
     return run, None
 
@@ -89,10 +89,12 @@ class KillWinner:
     def __call__(self, run: PhysicsRun) -> None:
         if self.killed or self.when == "none":
             return
-        if self.when == "trip" and run.trips and run.trips[0][0].cycles == TRIP_KILL_CYCLES:
-            foot = run.trips[0][0].module
-        elif self.when == "dock" and run.creeps:
-            foot = next(iter(run.creeps.values())).module
+        trips = run.docking.trips
+        creeps = [m.creep for m in run.docking.motions if m.creep is not None]
+        if self.when == "trip" and trips and trips[0].trip.cycles == TRIP_KILL_CYCLES:
+            foot = trips[0].trip.module
+        elif self.when == "dock" and creeps:
+            foot = creeps[0].module
         else:
             return
         self.killed.append(foot)

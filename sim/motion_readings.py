@@ -7,22 +7,27 @@ modules named (``ir_<c>``, ``ir_<c>_align``, every connector's), and the overhea
 reading (:class:`sim.tracker.OverheadTracker`). Nothing else of the world reaches a motion.
 
 :func:`contact` is the trace's record of a latch or a give-up: both faces' world poses and
-errors at that moment, read from the world by the owner (never by the motion).
+errors at that moment, read from the world by the owner (never by the motion);
+:class:`Verdicts` keeps them, for each motion the docking sequence ended.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from dh2rt.docking import End
 from firmware.motion.readings import FloorPoses, Readings
+from firmware.motion.underway import Motion
 from sim.sensors import PhysicsSensors
 from sim.tracker import OverheadTracker
 from sim.world import World
+
+#: ``name.connector`` of a module's connector, for log lines.
+Where = Callable[[int, int], str]
 
 
 class MotionSensors:
@@ -118,3 +123,30 @@ def contact(world: World, cycle: int, asking: End, target: End, infrared: tuple[
         infrared[0],
         infrared[1],
     )
+
+
+@dataclass
+class Verdicts:
+    """How each docking motion ended, read from the world by its owner: every link formed
+    (:attr:`contacts`) and every motion that gave up (:attr:`failed`), each a :class:`Contact`."""
+
+    contacts: list[Contact] = field(default_factory=list)
+    failed: list[Contact] = field(default_factory=list)
+
+    def record(
+        self, world: World, cycle: int, motion: Motion, linked: bool, readings: Readings, where: Where, took: str
+    ) -> str:
+        """Record how ``motion`` ended at ``cycle`` (``readings``: its last cycle's); the log
+        line, which says how long it ``took`` and where the faces were."""
+        reach = motion.reach
+        (a, ac), (b, bc) = reach.chain.asking, reach.chain.target
+        record = contact(world, cycle, (a, ac), (b, bc), reach.infrared(readings))
+        how = (
+            f"{record.distance_m * 1000:.1f} mm, {record.attitude_deg:.1f} deg apart; infrared "
+            f"{record.ir_mm:.1f} mm, {record.ir_align_deg:.1f} deg"
+        )
+        if linked:
+            self.contacts.append(record)
+            return f"{where(a, ac)} docked to {where(b, bc)} by motion after {took} ({how})"
+        self.failed.append(record)
+        return f"reach_dock {motion.where} gave up after {took} ({how})"

@@ -59,18 +59,18 @@ def test_the_robot_crawls_clear_of_a_dead_foot_in_the_loop() -> None:
             time.sleep(0.01)
         world.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
         deadline = time.monotonic() + 90
-        while not reaches.trips and not world.done() and time.monotonic() < deadline:
+        while not reaches.docking.trips and not world.done() and time.monotonic() < deadline:
             world.tick()
-            if reaches.clearings:
+            if reaches.docking.clearings:
                 docking_sent.append(reaches.docking_sent.get(tail))
             time.sleep(world.idle(0.01))  # as the launcher: woken for the motions' step
         log = list(world.log)
-        assert reaches.trips, log[-10:]
-        winner = reaches.trips[0].trip.module
+        assert reaches.docking.trips, log[-10:]
+        winner = reaches.docking.trips[0].trip.module
         with physics.lock:
             (px, py, _), _ = physics.world.connector_pose(tail, BACK)
             lying = math.dist((px, py), physics.world.module_position(dead)[:2])
-            taken = reaches.spot_taken((tail, BACK), winner)
+        taken = reaches.spot_taken((tail, BACK), winner)  # reads the tracker under the lock itself
     finally:
         world.stop()
     asked = [i for i, line in enumerate(log) if "lies behind tail4.back; the robot crawls clear first" in line]

@@ -103,20 +103,20 @@ def test_the_robot_crawls_clear_of_a_dead_foot_before_the_next_foot_lets_go(seed
         run.run(30)
         run.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
         docking_read: list[int] = []
-        while not run.trips and robot.cycle < 1200:
+        while not run.docking.trips and robot.cycle < 1200:
             run.cycle()
-            if run.clearings:
-                docking_read.append(run.docking_modules() == {tail})
+            if run.docking.clearings:
+                docking_read.append(run.docking.docking_modules() == {tail})
         log = robot.log
         asked = [i for i, line in enumerate(log) if "lies behind tail4.back; the robot crawls clear first" in line]
         crawled = [i for i, line in enumerate(log) if "tail4.back: crawled" in line]
         assert len(asked) == 1 and "left_leg0 lies behind" in log[asked[0]], log
         assert len(crawled) == 1 and "the spot clear" in log[crawled[0]], log
-        winner = run.trips[0][0].module
+        winner = run.docking.trips[0].trip.module
         released = [i for i, line in enumerate(log) if f"{dragon.names[winner]}.front released" in line]
         assert released and asked[0] < crawled[0] < released[0], log  # the foot let go only after
         assert docking_read and all(docking_read)
-        assert run.spot_taken(face, winner) is None
+        assert run.docking.spot_taken(face, winner) is None
         # left behind by the crawl: its centre was laid behind_m from the face (measured: 11
         # to 14 cm further at seeds 0 to 2)
         (px, py, _), _ = run.world.connector_pose(*face)
@@ -134,9 +134,9 @@ def test_nothing_on_the_spot_no_crawl() -> None:
     try:
         run.run(50)
         run.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
-        while not run.trips and run.robot.cycle < 300:
+        while not run.docking.trips and run.robot.cycle < 300:
             run.cycle()
-        assert run.trips and not run.clearings
+        assert run.docking.trips and not run.docking.clearings
         assert not any("crawls clear" in line for line in run.robot.log)
     finally:
         run.close()

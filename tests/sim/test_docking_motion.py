@@ -71,12 +71,12 @@ def test_tail_bends_aligns_and_docks_within_tolerance(
         before = run.world.links()
         start = run.world.connector_pose(3, FRONT)[0]
         assert not run.world.aligned(2, BACK, 3, FRONT, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
-        assert run.reach_other(2, BACK, (FRONT, FRONT), (3, FRONT))
+        assert run.docking.reach_other(2, BACK, (FRONT, FRONT), (3, FRONT))
         for _ in range(300):
             run.cycle()
-            if not run.reaches:
+            if not run.docking.motions:
                 break
-        assert not run.reaches and not run.failed, run.robot.log
+        assert not run.docking.motions and not run.failed, run.robot.log
         assert run.world.links() - before == {Link(2, BACK, 3, FRONT)}
         assert run.robot.peer_of((2, BACK)) == (3, FRONT)
         (contact,) = run.contacts
@@ -95,10 +95,10 @@ def test_target_out_of_reach_gives_up_and_links_nothing() -> None:
     run = scene(0, (0.0, 0.0), 0.0, 0.0, 0.08)  # 8 cm straight out: the chain cannot stretch
     try:
         before = run.world.links()
-        assert run.reach_other(2, BACK, (FRONT, FRONT), (3, FRONT), timeout=120)
+        assert run.docking.reach_other(2, BACK, (FRONT, FRONT), (3, FRONT), timeout=120)
         for _ in range(200):
             run.cycle()
-        assert not run.reaches and not run.contacts
+        assert not run.docking.motions and not run.contacts
         (failed,) = run.failed
         assert failed.distance_m > DOCK_TOLERANCE_M
         assert run.world.links() == before and run.robot.peer_of((2, BACK)) is None
@@ -109,7 +109,7 @@ def test_target_out_of_reach_gives_up_and_links_nothing() -> None:
 def test_male_to_male_is_refused() -> None:
     run = scene(0, (40.0, 20.0), 0.0, 0.0, 0.0)
     try:
-        assert not run.reach_other(2, BACK, (FRONT, FRONT), (3, BACK))
+        assert not run.docking.reach_other(2, BACK, (FRONT, FRONT), (3, BACK))
         assert any("both connectors are male" in line for line in run.robot.log)
     finally:
         run.close()

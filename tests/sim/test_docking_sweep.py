@@ -133,12 +133,12 @@ def test_every_latch_within_tolerance_at_that_moment(
     try:
         before = run.world.links()
         assert not run.aligned(asking, conn, lone, target)  # the chain has to move
-        assert run.reach_other(asking, conn, route, (lone, target))
+        assert run.docking.reach_other(asking, conn, route, (lone, target))
         for _ in range(BUDGET):
             run.cycle()
-            if not run.reaches:
+            if not run.docking.motions:
                 break
-        assert not run.reaches and not run.failed, run.robot.log[-5:]
+        assert not run.docking.motions and not run.failed, run.robot.log[-5:]
         assert run.world.links() - before == {Link(asking, conn, lone, target)}
         assert run.robot.peer_of((asking, conn)) == (lone, target)
         (contact,) = run.contacts
@@ -166,8 +166,8 @@ def test_same_gender_is_refused_and_nothing_moves(tail: bool, target: int) -> No
     run, asking, conn, route = scene(3, tail, target, 0, (40.0, 20.0), 0.0, 0.0, 0.0)
     try:
         before = run.world.links()
-        assert not run.reach_other(asking, conn, route, (3, target))
-        assert not run.reaches
+        assert not run.docking.reach_other(asking, conn, route, (3, target))
+        assert not run.docking.motions
         assert any("both connectors are" in line for line in run.robot.log)
         for _ in range(20):
             run.cycle()
@@ -183,7 +183,7 @@ def test_the_latch_is_in_the_trace_with_both_faces_poses() -> None:
     stream = io.StringIO()
     trace = TraceWriter(stream, run.robot, extra=lambda m: traced(run, m, list(run.world.module_position(m))))
     try:
-        assert run.reach_other(asking, conn, route, (3, FRONT))
+        assert run.docking.reach_other(asking, conn, route, (3, FRONT))
         run.run(BUDGET, [], lambda _c: trace.write_cycle())
         (contact,) = run.contacts
         records = [json.loads(line) for line in stream.getvalue().splitlines()]

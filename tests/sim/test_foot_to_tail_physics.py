@@ -27,8 +27,9 @@ from dh2rt.profile import CONRO
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
 from firmware.motion.body import CENTRE
+from firmware.motion.docking import BRING_ATTEMPTS
 from firmware.motion.gaits import back_off, creep, turn
-from sim.runner import BRING_ATTEMPTS, DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
+from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M, PhysicsRun
 from tests.marks import sweep
 
 FRONT, BACK = CONRO.connector_index("front"), CONRO.connector_index("back")
@@ -110,10 +111,10 @@ def foot_behind_tail(seed: int, leg: str, along_m: float, aside_m: float) -> tup
 
 
 def dock(run: PhysicsRun, foot: int, tail: int, *, creeps: bool) -> None:
-    assert run.reach_other(tail, BACK, (FRONT, FRONT), (foot, FRONT), timeout=400, creep=creeps)
+    assert run.docking.reach_other(tail, BACK, (FRONT, FRONT), (foot, FRONT), timeout=400, creep=creeps)
     for _ in range(420):
         run.cycle()
-        if not run.reaches:
+        if not run.docking.motions:
             break
 
 
@@ -191,7 +192,7 @@ def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -
         assert "back off" in spent and "square" in spent, arrival
         assert sum(int(n) for n in spent.values()) == int(found[1]), arrival
         # and the finished trip keeps the same account
-        (trip,) = run.trips_done
+        (trip,) = run.docking.trips_done
         assert trip.arrived and {k: str(v) for k, v in trip.spent.items()} == spent
     finally:
         run.close()
@@ -206,16 +207,16 @@ def test_a_trip_that_gives_up_sends_the_foot_round_again_up_to_the_attempts() ->
         for _ in range(10):
             run.cycle()
         run.release(foot, FRONT)
-        assert run.bring(foot, (tail, BACK), (FRONT, FRONT))
+        assert run.docking.bring(foot, (tail, BACK), (FRONT, FRONT))
         set_off = 0
         for _ in range(BRING_ATTEMPTS * 40 + 10):
-            for trip, _route in run.trips:
+            for trip in [b.trip for b in run.docking.trips]:
                 if trip.cycles == 0:
                     trip.budget = 30  # too short to arrive: it gives up
                     set_off += 1
             run.cycle()
-        assert set_off == BRING_ATTEMPTS and not run.trips and not run.reaches
-        assert len(run.trips_done) == BRING_ATTEMPTS and not any(t.arrived for t in run.trips_done)
+        assert set_off == BRING_ATTEMPTS and not run.docking.trips and not run.docking.motions
+        assert len(run.docking.trips_done) == BRING_ATTEMPTS and not any(t.arrived for t in run.docking.trips_done)
         log = "\n".join(run.robot.log)
         assert log.count("the trip gave up after 31 cycles") == BRING_ATTEMPTS, log
         assert [n for n in range(2, BRING_ATTEMPTS + 1) if f"the foot tries again ({n})" in log] == list(

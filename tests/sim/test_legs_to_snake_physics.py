@@ -52,7 +52,7 @@ def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(s
     pitches: list[float] = []  # the docking chain's pitch joints as each dock begins (degrees)
 
     def at_each_dock(run: PhysicsRun) -> None:
-        for reach in run.reaches:
+        for reach in [m.reach for m in run.docking.motions]:
             if reach.cycles == 1:
                 angles = [run.world.joint_angles(m)[dof] for m, dof in reach.chain.joints]
                 pitches.extend(abs(v) for (_m, dof), v in zip(reach.chain.joints, angles, strict=True) if dof == 0)
