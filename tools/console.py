@@ -430,7 +430,7 @@ def _run_script(prompt: Prompt, script: IO[str]) -> int:
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
-        prompt.session.say(f"> {line}")
+        prompt.session.say(f"{Prompt.prompt}{line}")
         if prompt.onecmd(line):
             break
         if prompt.bad_input is not None:
