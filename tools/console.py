@@ -28,7 +28,9 @@ import argparse
 import cmd
 import contextlib
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -354,6 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if threading.current_thread() is threading.main_thread():  # Ctrl-C is ours from here: exit 130
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         ns = build_parser().parse_args(argv)
     except SystemExit as exc:

@@ -6,10 +6,13 @@ command and one signed with another key are refused and counted; bad input exits
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -34,6 +37,7 @@ OTHER = bytes(range(50, 82))
 PERIOD = 0.02
 PROGRAM = compile_bundled("legs_to_snake.dh2")
 SOURCE = Path(__file__).resolve().parents[2] / "dh2rt" / "programs" / "legs_to_snake.dh2"
+DH2RT = Path(sys.executable).parent / "dh2rt"
 
 
 @dataclass
@@ -145,3 +149,52 @@ def test_bad_options_exit_2_naming_them(tmp_path: Path, capsys: pytest.CaptureFi
     (tmp_path / "k").write_bytes(private_key_pem(KEY))
     assert console.main(["--key", str(tmp_path / "k"), "--program", str(SOURCE)]) == 2
     assert "give the cable: --port DEV" in capsys.readouterr().err
+
+
+def spawn_console(robot: Robot, tmp_path: Path) -> Any:
+    """``dh2rt console`` at its interactive prompt on a pty, as a person starts it."""
+    pexpect = pytest.importorskip("pexpect", reason="pexpect (the dev extra) drives the interactive prompt")
+    argv = ["console", "--port", robot.cable, "--key", str(robot.key_file), "--program", str(SOURCE)]
+    env = {**os.environ, "HOME": str(tmp_path), "TERM": "dumb"}
+    child = pexpect.spawn(str(DH2RT), [*argv, "--cycle-ms", "20"], env=env, encoding="utf-8", timeout=10)
+    child.expect_exact("dh2rt> ")
+    return child
+
+
+def test_the_prompt_completes_runs_and_leaves_on_ctrl_d(robot: Robot, tmp_path: Path) -> None:
+    child = spawn_console(robot, tmp_path)
+    try:
+        child.send("sta\t")  # completion: the command
+        child.expect_exact("state")
+        child.send(" back>fr\t")  # and a hop's connector
+        child.expect_exact("back>front")
+        child.send("\r")
+        child.expect_exact("module back>front: tail (T2)")
+        child.expect_exact("dh2rt> ")
+        child.sendline("inject NOPE")
+        child.expect_exact("error: hormone 'NOPE': program legs_to_snake declares no such hormone")
+        child.expect_exact("dh2rt> ")
+        child.sendeof()  # Ctrl-D
+        child.expect(pexpect_eof(child))
+    finally:
+        child.close()
+    assert child.exitstatus == 0, child.before
+    assert "state back>front" in (tmp_path / ".dh2rt_console_history").read_text()
+
+
+def test_ctrl_c_at_the_prompt_exits_130_without_a_traceback(robot: Robot, tmp_path: Path) -> None:
+    child = spawn_console(robot, tmp_path)
+    try:
+        child.sendintr()  # Ctrl-C
+        child.expect(pexpect_eof(child))
+        said = child.before
+    finally:
+        child.close()
+    assert child.exitstatus == 130 and "interrupted" in said and "Traceback" not in said, said
+
+
+def pexpect_eof(child: Any) -> Any:
+    """pexpect's EOF (imported where the prompt's tests skip without it)."""
+    import pexpect
+
+    return pexpect.EOF
