@@ -9,7 +9,9 @@ from __future__ import annotations
 import os
 import sys
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,7 @@ from typing import Any
 import pytest
 
 from dh2rt.bundled import compile_bundled
+from dh2rt.program import CompiledProgram
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import private_key_pem, public_key
 from dh2rt.transport.base import PortEnd
@@ -49,14 +52,17 @@ class Robot:
     other_key_file: Path
 
 
-@pytest.fixture
-def robot(tmp_path: Path) -> Iterator[Robot]:
+@contextmanager
+def snake(tmp_path: Path, n: int, program: CompiledProgram = PROGRAM) -> Iterator[Robot]:
+    """``n`` modules running ``program`` in real time, each back on the next one's front over
+    the link emulator's serial links, the console's cable into the head's front."""
     emulator = LinkEmulator()
-    spine, cable = emulator.add_link(), emulator.add_link()
-    codec = FrameCodec(PROGRAM.vocabulary, PROGRAM.profile.connector_count)
-    modules = [ModuleRuntime(PROGRAM, SerialTransport(codec), module=i, cycle_period=PERIOD) for i in range(2)]
-    modules[0].attach(BACK, PortEnd(spine.paths[0]))
-    modules[1].attach(FRONT, PortEnd(spine.paths[1]))
+    links, cable = [emulator.add_link() for _ in range(n - 1)], emulator.add_link()
+    codec = FrameCodec(program.vocabulary, program.profile.connector_count)
+    modules = [ModuleRuntime(program, SerialTransport(codec), module=i, cycle_period=PERIOD) for i in range(n)]
+    for i, link in enumerate(links):
+        modules[i].attach(BACK, PortEnd(link.paths[0]))
+        modules[i + 1].attach(FRONT, PortEnd(link.paths[1]))
     modules[0].attach(FRONT, PortEnd(cable.paths[1]))
     channels = []
     for i, rt in enumerate(modules):
@@ -77,6 +83,12 @@ def robot(tmp_path: Path) -> Iterator[Robot]:
         for rt in modules:
             rt.close()
         emulator.close()
+
+
+@pytest.fixture
+def robot(tmp_path: Path) -> Iterator[Robot]:
+    with snake(tmp_path, 2) as r:
+        yield r
 
 
 def run_console(robot: Robot, tmp_path: Path, script: str, key: Path | None = None) -> int:
@@ -198,3 +210,66 @@ def pexpect_eof(child: Any) -> Any:
     import pexpect
 
     return pexpect.EOF
+
+
+class PauseWatch:
+    """When (monotonic s) and at which of its cycles each pause()/resume() reached a module."""
+
+    def __init__(self, modules: list[ModuleRuntime]) -> None:
+        self.calls: list[list[tuple[bool, float, int]]] = [[] for _ in modules]
+        for i, rt in enumerate(modules):
+            rt.pause = self._wrap(i, rt, rt.pause)  # type: ignore[method-assign, assignment]
+
+    def _wrap(self, i: int, rt: ModuleRuntime, pause: Callable[[bool], bool]) -> Callable[[bool], bool]:
+        def watched(paused: bool) -> bool:
+            self.calls[i].append((paused, time.monotonic(), rt.cycle))
+            return pause(paused)
+
+        return watched
+
+    def times(self, n: int) -> list[float]:
+        return [calls[n][1] for calls in self.calls]
+
+    def cycles(self, n: int) -> list[int]:
+        return [calls[n][2] for calls in self.calls]
+
+
+def test_pause_holds_an_8_module_wave_within_2_cycles_and_state_reads_every_module(tmp_path: Path) -> None:
+    """The caterpillar's wave on 8 modules: PAUSE reaches every module within 2 cycles of
+    reaching the head, no joint moves while paused, STATE then reads each module exactly as
+    its engine stands, and RESUME goes on from the LocalTimer each stopped at."""
+    caterpillar = compile_bundled("caterpillar.dh2")
+    with snake(tmp_path, 8, caterpillar) as robot:
+        watch = PauseWatch(robot.modules)
+        time.sleep(40 * PERIOD)  # the wave runs
+        transport = open_cable(robot.cable, 115200)
+        link = ConsoleLink(transport, KEY, period=PERIOD).start()
+        try:
+            assert len({tuple(rt.engine.dof) for rt in robot.modules}) > 1  # the wave is under way
+            assert link.command(op.Pause(), 10 * PERIOD).answers == ()
+            assert all(rt.paused for rt in robot.modules)
+            reached = watch.times(0)
+            assert max(reached) - min(reached) <= 2 * PERIOD, reached
+            timers = [rt.engine.timer for rt in robot.modules]
+            dofs = [rt.commanded for rt in robot.modules]
+            cycles = [rt.cycle for rt in robot.modules]
+            time.sleep(10 * PERIOD)
+            assert [rt.engine.timer for rt in robot.modules] == timers  # held
+            assert [rt.commanded for rt in robot.modules] == dofs  # no joint moved
+            assert all(rt.cycle > c for rt, c in zip(robot.modules, cycles, strict=True))  # links cycle on
+            for i, rt in enumerate(robot.modules):
+                reply = link.command(op.StateRequest(((BACK, FRONT),) * i), 40 * PERIOD).reply
+                assert reply is not None, i
+                s, e = reply.status, rt.engine
+                assert (s.timer, s.type_index, s.connectors) == (e.timer, e.type_index, tuple(e.status)), i
+                assert (s.variables, s.receptors, s.paused) == (tuple(e.vars), tuple(e.rstatus), True), i
+            assert link.command(op.Resume(), 10 * PERIOD).answers == ()
+            time.sleep(10 * PERIOD)
+            assert link.command(op.Pause(), 10 * PERIOD).answers == ()  # hold it again, to read it still
+            stepped = [p - r for p, r in zip(watch.cycles(2), watch.cycles(1), strict=True)]
+            clock = caterpillar.clock_cycle
+            expected = [(t + n) % clock for t, n in zip(timers, stepped, strict=True)]
+            assert [rt.engine.timer for rt in robot.modules] == expected, stepped
+        finally:
+            link.close()
+            transport.close()
