@@ -280,9 +280,7 @@ class Prompt(cmd.Cmd):
     def _run(self, action: Callable[[], object]) -> bool:
         try:
             action()
-        except ConsoleInputError as exc:
-            self._bad(str(exc))
-        except OSError as exc:
+        except (ValueError, OSError) as exc:  # ConsoleInputError; a route the wire cannot carry; the cable gone
             self._bad(str(exc))
         return False
 

@@ -6,6 +6,7 @@ command and one signed with another key are refused and counted; bad input exits
 
 from __future__ import annotations
 
+import io
 import os
 import sys
 import threading
@@ -22,10 +23,12 @@ from dh2rt.bundled import compile_bundled
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.signed_image import private_key_pem, public_key
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import BusEnd, PortEnd
+from dh2rt.transport.can_bus import VirtualCanTransport
 from dh2rt.transport.serial_link import SerialTransport
 from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec
+from firmware.flash.cable import hello_codec
 from firmware.operator import OperatorChannel
 from hil.link_emulator import LinkEmulator
 from tools import console
@@ -273,3 +276,52 @@ def test_pause_holds_an_8_module_wave_within_2_cycles_and_state_reads_every_modu
         finally:
             link.close()
             transport.close()
+
+
+def test_the_console_on_a_can_bus(tmp_path: Path) -> None:
+    """The same commands over python-can's virtual bus: every signed command is a segment
+    train of classic CAN frames, each answer one or a train; a replay is refused there too."""
+    channel = f"console-{os.getpid()}-{time.monotonic_ns()}"
+    codec = FrameCodec(PROGRAM.vocabulary, PROGRAM.profile.connector_count)
+    modules = [
+        ModuleRuntime(PROGRAM, VirtualCanTransport(codec, channel=channel), module=i, cycle_period=PERIOD)
+        for i in range(2)
+    ]
+    modules[0].attach(BACK, BusEnd(1, 0))
+    modules[1].attach(FRONT, BusEnd(1, 1))
+    modules[0].attach(FRONT, BusEnd(2, 1))
+    for i, rt in enumerate(modules):
+        (tmp_path / f"m{i}").mkdir()
+        OperatorChannel(rt, (public_key(KEY),), tmp_path / f"m{i}")
+    stop = threading.Event()
+    threads = [threading.Thread(target=rt.run, kwargs={"stop_event": stop}, daemon=True) for rt in modules]
+    for t in threads:
+        t.start()
+    cable = VirtualCanTransport(hello_codec(), channel=channel)
+    cable.attach(BACK, BusEnd(2, 0))
+    link = ConsoleLink(cable, KEY, connector=BACK, period=PERIOD).start()
+    out = io.StringIO()
+    try:
+        time.sleep(10 * PERIOD)
+        session = console.Session(link, PROGRAM, PERIOD, out)
+        session.state("back>front")
+        session.pause()
+        session.topology()
+        session.resume()
+        first = link.command(op.StateRequest(()), 1.0)
+        link.send_signed(op.sign(op.StateRequest(()), first.counter, KEY))
+        time.sleep(10 * PERIOD)
+    finally:
+        link.close()
+        cable.close()
+        stop.set()
+        for t in threads:
+            t.join(timeout=5)
+        for rt in modules:
+            rt.close()
+    text = out.getvalue()
+    assert session.failures == 0, text
+    assert "module back>front: tail (T2)" in text and "(cable): head (T1)\n  back>front: tail (T2)" in text
+    assert first.reply is not None and first.reply.status.type_index == modules[0].engine.type_index
+    assert not any(rt.paused for rt in modules)
+    assert modules[0].stats.log and any("REPLAYED" in line for line in modules[0].log)
