@@ -162,8 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--console",
         type=Path,
         metavar="FILE",
-        help="plug a cable for dh2rt console into the first module's free connector (serial links) and "
-        "write its port to FILE once the robot runs: dh2rt console --port $(cat FILE) --key KEY ...",
+        help="plug a cable for dh2rt console into the first module's free connector (on a bus, through a "
+        "serial-to-bus adapter the launcher plays) and write its port to FILE once the robot runs: "
+        "dh2rt console --port $(cat FILE) --key KEY ...",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
     p.add_argument("--vars", action="store_true", help=VARS_HELP + "; on a terminal, the live table too")
@@ -281,8 +282,9 @@ def _main(argv: list[str] | None) -> int:
         check_flash_events(ns.flash_events, ns.transport, ns.cycles)
         if ns.console is not None:
             ns.console = output_path(ns.console, "--console")
-            if parse_transport_spec(ns.transport)[0] != "serial":
-                raise OptionError("--console: the console's cable needs serial links (--transport serial)")
+            if parse_transport_spec(ns.transport)[0] not in ("serial", *NEGOTIATED):
+                raise OptionError("--console: the console's cable needs links it can join: --transport serial, "
+                                  "or a bus (can, udp, virtual)")  # fmt: skip
             free_connector(topology, 0)
         if ns.cycles is not None:
             check_events(events, topology, ns.cycles, sensors=program.sensor_names)
@@ -528,6 +530,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         failed = True
     finally:
         flashes.close()
+        if console is not None:
+            console.pull_out()
         try:
             world.stop()
         except KeyboardInterrupt:

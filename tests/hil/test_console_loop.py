@@ -57,13 +57,13 @@ class Operator(threading.Thread):
             self.error = exc
 
 
-def run_loop(operator: Operator, topology: str, cycles: int, key: Path) -> int:
-    """legs to snake on ``topology`` over serial links at 40 ms, the console's cable in, the
+def run_loop(operator: Operator, topology: str, cycles: int, key: Path, transport: str = "serial") -> int:
+    """legs to snake on ``topology`` over ``transport`` at 40 ms, the console's cable in, the
     operator's thread started beside it; the launcher's exit code once both are done."""
     operator.start()
     code = PACE.call(
         cli.main,
-        ["--transport", "serial", "--program", str(L2S), "--topology", topology, "--cycles", str(cycles),
+        ["--transport", transport, "--program", str(L2S), "--topology", topology, "--cycles", str(cycles),
          "--cycle-ms", "40", "--silence-cycles", "6", "--key", str(key), "--console", str(operator.cable_file),
          "--json", "--stand-in", "recording"],
     )  # fmt: skip
@@ -141,3 +141,30 @@ def test_lts_injected_at_the_cable_makes_the_dragon_a_snake(tmp_path: Path, caps
     types = sorted(m["type"] for m in summary["modules"])
     assert types == ["body"] * (len(types) - 2) + ["head", "tail"], types
     assert sum("docked to" in line for line in summary["log"]) == 4
+
+
+@LONG  # a loop run: modules as threads of the launcher on python-can's virtual bus
+def test_console_on_a_bus_through_the_launchers_adapter(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """On a bus the launcher plays a serial-to-bus adapter: the console opens a pty as ever,
+    the adapter's node negotiates a link with the first module's free connector over its
+    contact and carries the control frames (segment trains) both ways; its frames are the
+    run's, which still add up."""
+    key, _other = keys(tmp_path)
+    cable_file = tmp_path / "cable"
+    script = tmp_path / "commands.txt"
+    script.write_text("state .\nstate back>front\npause\nresume\ntopology\n")
+
+    def work(port: str) -> int:
+        time.sleep(1.0)  # the adapter's link negotiated
+        return console.main(["--port", port, "--program", str(L2S), "--cycle-ms", "40", "--key", str(key),
+                             "--script", str(script)])  # fmt: skip
+
+    operator = Operator(cable_file, work)
+    code = run_loop(operator, "snake:2", 200, key, transport="virtual")
+    captured = capsys.readouterr()
+    assert operator.error is None and operator.result == 0, (operator.error, captured.out[-3000:])
+    assert "module back>front: tail (T2)" in captured.out and "(cable): head (T1)" in captured.out
+    assert code == 0, captured.err[-3000:]
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert summary["frames"]["unaccounted"] == 0, summary["frames"]
+    assert [m["operator"]["accepted"] for m in summary["modules"]] == [6, 4]
