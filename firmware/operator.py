@@ -12,7 +12,8 @@ The rules, for every signed command (:mod:`dh2rt.wire.operator`):
   when it came straight from the cable or along a route, and never passed on. A module that
   trusts no key takes no command at all (``NO_CONTROL``).
 * The counter a module accepted last is written to its flash directory before the command
-  is carried out, so a restart does not reopen replays.
+  is carried out, so a restart does not reopen replays (of commands that act: a STATE, which
+  only reads, is not written, so that reading the robot costs no flash writes).
 * A flooded command's copies come back around: one with the counter accepted last, from a
   neighbour (hops > 0), and the same signature is a *duplicate*, dropped and counted, not a
   refusal. The same from the cable (hops 0) is a replay.
@@ -118,7 +119,10 @@ class OperatorCore:
             return self._refusal(m, route, reason)
         self.accepted += 1
         self.last_counter, self._last_signature = m.counter, m.signature
-        self.persist(m.counter)
+        if not isinstance(m.command, op.StateRequest):
+            # a STATE only reads: replaying one after a restart tells nothing new, so the flash
+            # is written (an fsync on the module's loop) only for commands that act
+            self.persist(m.counter)
         if route is None:  # PAUSE / RESUME: here, then every other way
             self.module.pause(isinstance(m.command, op.Pause))
             return [Out(c, op.encode(c, m.onward())) for c in sorted(self.module.transport.links) if c != connector]

@@ -190,3 +190,14 @@ def test_garbage_is_counted_malformed(chain: Chain) -> None:
     chain.cycles(1)
     assert chain.channels[0].core.malformed == 1
     assert any("reserved" in line for line in chain.modules[0].log)
+
+
+def test_a_state_request_writes_no_flash(tmp_path: Path) -> None:
+    c = Chain(1, tmp_path)
+    c.send(op.StateRequest(), counter=5)
+    c.cycles(1)
+    assert not (tmp_path / "m0" / COUNTER_FILE).exists() and c.channels[0].core.last_counter == 5
+    c.send(op.Pause(), counter=6)
+    c.cycles(1)
+    assert (tmp_path / "m0" / COUNTER_FILE).read_text() == '{"last_counter": 6}'
+    c.close()
