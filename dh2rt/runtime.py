@@ -243,6 +243,8 @@ class ModuleRuntime:
         self.observer: LinkObserver | None = None
         #: paused by the operator (:meth:`pause`): links live, engine and joints still
         self.paused = False
+        #: told each cycle of the hormones it received and was given (the operator's watch)
+        self.on_arrivals: Callable[[list[Arrival]], None] | None = None
         self._held_arrivals: list[Arrival] = []
 
     @property
@@ -383,6 +385,8 @@ class ModuleRuntime:
             arrivals.extend(Arrival(0, 0, h) for h in self._injected)
             self._injected = []
         self.stats.hormones_received += sum(1 for a in arrivals if a.at)
+        if self.on_arrivals is not None and arrivals:
+            self.on_arrivals(arrivals)
         if self.paused:  # the engine waits: what came is its mailbox when it resumes
             self._held_arrivals.extend(arrivals)
             arrivals = []

@@ -24,6 +24,9 @@ The rules, for every signed command (:mod:`dh2rt.wire.operator`):
 * PAUSE and RESUME are carried out and flooded through every other attached connector.
 * Answers (STATE_REPLY, REFUSED) from further out are relayed towards the cable; the
   cable's connector is the one the last command with hops 0 came in at.
+* WATCH, from the cable only, makes the module send the cable a WATCHED frame for every
+  hormone it receives (or is given) for the cycles the watch asks, each as the link frame
+  it came in as.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dh2rt.errors import DecodeError, HormoneError
-from dh2rt.hormone import Hormone
+from dh2rt.hormone import Arrival, Hormone
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import FrameFamily, Inbound, Listening
 from dh2rt.wire import operator as op
@@ -74,6 +77,8 @@ class OperatorCore:
         self.persist = persist
         #: the connector the cable is on (where the last command with hops 0 came in)
         self.cable: int | None = None
+        #: the WATCH under way: (its counter, the hormone index or None, the cycle it ends at)
+        self.watch: tuple[int, int | None, int] | None = None
         self.refused: Counter[op.RefusalReason] = Counter()
         self.accepted = 0
         self.duplicates = 0
@@ -98,6 +103,8 @@ class OperatorCore:
             return []
         if isinstance(message, op.Signed):
             return self._command(connector, sender, message)
+        if isinstance(message, op.Watched):  # for a cable, never relayed
+            return []
         return self._relay(message)
 
     # -- commands ----------------------------------------------------------------------------
@@ -113,16 +120,20 @@ class OperatorCore:
         route = op.route_of(m.command)
         if reason is None and route is not None and not self._on_route(connector, sender, m.hops, route):
             reason = op.RefusalReason.NO_ROUTE
+        if reason is None and isinstance(m.command, op.Watch) and m.hops:
+            reason = op.RefusalReason.NO_ROUTE  # a watch is the cable's module's only
         if reason is not None:
             self.refused[reason] += 1
             self._log(f"operator: refused {kind} {m.counter} at connector {connector}: {reason.name}")
             return self._refusal(m, route, reason)
         self.accepted += 1
         self.last_counter, self._last_signature = m.counter, m.signature
-        if not isinstance(m.command, op.StateRequest):
+        if not isinstance(m.command, op.StateRequest | op.Watch):
             # a STATE only reads: replaying one after a restart tells nothing new, so the flash
             # is written (an fsync on the module's loop) only for commands that act
             self.persist(m.counter)
+        if isinstance(m.command, op.Watch):
+            return self._start_watch(m, m.command)
         if route is None:  # PAUSE / RESUME: here, then every other way
             self.module.pause(isinstance(m.command, op.Pause))
             return [Out(c, op.encode(c, m.onward())) for c in sorted(self.module.transport.links) if c != connector]
@@ -177,6 +188,31 @@ class OperatorCore:
             return self._refusal(m, route, op.RefusalReason.WRONG_PROGRAM)
         self._log(f"operator: injected {hormone.content()} ({m.counter})")
         return []
+
+    def _start_watch(self, m: op.Signed, watch: op.Watch) -> list[Out]:
+        self.watch = (m.counter, watch.hormone, self.module.cycle + watch.cycles)
+        self._log(f"operator: watching for {watch.cycles} cycles ({m.counter})")
+        return []
+
+    def arrivals(self, arrivals: list[Arrival]) -> list[Out]:
+        """The hormones this cycle brought (the runtime's ``on_arrivals``): WATCHED frames
+        for the cable while a watch is under way."""
+        watch, rt = self.watch, self.module
+        if watch is None:
+            return []
+        counter, index, ends = watch
+        if rt.cycle >= ends or self.cable is None or self.cable not in rt.transport.links:
+            self.watch = None
+            return []
+        out = []
+        codec = rt.transport.codec
+        for a in arrivals:
+            if index is not None and codec.vocabulary.by_name[a.hormone.name].index != index:
+                continue
+            frame = codec.encode(a.remote or self.cable, a.hormone)
+            if len(frame) <= op.MAX_WATCHED_FRAME:
+                out.append(Out(self.cable, op.encode(self.cable, op.Watched(counter, rt.cycle, a.at, frame))))
+        return out
 
     def _refusal(self, m: op.Signed, route: op.Path | None, reason: op.RefusalReason) -> list[Out]:
         """REFUSED towards the cable, when the way back is known: straight from the cable,
@@ -236,6 +272,11 @@ class OperatorChannel:
         self.path = None if directory is None else Path(directory) / COUNTER_FILE
         self.core = OperatorCore(trust, rt, last_counter=self._read(), persist=self._write)
         self.listening: Listening = rt.transport.listen(FrameFamily.CONTROL, self._on_control)
+        rt.on_arrivals = self._on_arrivals
+
+    def _on_arrivals(self, arrivals: list[Arrival]) -> None:
+        for out in self.core.arrivals(arrivals):
+            self.rt.transport.send_raw(out.connector, out.frame)
 
     def _on_control(self, frame: Inbound) -> None:
         for out in self.core.received(frame.connector, frame.payload):

@@ -10,6 +10,7 @@ Commands (at the interactive prompt, with history and completion, or one a line 
                                        variables and receptor statuses
     pause / resume                     every module holds its joints and timers / goes on
     topology                           every module the robot reports, as a tree
+    watch [HORMONE] [for SECONDS]      the hormones the cable's module receives, live
     help [COMMAND], quit
 
 A PATH names a module by the hops from the cable's module, ``sent>received`` each, by
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import cmd
 import contextlib
+import math
 import re
 import signal
 import sys
@@ -46,7 +48,7 @@ from dh2rt.runtime import ms_to_s
 from dh2rt.signed_image import read_private_key
 from dh2rt.transport.base import Transport
 from dh2rt.wire import operator as op
-from dh2rt.wire.frame import program_digest
+from dh2rt.wire.frame import FrameCodec, program_digest
 from tools.console_link import ConsoleLink, Outcome
 from tools.flash import _check_options, add_cable_arguments, open_bus_cable, open_cable
 
@@ -62,7 +64,9 @@ exit codes:
 #: STATE's reply (it crosses the robot and back: a few cycles a hop on a loaded machine).
 QUIET_CYCLES = 10
 STATE_CYCLES_PER_HOP = 6
-COMMANDS = ("inject", "state", "pause", "resume", "topology", "help", "quit")
+COMMANDS = ("inject", "state", "pause", "resume", "topology", "watch", "help", "quit")
+#: How long ``watch`` watches when not told (seconds).
+WATCH_S = 10.0
 
 
 class ConsoleInputError(ValueError):
@@ -163,6 +167,39 @@ class Session:
     def resume(self) -> None:
         self._report(self.link.command(op.Resume(), self._quiet(())), "resumed (flooded to every module)")
 
+    def watch(self, arg: str) -> None:
+        """Every hormone the cable's module receives (or only ``HORMONE``), one line each as it
+        comes, for ``for SECONDS`` (default WATCH_S)."""
+        m = re.fullmatch(r"\s*(?:(?!for\b)([A-Za-z_]\w*))?\s*(?:for\s+(\S+))?\s*", arg)
+        if m is None:
+            raise ConsoleInputError(f"watch {arg.strip()!r}: expected watch [HORMONE] [for SECONDS]")
+        name, rest = m.group(1) or "", m.group(2)
+        try:
+            seconds = float(rest) if rest is not None else WATCH_S
+        except ValueError:
+            raise ConsoleInputError(f"watch: 'for {rest}': expected a number of seconds") from None
+        if not 0 < seconds <= 3600:
+            raise ConsoleInputError(f"watch: for {seconds:g} s: expected more than 0 and at most 3600 s")
+        index = None
+        if name.strip():
+            spec = self.program.vocabulary.by_name.get(name.strip())
+            if spec is None:
+                known = ", ".join(sorted(self.program.vocabulary.by_name))
+                raise ConsoleInputError(f"watch: program {self.program.name} declares no hormone {name.strip()!r} "
+                                        f"(it has: {known})")  # fmt: skip
+            index = spec.index
+        cycles = min(0xFFFF, math.ceil(seconds / self.period))
+        codec = FrameCodec(self.program.vocabulary, self.program.profile.connector_count)
+        seen = [0]
+
+        def show(answer: op.Answer | op.Watched) -> None:
+            if isinstance(answer, op.Watched):
+                seen[0] += 1
+                self.say(describe_watched(answer, codec, self.program.profile))
+
+        outcome = self.link.command(op.Watch(cycles, index), seconds + self.period * QUIET_CYCLES, show)
+        self._report(outcome, f"watched {seconds:g} s: {seen[0]} hormone(s)")
+
     def topology(self) -> None:
         """Ask every module its status, from the cable's outwards along ConnectorStatus."""
         lines: list[str] = []
@@ -206,6 +243,23 @@ class Session:
             self.say("no answer (is the cable in, the module running, the path right?)")
         elif done:
             self.say(done)
+
+
+def describe_watched(w: op.Watched, codec: FrameCodec, profile: Profile) -> str:
+    """A watched hormone in one line, as dump writes a hop: cycle, where it came in, kind,
+    content, the connector it was sent through, its path."""
+    at = profile.connector_name(w.at) if w.at else "(injected)"
+    try:
+        sender, frame = codec.decode(w.frame)
+    except DH2Error as exc:
+        return f"cycle {w.cycle:>6}  at {at:<6} error     !! {exc}"
+    if not isinstance(frame, Hormone):
+        return f"cycle {w.cycle:>6}  at {at:<6} {type(frame).__name__.lower()}"
+    kind = "routed" if frame.route is not None else "hormone"
+    line = f"cycle {w.cycle:>6}  at {at:<6} {kind:<9} {frame.content()} via {profile.connector_name(sender)}"
+    if frame.path:
+        line += "  path " + describe_path(frame.path, profile)
+    return line
 
 
 def _type_name(s: op.ModuleStatus, program: CompiledProgram) -> str:
@@ -259,7 +313,7 @@ class Prompt(cmd.Cmd):
     """The interactive prompt (and the script reader: the same commands)."""
 
     prompt = "dh2rt> "
-    intro = "dh2rt console: inject, state, pause, resume, topology; help; quit (or Ctrl-D)"
+    intro = "dh2rt console: inject, state, pause, resume, topology, watch; help; quit (or Ctrl-D)"
 
     def __init__(self, session: Session, stdin: IO[str] | None = None) -> None:
         super().__init__(stdin=stdin, stdout=session.out)
@@ -299,6 +353,13 @@ class Prompt(cmd.Cmd):
     def do_resume(self, arg: str) -> bool:
         """resume: every module goes on where it paused"""
         return self._run(self.session.resume)
+
+    def do_watch(self, arg: str) -> bool:
+        """watch [HORMONE] [for SECONDS]: the hormones the cable's module receives, live (10 s)"""
+        return self._run(lambda: self.session.watch(arg))
+
+    def complete_watch(self, text: str, line: str, begidx: int, endidx: int) -> list[str]:
+        return sorted(n for n in self.session.program.vocabulary.by_name if n.startswith(text))
 
     def do_topology(self, arg: str) -> bool:
         """topology: every module the robot reports, as a tree from the cable"""

@@ -37,7 +37,7 @@ class Outcome:
     or injects is answered only when refused)."""
 
     counter: int
-    answers: tuple[op.Answer, ...]
+    answers: tuple[op.Answer | op.Watched, ...]
 
     @property
     def refused(self) -> op.Refused | None:
@@ -70,7 +70,7 @@ class ConsoleLink(Closing):
         self.clock = clock
         self._last_counter = 0
         self._outbox: queue.Queue[bytes] = queue.Queue()
-        self._answers: queue.Queue[op.Answer] = queue.Queue()
+        self._answers: queue.Queue[op.Answer | op.Watched] = queue.Queue()
         #: frames through the cable that did not decode (counted, never raised)
         self.malformed = 0
         self._stop = threading.Event()
@@ -88,15 +88,18 @@ class ConsoleLink(Closing):
         self._last_counter = max(int(self.clock() * 1_000_000), self._last_counter + 1)
         return self._last_counter
 
-    def command(self, command: op.Command, wait: float) -> Outcome:
+    def command(
+        self, command: op.Command, wait: float, on_answer: Callable[[op.Answer | op.Watched], None] | None = None
+    ) -> Outcome:
         """Sign and send ``command``; collect the answers with its counter for ``wait`` s, or
-        until a STATE is answered."""
+        until a STATE is answered or the command refused; each also goes to ``on_answer``
+        as it comes (a WATCH's hormones, live)."""
         if self.failure is not None:
             raise OSError(f"the cable failed: {self.failure}")
         signed = op.sign(command, self.next_counter(), self.key)
         self._outbox.put(op.encode(self.connector, signed))
         deadline = time.monotonic() + wait
-        got: list[op.Answer] = []
+        got: list[op.Answer | op.Watched] = []
         while (left := deadline - time.monotonic()) > 0:
             try:
                 answer = self._answers.get(timeout=left)
@@ -105,6 +108,8 @@ class ConsoleLink(Closing):
             if answer.counter != signed.counter:
                 continue  # a late answer to an earlier command
             got.append(answer)
+            if on_answer is not None:
+                on_answer(answer)
             if isinstance(command, op.StateRequest) or isinstance(answer, op.Refused):
                 break
         return Outcome(signed.counter, tuple(got))

@@ -25,7 +25,13 @@ def control_text(message: op.Message, name: Callable[[int], str], vocabularies: 
             return f"{head}, {_hormone(command, vocabularies)} at {path_text(command.route, name)}"
         if isinstance(command, op.StateRequest):
             return f"{head}, at {path_text(command.route, name)}"
+        if isinstance(command, op.Watch):
+            what = "every hormone" if command.hormone is None else f"hormone #{command.hormone}"
+            return f"{head}, {what} for {command.cycles} cycles"
         return head
+    if isinstance(message, op.Watched):
+        at = name(message.at) if message.at else "(injected)"
+        return f"WATCHED #{message.counter} cycle {message.cycle} at {at}: {message.frame.hex()}"
     where = f"#{message.counter} from {path_text(message.path, name)}, left {message.left}"
     if isinstance(message, op.Refused):
         return f"REFUSED {where}: {message.reason.name}"

@@ -24,7 +24,7 @@ Message types (byte 1)::
               decoded as a DecodeError naming the range until they are defined
     others    unknown: a DecodeError
 
-A **command** (INJECT 1, PAUSE 2, RESUME 3, STATE 4)::
+A **command** (INJECT 1, PAUSE 2, RESUME 3, STATE 4, WATCH 5)::
 
     byte 2      hops u8: the modules it has passed through (0: straight from the cable);
                 each module that passes it on adds one, so it is outside the signature
@@ -37,6 +37,7 @@ A **command** (INJECT 1, PAUSE 2, RESUME 3, STATE 4)::
                         then arguments, :meth:`dh2rt.hormone.Vocabulary.encode_content`)
                 PAUSE, RESUME: nothing more
                 STATE:  route (n u8 + n hops)
+                WATCH:  cycles u16 (1..), n u8 (0: every hormone; 1: one, its index u8 follows)
     last 64     Ed25519 signature over ``SIGNING_CONTEXT ‖ type ‖ the signed part``
 
 A *route* is the module's path from the cable, as transfer frames write paths: one byte a
@@ -53,6 +54,9 @@ An **answer** travels back to the cable along the reversed route of the command 
                     (n u8 + n bytes), all in the program's order (the console names them
                     from the program the digest names)
     REFUSED 17      counter u64, left u8, path (n u8 + n hops), reason u8
+    WATCHED 18      counter u64 (the WATCH's), cycle varint, connector u8 (0: injected),
+                    frame (len u8 + a link frame: a hormone the module at the cable received);
+                    class 3 (bulk), sent by that module straight to the cable, never relayed
 
 ``left`` counts the hops still to go back: a module that holds an answer with ``left`` k > 0
 sends it through ``path[k - 1][1]`` (where the command came in) with ``left`` k - 1; one with
@@ -110,8 +114,10 @@ class MessageType(IntEnum):
     PAUSE = 2
     RESUME = 3
     STATE = 4
+    WATCH = 5
     STATE_REPLY = 16
     REFUSED = 17
+    WATCHED = 18
 
 
 class RefusalReason(IntEnum):
@@ -152,7 +158,16 @@ class StateRequest:
     route: Path = ()
 
 
-Command = Inject | Pause | Resume | StateRequest
+@dataclass(frozen=True, slots=True)
+class Watch:
+    """Module at the cable, send me every hormone you receive (or those of index ``hormone``)
+    for the next ``cycles`` cycles, as WATCHED frames."""
+
+    cycles: int
+    hormone: int | None = None
+
+
+Command = Inject | Pause | Resume | StateRequest | Watch
 
 
 @dataclass(frozen=True, slots=True)
@@ -211,16 +226,33 @@ class Refused:
     reason: RefusalReason
 
 
+@dataclass(frozen=True, slots=True)
+class Watched:
+    """A hormone the module at the cable received in its ``cycle`` at connector ``at`` (0:
+    injected there), for the WATCH numbered ``counter``: ``frame`` is it as a link frame (the
+    module's program's codec encodes and decodes it)."""
+
+    counter: int
+    cycle: int
+    at: int
+    frame: bytes
+
+
 Answer = StateReply | Refused
-Message = Signed | StateReply | Refused
+Message = Signed | StateReply | Refused | Watched
 
 _COMMAND_TYPES: dict[type, MessageType] = {
     Inject: MessageType.INJECT,
     Pause: MessageType.PAUSE,
     Resume: MessageType.RESUME,
     StateRequest: MessageType.STATE,
+    Watch: MessageType.WATCH,
 }
 _URGENT = {MessageType.INJECT, MessageType.PAUSE, MessageType.RESUME}
+#: WATCHED frames rank with hellos (bulk: they must not delay the robot's own traffic).
+BULK_CLASS = int(FrameKind.HELLO)
+#: Longest link frame a WATCHED carries.
+MAX_WATCHED_FRAME = 255
 
 
 class Control(NamedTuple):
@@ -241,11 +273,15 @@ def is_control(payload: bytes) -> bool:
 def message_type(message: Message) -> MessageType:
     if isinstance(message, Signed):
         return _COMMAND_TYPES[type(message.command)]
+    if isinstance(message, Watched):
+        return MessageType.WATCHED
     return MessageType.STATE_REPLY if isinstance(message, StateReply) else MessageType.REFUSED
 
 
 def message_class(kind: MessageType) -> int:
     """The class bits a message type travels with (its CAN priority)."""
+    if kind is MessageType.WATCHED:
+        return BULK_CLASS
     return URGENT_CLASS if kind in _URGENT else CONTROL_CLASS
 
 
@@ -312,6 +348,14 @@ def encode(sender: int, message: Message) -> bytes:
             body = _answer_head(message) + _status(message.status)
         case Refused():
             body = _answer_head(message) + bytes((RefusalReason(message.reason),))
+        case Watched():
+            check_range("counter", message.counter, 0, _U64)
+            check_range("cycle", message.cycle, 0, _U64)
+            check_range("connector", message.at, 0, MAX_CONNECTOR)
+            check_range("watched frame bytes", len(message.frame), 1, MAX_WATCHED_FRAME)
+            out = bytearray(struct.pack(">Q", message.counter))
+            _put_varint(out, message.cycle)
+            body = bytes(out) + bytes((message.at, len(message.frame))) + message.frame
     frame = bytes((head, kind)) + body
     if len(frame) > MAX_PAYLOAD:
         raise EncodeError(f"control frame of {len(frame)} bytes exceeds a link's {MAX_PAYLOAD}")
@@ -327,6 +371,12 @@ def _command_body(command: Command) -> bytes:
             return bytes(command.digest) + encode_path(command.route) + bytes((len(command.content),)) + command.content
         case StateRequest():
             return encode_path(command.route)
+        case Watch():
+            check_range("watch cycles", command.cycles, 1, 0xFFFF)
+            if command.hormone is None:
+                return struct.pack(">HB", command.cycles, 0)
+            check_range("hormone index", command.hormone, 0, 255)
+            return struct.pack(">HBB", command.cycles, 1, command.hormone)
     return b""
 
 
@@ -433,6 +483,11 @@ def _decode_signed(r: _Reader, kind: MessageType) -> Signed:
         command = Inject(digest, r.take(n, "content"), route)
     elif kind is MessageType.STATE:
         command = StateRequest(r.path("route"))
+    elif kind is MessageType.WATCH:
+        cycles, n = struct.unpack(">HB", r.take(3, "watch cycles and hormones"))
+        if cycles == 0 or n > 1:
+            raise DecodeError(f"{r.what}: {cycles} cycles of {n} hormone(s): not a watch")
+        command = Watch(cycles, r.byte("hormone index") if n else None)
     else:
         command = Pause() if kind is MessageType.PAUSE else Resume()
     return Signed(command, counter, kid, r.take(SIGNATURE_BYTES, "signature"), hops)
@@ -463,6 +518,18 @@ def _decode_state_reply(r: _Reader) -> StateReply:
     return StateReply(counter, left, path, status)
 
 
+def _decode_watched(r: _Reader) -> Watched:
+    (counter,) = struct.unpack(">Q", r.take(8, "counter"))
+    cycle = r.varint("cycle")
+    at = r.byte("connector")
+    if at > MAX_CONNECTOR:
+        raise DecodeError(f"{r.what}: connector {at} is outside 0..{MAX_CONNECTOR}")
+    n = r.byte("frame length")
+    if n == 0:
+        raise DecodeError(f"{r.what}: an empty frame")
+    return Watched(counter, cycle, at, r.take(n, "frame"))
+
+
 def _decode_refused(r: _Reader) -> Refused:
     counter, left, path = _decode_answer_head(r)
     reason = r.byte("reason")
@@ -479,4 +546,6 @@ _DECODERS: dict[MessageType, Callable[[_Reader], Message]] = {
     MessageType.STATE: lambda r: _decode_signed(r, MessageType.STATE),
     MessageType.STATE_REPLY: _decode_state_reply,
     MessageType.REFUSED: _decode_refused,
+    MessageType.WATCH: lambda r: _decode_signed(r, MessageType.WATCH),
+    MessageType.WATCHED: lambda r: _decode_watched(r),
 }

@@ -201,3 +201,31 @@ def test_a_state_request_writes_no_flash(tmp_path: Path) -> None:
     c.cycles(1)
     assert (tmp_path / "m0" / COUNTER_FILE).read_text() == '{"last_counter": 6}'
     c.close()
+
+
+def test_watch_sends_the_cable_what_its_module_receives_then_ends(chain: Chain) -> None:
+    lts = PROGRAM.vocabulary.encode_content(Hormone("LTS", ()))
+    index = PROGRAM.vocabulary.by_name["RCT"].index
+    chain.send(op.Watch(3, index))  # RCT only: the LTS below is not shown
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    assert not [a for a in chain.answers if isinstance(a, op.Watched)]
+    chain.send(op.Watch(2))
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    (watched,) = [a for a in chain.answers if isinstance(a, op.Watched)]
+    assert watched.counter == chain.counter - 1 and watched.at == 0  # injected at the cable's module
+    codec = chain.modules[0].transport.codec
+    assert codec.decode(watched.frame).frame == Hormone("LTS", ())
+    chain.cycles(3)
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    assert len([a for a in chain.answers if isinstance(a, op.Watched)]) == 1  # the watch ended by itself
+    assert chain.channels[0].core.watch is None and chain.channels[0].core.counters["accepted"] == 5
+
+
+def test_a_watch_from_beyond_the_cables_module_is_refused(chain: Chain) -> None:
+    signed = op.sign(op.Watch(5), 99, KEY)
+    chain.send_signed(op.Signed(signed.command, 99, signed.key_id, signed.signature, hops=1))
+    chain.cycles(1)
+    assert chain.channels[0].core.refused[op.RefusalReason.NO_ROUTE] == 1 and chain.channels[0].core.watch is None

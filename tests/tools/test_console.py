@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import sys
 import threading
 import time
@@ -56,9 +57,10 @@ class Robot:
 
 
 @contextmanager
-def snake(tmp_path: Path, n: int, program: CompiledProgram = PROGRAM) -> Iterator[Robot]:
+def snake(tmp_path: Path, n: int, program: CompiledProgram = PROGRAM, *, at_tail: bool = False) -> Iterator[Robot]:
     """``n`` modules running ``program`` in real time, each back on the next one's front over
-    the link emulator's serial links, the console's cable into the head's front."""
+    the link emulator's serial links, the console's cable into the head's front (or the
+    tail's back)."""
     emulator = LinkEmulator()
     links, cable = [emulator.add_link() for _ in range(n - 1)], emulator.add_link()
     codec = FrameCodec(program.vocabulary, program.profile.connector_count)
@@ -66,7 +68,10 @@ def snake(tmp_path: Path, n: int, program: CompiledProgram = PROGRAM) -> Iterato
     for i, link in enumerate(links):
         modules[i].attach(BACK, PortEnd(link.paths[0]))
         modules[i + 1].attach(FRONT, PortEnd(link.paths[1]))
-    modules[0].attach(FRONT, PortEnd(cable.paths[1]))
+    if at_tail:
+        modules[-1].attach(BACK, PortEnd(cable.paths[1]))
+    else:
+        modules[0].attach(FRONT, PortEnd(cable.paths[1]))
     channels = []
     for i, rt in enumerate(modules):
         (tmp_path / f"m{i}").mkdir()
@@ -325,3 +330,27 @@ def test_the_console_on_a_can_bus(tmp_path: Path) -> None:
     assert first.reply is not None and first.reply.status.type_index == modules[0].engine.type_index
     assert not any(rt.paused for rt in modules)
     assert modules[0].stats.log and any("REPLAYED" in line for line in modules[0].log)
+
+
+def test_watch_shows_the_hormones_the_cables_module_receives(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The cable in a caterpillar tail's back: ``watch X`` shows the wave's hormones as they
+    reach it, each as dump writes a hop; ``watch`` alone shows every hormone."""
+    source = SOURCE.with_name("caterpillar.dh2")
+    with snake(tmp_path, 2, compile_bundled("caterpillar.dh2"), at_tail=True) as robot:
+        time.sleep(10 * PERIOD)
+        path = tmp_path / "commands.txt"
+        path.write_text("watch X for 0.5\nwatch for 0.2\n")
+        argv = ["--port", robot.cable, "--key", str(robot.key_file), "--program", str(source), "--cycle-ms", "20"]
+        code = console.main([*argv, "--script", str(path)])
+        tail = robot.channels[1].core
+    out = capsys.readouterr().out
+    assert code == 0, out
+    lines = [line for line in out.splitlines() if line.startswith("cycle ")]
+    assert len(lines) >= 2 and all(" at front  hormone   X(" in line and " via back" in line for line in lines), out
+    assert {line.split("X(")[1][0] for line in lines} <= {"A", "B", "C", "D"}
+    first = re.search(r"watched 0.5 s: (\d+) hormone", out)
+    assert first is not None and int(first[1]) >= 2, out
+    assert re.search(r"watched 0.2 s: [1-9]\d* hormone", out), out
+    assert tail.watch is None or tail.watch[2] <= tail.module.cycle + 1  # a watch ends by itself

@@ -38,6 +38,11 @@ def test_control_frames_read_in_operator_terms(medium: str, caterpillar: Compile
         ),
         (op.Signed(op.Pause(), 8, KEY_ID, bytes(64)), "PAUSE #8 key 0011223344556677 hops 0"),
         (
+            op.Signed(op.Watch(100, 0), 11, KEY_ID, bytes(64)),
+            "WATCH #11 key 0011223344556677 hops 0, hormone #0 for 100 cycles",
+        ),
+        (op.Watched(11, 42, BACK, bytes.fromhex("c10000")), "WATCHED #11 cycle 42 at back: c10000"),
+        (
             op.Refused(9, 0, ((BACK, FRONT),), op.RefusalReason.REPLAYED),
             "REFUSED #9 from back>front, left 0: REPLAYED",
         ),

@@ -677,6 +677,10 @@ CONTROL_MESSAGES: list[operator.Message] = [
     operator.Signed(operator.StateRequest(((BACK, FRONT),)), 9, KEY_ID, bytes(64), 1),
     operator.StateReply(9, 1, ((BACK, FRONT),), STATUS),
     operator.Refused(10, 0, (), operator.RefusalReason.REPLAYED),
+    operator.Signed(operator.Watch(500, 3), 11, KEY_ID, bytes(64)),
+    operator.Signed(operator.Watch(65535), 12, KEY_ID, bytes(64)),
+    operator.Watched(11, 1 << 40, LEFT, bytes.fromhex("c100000a")),
+    operator.Watched(11, 7, 0, bytes.fromhex("c1")),
 ]
 
 
@@ -687,7 +691,7 @@ def broken_control_frames() -> list[bytes]:
     refused = operator.encode(BACK, CONTROL_MESSAGES[5])
     return [
         bytes((0x22, 70)),  # the reserved docking range
-        bytes((0x22, 5)),  # an unknown type
+        bytes((0x22, 6)),  # an unknown type
         pause + b"\x00",  # a trailing byte
         pause[:-1],  # cut short in the signature
         bytes((pause[0] ^ 0x30,)) + pause[1:],  # the class of another type
@@ -695,6 +699,9 @@ def broken_control_frames() -> list[bytes]:
         refused[:10] + b"\x01" + refused[11:],  # a hop left of a 0-hop path
         reply[:20] + b"\x02" + reply[21:],  # unknown flags
         reply[:21] + b"\x80\x00" + reply[23:],  # LocalTimer not in its shortest form (300 = ac 02)
+        operator.encode(BACK, CONTROL_MESSAGES[7])[:19] + b"\x00\x00\x00" + bytes(64),  # a watch of 0 cycles
+        operator.encode(BACK, CONTROL_MESSAGES[9])[:-2] + b"\x00",  # an empty frame
+        operator.encode(BACK, CONTROL_MESSAGES[8]) + b"\x01",  # a trailing byte
     ]
 
 

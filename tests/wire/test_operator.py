@@ -31,11 +31,14 @@ commands = st.one_of(
     st.just(op.Pause()),
     st.just(op.Resume()),
     st.builds(op.StateRequest, hops),
+    st.builds(op.Watch, st.integers(1, 0xFFFF), st.one_of(st.none(), st.integers(0, 255))),
 )
 
 
 @st.composite
-def answers(draw: st.DrawFn) -> op.Answer:
+def answers(draw: st.DrawFn) -> op.Answer | op.Watched:
+    if draw(st.integers(0, 3)) == 0:
+        return op.Watched(draw(u64), draw(u64), draw(st.integers(0, 15)), draw(st.binary(min_size=1, max_size=255)))
     path = draw(hops)
     left = draw(st.integers(0, len(path)))
     if draw(st.booleans()):
@@ -112,7 +115,7 @@ def test_layout_of_an_inject() -> None:
         (bytes((0x10, 1)), "sender connector 0"),
         (bytes((0x21, 64)), "reserved (docking motion"),
         (bytes((0x21, 127)), "reserved"),
-        (bytes((0x21, 5)), "unknown message type 5"),
+        (bytes((0x21, 6)), "unknown message type 6"),
         (bytes((0x21, 2, 0)), "PAUSE: class 2, expected 1"),
         (bytes((0x11, 2, 0)) + bytes(10), "cut short in the counter and key id"),
         (bytes((0x11, 2, 0)) + bytes(16 + 63), "cut short in the signature"),
@@ -121,6 +124,9 @@ def test_layout_of_an_inject() -> None:
         (bytes((0x11, 1, 0)) + bytes(16 + 6) + b"\x01\x10", "route hop names connector 0"),
         (bytes((0x21, 17)) + bytes(8) + b"\x01\x00\x01", "1 hops left of a 0-hop path"),
         (bytes((0x21, 17)) + bytes(8) + b"\x00\x00\x09", "unknown reason 9"),
+        (bytes((0x21, 5, 0)) + bytes(16) + b"\x00\x00\x00", "0 cycles of 0 hormone"),
+        (bytes((0x31, 18)) + bytes(8) + b"\x00\x10\x01\x00", "connector 16 is outside 0..15"),
+        (bytes((0x31, 18)) + bytes(8) + b"\x00\x01\x00", "an empty frame"),
         (bytes((0x21, 16)) + bytes(8) + b"\x00\x00" + bytes(7) + b"\x02", "unknown flags"),
         (bytes((0x21, 16)) + bytes(8) + b"\x00\x00" + bytes(8) + b"\x80\x00", "LocalTimer is not in its shortest"),
         (bytes((0x21, 16)) + bytes(8) + b"\x00\x00" + bytes(8) + b"\xff" * 10 + b"\x01", "does not fit 64 bits"),

@@ -1006,8 +1006,10 @@ local CONTROL_TYPES = {
     [2] = { name = "PAUSE", class = 1, signed = true },
     [3] = { name = "RESUME", class = 1, signed = true },
     [4] = { name = "STATE", class = 2, signed = true },
+    [5] = { name = "WATCH", class = 2, signed = true },
     [16] = { name = "STATE_REPLY", class = 2 },
     [17] = { name = "REFUSED", class = 2 },
+    [18] = { name = "WATCHED", class = 3 },
 }
 local REFUSAL_REASONS = { "BAD_SIGNATURE", "UNTRUSTED_KEY", "REPLAYED", "NO_ROUTE", "WRONG_PROGRAM", "NO_CONTROL" }
 local CONTROL_MAX_PATH = 64
@@ -1121,11 +1123,43 @@ function Decode:control()
             local route
             route, pos = self:control_path(what, pos, "route")
             text = text .. ", at " .. control_path_text(route)
+        elseif message.name == "WATCH" then
+            local fields = self:take(what, pos, 3, "watch cycles and hormones")
+            local cycles, n = fields:byte(1) * 256 + fields:byte(2), fields:byte(3)
+            if cycles == 0 or n > 1 then
+                decode_error(string.format("%s: %d cycles of %d hormone(s): not a watch", what, cycles, n))
+            end
+            pos = pos + 3
+            local watched = "every hormone"
+            if n == 1 then
+                watched = "hormone #" .. self:take(what, pos, 1, "hormone index"):byte()
+                pos = pos + 1
+            end
+            text = string.format("%s, %s for %d cycles", text, watched, cycles)
         end
         self:take(what, pos, 64, "signature")
         pos = pos + 64
         if pos ~= #data then
             decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
+        end
+    elseif message.name == "WATCHED" then
+        self:take(what, 2, 8, "counter")
+        local counter = tostring(self:range(2, 8):uint64())
+        self.tree:add(F.control_counter, self:range(2, 8), counter)
+        local cycle, pos = self:control_varint(what, 10, "cycle")
+        local at = self:take(what, pos, 1, "connector"):byte()
+        if at > 15 then
+            decode_error(string.format("%s: connector %d is outside 0..15", what, at))
+        end
+        local n = self:take(what, pos + 1, 1, "frame length"):byte()
+        if n == 0 then
+            decode_error(what .. ": an empty frame")
+        end
+        local frame = self:take(what, pos + 2, n, "frame")
+        text = string.format("WATCHED #%s cycle %.0f at %s: %s", counter, cycle,
+            at > 0 and connector_name(at) or "(injected)", tohex(frame))
+        if pos + 2 + n ~= #data then
+            decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos - 2 - n))
         end
     else
         local head = self:take(what, 2, 9, "counter and hops left")
