@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import IO, TextIO
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, err, load_program
-from dh2rt.errors import DH2Error, TransportError
+from dh2rt.errors import ConsoleInputError, DH2Error, TransportError
 from dh2rt.hormone import Hormone
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import ABSENT, ACTIVE, CompiledProgram
@@ -67,10 +67,6 @@ STATE_CYCLES_PER_HOP = 6
 COMMANDS = ("inject", "state", "pause", "resume", "topology", "watch", "help", "quit")
 #: How long ``watch`` watches when not told (seconds).
 WATCH_S = 10.0
-
-
-class ConsoleInputError(ValueError):
-    """A command line the console cannot carry out as typed (exit 2 in a script)."""
 
 
 def parse_path(text: str, profile: Profile = CONRO) -> op.Path:
