@@ -58,6 +58,7 @@ the other side's (bytes from a link or a file that do not decode)::
     │   ├── DissectorTemplateError          its Lua lost the generated block's markers
     │   └── DissectorLayoutError            the codec's layout is one it cannot describe
     └── OptionError (ValueError)            a command-line option's value cannot be used
+        └── ConsoleInputError               a line typed at dh2rt console (or in its script) cannot be carried out
         ├── OutputError                     an output option names a file that cannot be written
         └── IncomparableInputs              two files a command compares cannot be compared
 """
@@ -344,6 +345,11 @@ class DissectorLayoutError(DissectorError):
 
 class OptionError(DH2Error, ValueError):
     """A command-line option has a value the command cannot use (exit 2)."""
+
+
+class ConsoleInputError(OptionError):
+    """A line typed at ``dh2rt console`` (or read from its script) names a hormone, a path or
+    a command it cannot carry out (said at the prompt; exit 2 in a script)."""
 
 
 class OutputError(OptionError):

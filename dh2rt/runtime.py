@@ -54,7 +54,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
@@ -241,6 +241,11 @@ class ModuleRuntime:
         self.held: dict[int, float] = {}
         #: told of cycle starts, Hellos and silent links (None: nobody)
         self.observer: LinkObserver | None = None
+        #: paused by the operator (:meth:`pause`): links live, engine and joints still
+        self.paused = False
+        #: told each cycle of the hormones it received and was given (the operator's watch)
+        self.on_arrivals: Callable[[list[Arrival]], None] | None = None
+        self._held_arrivals: list[Arrival] = []
 
     @property
     def clock(self) -> Callable[[], float]:
@@ -281,6 +286,18 @@ class ModuleRuntime:
         """Place a hormone in the mailbox, as if sensed or created here (next cycle)."""
         self.program.vocabulary.check(hormone)
         self._injected.append(hormone)
+
+    def pause(self, paused: bool) -> bool:
+        """Pause (True) or resume (False) from the next cycle; returns whether that changed
+        anything. A paused module keeps its links (Hellos, keep-alives, liveness) and its
+        joints at their last targets, and does not step its engine: LocalTimer, periodic
+        hormones and receptors stand still, and the hormones that arrive meanwhile wait in
+        its mailbox for the cycle it resumes in, so it goes on where it stopped."""
+        if paused == self.paused:
+            return False
+        self.paused = paused
+        self._log("paused by the operator" if paused else "resumed by the operator")
+        return True
 
     @property
     def silence_cycles(self) -> int:
@@ -368,7 +385,17 @@ class ModuleRuntime:
             arrivals.extend(Arrival(0, 0, h) for h in self._injected)
             self._injected = []
         self.stats.hormones_received += sum(1 for a in arrivals if a.at)
-        out = engine.step(arrivals)
+        if self.on_arrivals is not None and arrivals:
+            self.on_arrivals(arrivals)
+        if self.paused:  # the engine waits: what came is its mailbox when it resumes
+            self._held_arrivals.extend(arrivals)
+            arrivals = []
+            out: Sequence[Emission] = ()
+        else:
+            if self._held_arrivals:
+                arrivals = self._held_arrivals + arrivals
+                self._held_arrivals = []
+            out = engine.step(arrivals)
         sent: list[Emission] = []
         carried: set[int] = set()
         for em in out:
@@ -728,6 +755,7 @@ class ModuleRuntime:
             "last_fault": self.last_fault,
             "sensors": e.named_sensors(),
             "variables": e.variables(),
+            "paused": self.paused,
             "last_sensor_fault": self.sensing.last_fault,
         }
 

@@ -39,7 +39,7 @@ from dh2rt.robot import Robot
 from dh2rt.runtime import Driver, ModuleRuntime
 from dh2rt.transport.base import OFF_LINK, BusEnd, FrameFamily, Inbound, Received, Transport
 from dh2rt.transport.inproc import InprocBus, InprocTransport
-from dh2rt.wire import transfer
+from dh2rt.wire import operator, transfer
 from dh2rt.wire.can_frames import MANAGEMENT_ID, SINGLE, make_arbitration_id
 from dh2rt.wire.frame import Frame, FrameCodec, Hello, KeepAlive, program_digest
 
@@ -54,8 +54,10 @@ CONTRACT_VOCABULARY = Vocabulary(
     ]
 )
 
-#: Garbage units: none decodes as a frame on any medium, none contains a zero byte.
-GARBAGE_UNITS = (b"\xff", b"\x7f\x01\x02", b"\x42\x05\x09\x09\x09", bytes(range(1, 40)))
+#: Garbage units: none decodes as a frame on any medium, none contains a zero byte, each
+#: starts with the top bits of a link frame (1 or 3), so that it is garbage to the link codec
+#: rather than a frame of a family handed to another consumer.
+GARBAGE_UNITS = (b"\xff", b"\x7f\x01\x02", b"\x42\x05\x09\x09\x09", bytes(range(0x41, 0x68)))
 
 
 def contract_codec() -> FrameCodec:
@@ -409,12 +411,25 @@ TRANSFER_FRAMES = (
 MANAGEMENT_DATA = bytes((1, 0, 0, 5, 0, 0, 0, 9))
 
 
+#: The operator's frames (the control family) as a module sends them through BACK: a
+#: refusal fits a classic CAN frame, a status needs segments.
+CONTROL_FRAMES = (
+    operator.encode(BACK, operator.Refused(counter=5, left=0, path=(), reason=operator.RefusalReason.REPLAYED)),
+    operator.encode(
+        BACK,
+        operator.StateReply(5, 0, (), operator.ModuleStatus(bytes(6), 1, False, 3, 40, (2, 0, 0, 0), (7,), (-1, 2))),
+    ),
+)
+
+
 def _send_every_family(h: TransportHarness, a: Transport) -> None:
-    """Through ``a``'s BACK, each transfer frame then a hormone; then a management frame on
-    the medium, if it has them."""
+    """Through ``a``'s BACK, each transfer frame then a hormone, then each control frame;
+    then a management frame on the medium, if it has them."""
     for payload in TRANSFER_FRAMES:
         assert a.send_raw(BACK, payload)
         assert a.send(BACK, CAT)
+    for payload in CONTROL_FRAMES:
+        assert a.send_raw(BACK, payload)
     if FrameFamily.MANAGEMENT in a.families:
         h.inject_management(MANAGEMENT_DATA)
 
@@ -445,6 +460,7 @@ def check_dispatches_each_family(h: TransportHarness) -> None:
     _send_every_family(h, a)
     expected = {
         FrameFamily.TRANSFER: [(FrameFamily.TRANSFER, FRONT, p) for p in TRANSFER_FRAMES],
+        FrameFamily.CONTROL: [(FrameFamily.CONTROL, FRONT, p) for p in CONTROL_FRAMES],
         FrameFamily.MANAGEMENT: [(FrameFamily.MANAGEMENT, OFF_LINK, MANAGEMENT_DATA)],
     }
 
@@ -458,7 +474,7 @@ def check_dispatches_each_family(h: TransportHarness) -> None:
         assert [(f.family, f.connector, f.payload) for f in frames] == expected[family], frames
         assert all(sent_at - 1.0 <= f.arrived <= b.clock() for f in frames), (sent_at, frames)
     # frames on links are counted received, whichever family; the medium's own are not
-    assert b.counters.received == 2 * len(TRANSFER_FRAMES), b.counters
+    assert b.counters.received == 2 * len(TRANSFER_FRAMES) + len(CONTROL_FRAMES), b.counters
     assert b.counters.unhandled == 0 and b.counters.corrupted == 0, b.counters
 
 
@@ -491,7 +507,7 @@ def check_unhandled_counted(h: TransportHarness) -> None:
     taken: list[Inbound] = []
     b.listen(FrameFamily.TRANSFER, taken.append).close()
     _send_every_family(h, a)
-    expected = {FrameFamily.TRANSFER: len(TRANSFER_FRAMES)}
+    expected = {FrameFamily.TRANSFER: len(TRANSFER_FRAMES), FrameFamily.CONTROL: len(CONTROL_FRAMES)}
     if FrameFamily.MANAGEMENT in b.families:
         expected[FrameFamily.MANAGEMENT] = 1
     got = _poll_until(b, lambda got: len(got) == len(TRANSFER_FRAMES) and b.unhandled == expected, h.timeout)

@@ -76,6 +76,7 @@ from dh2rt.wire.frame import FrameCodec
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
+from firmware.operator import OperatorChannel
 from firmware.sensors import attach_sensors
 
 if TYPE_CHECKING:
@@ -206,6 +207,9 @@ class ModuleHost:
             raise
         #: the rollout of new programs over the links (a module booted from its flash)
         self.rollout: RolloutDoor | None = self._start_rollout()
+        #: the operator's commands (dh2rt console): trusted keys as the flash's, the last
+        #: counter accepted kept in the flash directory (docs/console.md)
+        self.operator = OperatorChannel(self.runtime, config.trust, Path(config.flash) if config.flash else None)
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -402,6 +406,7 @@ class ModuleHost:
         program = self.program_status()
         if program is not None:
             status["program"] = program
+        status["operator"] = self.operator.core.counters
         return status
 
     def _take_commands(self, rt: ModuleRuntime) -> None:

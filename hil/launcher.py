@@ -62,6 +62,7 @@ from dh2rt.transport.can_bus import FALLBACKS, VCAN_SETUP, socketcan_problem
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from firmware.config import DEFAULT_STAND_IN, DEFAULTS, MAX_CYCLES, MAX_SILENCE_CYCLES, STAND_INS
 from hil.capture_tap import CaptureSink, check_capture, open_capture_sink
+from hil.console_cable import ConsoleCable, free_connector
 from hil.flash_event import FlashEvent, FlashEvents, is_flash_event, parse_flash_event
 from hil.hardware_map import HardwareMap, load_hardware_map
 from hil.netns import NETNS_ENV, in_namespace, namespace_problem, only_loopback
@@ -156,6 +157,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the robot's signing key (dh2rt keys new): the modules' program is signed with it and their "
         "trust stores hold it, so that --event CYCLE:flash:M:IMAGE images signed with it are accepted "
         "(default: a key of this run's)",
+    )
+    p.add_argument(
+        "--console",
+        type=Path,
+        metavar="FILE",
+        help="plug a cable for dh2rt console into the first module's free connector (on a bus, through a "
+        "serial-to-bus adapter the launcher plays) and write its port to FILE once the robot runs: "
+        "dh2rt console --port $(cat FILE) --key KEY ...",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON (only that, on stdout)")
     p.add_argument("--vars", action="store_true", help=VARS_HELP + "; on a terminal, the live table too")
@@ -271,6 +280,12 @@ def _main(argv: list[str] | None) -> int:
         ns.flash_events = [parse_flash_event(e, topology) for e in ns.event if is_flash_event(e)]
         ns.signer = read_private_key(ns.key) if ns.key is not None else None
         check_flash_events(ns.flash_events, ns.transport, ns.cycles)
+        if ns.console is not None:
+            ns.console = output_path(ns.console, "--console")
+            if parse_transport_spec(ns.transport)[0] not in ("serial", *NEGOTIATED):
+                raise OptionError("--console: the console's cable needs links it can join: --transport serial, "
+                                  "or a bus (can, udp, virtual)")  # fmt: skip
+            free_connector(topology, 0)
         if ns.cycles is not None:
             check_events(events, topology, ns.cycles, sensors=program.sensor_names)
         if ns.sensor_every < 1:
@@ -481,6 +496,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
     interrupted = False
     failed = False
     flashes = FlashEvents(ns.flash_events, world, progress)
+    console = ConsoleCable(world, ns.console) if ns.console is not None else None
     started = time.monotonic()
     views = (
         RunVisuals(world.physics, ns.record, ns.plot, camera=ns.camera, speed=ns.record_speed)
@@ -494,6 +510,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         while not world.done():
             world.run_events(events, applied)
             flashes.step()
+            if console is not None:
+                console.step()
             world.tick()
             if views is not None:
                 views.after_tick(world.cycle)
@@ -512,10 +530,14 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         failed = True
     finally:
         flashes.close()
+        if console is not None:
+            console.pull_out()
         try:
             world.stop()
         except KeyboardInterrupt:
             world.stop()
+        if console is not None:
+            console.close()
         if capture is not None:
             capture.close()
     elapsed = time.monotonic() - started

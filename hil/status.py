@@ -83,6 +83,8 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 # V and S by name, as its last status gave them
                 "variables": s.get("variables", {}),
                 "sensors": s.get("sensors", {}),
+                # the operator's commands it took, refused (by reason) and passed on (dh2rt console)
+                "operator": s.get("operator", {}),
             }
         )
     return out

@@ -5,7 +5,9 @@ fails (spliced from two hormones, or a piece lost) is marked refused. Serial lin
 COBS and CRC-32 undone, lost frames (sent, never delivered) marked. Frames that do not decode
 are kept, marked with the reason, so that a capture shows the robot's errors too.
 Flashing's transfer frames (:mod:`dh2rt.wire.transfer`, the second frame family) show as kind
-``transfer``, one line per message in DH2 flash terms (:func:`tools.transfer_view.transfer_text`).
+``transfer``, one line per message in DH2 flash terms (:func:`tools.transfer_view.transfer_text`);
+the operator's control frames (:mod:`dh2rt.wire.operator`, the third) as kind ``control``
+(:func:`tools.control_view.control_text`).
 
 Each link end is decoded with the program its sender announced in its last Hello (matched by
 digest among the capture's programs); before any Hello, with the first program."""
@@ -22,14 +24,17 @@ from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
 from dh2rt.wire.negotiation import MANAGEMENT_ID, decode_bus
+from dh2rt.wire.operator import decode as decode_control
+from dh2rt.wire.operator import is_control
 from dh2rt.wire.serial_framing import decode_serial
 from dh2rt.wire.transfer import decode as decode_transfer
 from dh2rt.wire.transfer import is_transfer
 from tools.capture_reader import CanRecord, Record
+from tools.control_view import control_text
 from tools.serial_records import SerialRecord
 from tools.transfer_view import transfer_text
 
-KINDS = ("hormone", "routed", "keepalive", "hello", "link", "transfer")
+KINDS = ("hormone", "routed", "keepalive", "hello", "link", "transfer", "control")
 #: Frames decoded once and remembered (see Decoder._memo); cleared when full, so memory stays
 #: bounded whatever the capture.
 MEMO_SIZE = 8192
@@ -199,7 +204,9 @@ class Decoder:
     def _hop(self, rec_time: float, key: tuple[str, int, int], payload: bytes, note: str = "") -> Hop:
         medium, link, side = key
         if is_transfer(payload):
-            return self._transfer(rec_time, key, payload, note)
+            return self._family(rec_time, key, payload, note, "transfer")
+        if is_control(payload):
+            return self._family(rec_time, key, payload, note, "control")
         try:
             sender, frame = self._decode(key, payload)
         except DecodeError as exc:
@@ -213,16 +220,22 @@ class Decoder:
         kind = "routed" if frame.route is not None else "hormone"
         return Hop(rec_time, link, side, kind, name, frame.content() + note, frame, medium=medium)
 
-    def _transfer(self, rec_time: float, key: tuple[str, int, int], payload: bytes, note: str) -> Hop:
-        """A frame of flashing (no program names it): kind ``transfer``, or ``error`` with
-        why it does not decode."""
+    def _family(self, rec_time: float, key: tuple[str, int, int], payload: bytes, note: str, kind: str) -> Hop:
+        """A frame of flashing (``transfer``: no program names it) or of the operator
+        (``control``): that kind, one line in its terms, or ``error`` with why it does not
+        decode."""
         medium, link, side = key
+        name = self._transfer_connector
         try:
-            sender, message = decode_transfer(payload)
+            if kind == "transfer":
+                sender, transfer = decode_transfer(payload)
+                text = transfer_text(transfer, name)
+            else:
+                sender, control = decode_control(payload)
+                text = control_text(control, name, {d: codec.vocabulary for d, codec in self._codecs.items()})
         except DecodeError as exc:
             return Hop(rec_time, link, side, "error", error=str(exc), medium=medium)
-        name = self._transfer_connector
-        return Hop(rec_time, link, side, "transfer", name(sender), transfer_text(message, name) + note, medium=medium)
+        return Hop(rec_time, link, side, kind, name(sender), text + note, medium=medium)
 
     def _transfer_connector(self, index: int) -> str:
         """A connector a transfer frame names: the profile's name, or ``#INDEX`` beyond the

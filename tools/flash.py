@@ -105,18 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("image", type=Path, help="a signed image (dh2rt image PROGRAM --sign KEY --version N -o IMAGE)")
-    p.add_argument("--port", help="the cable's serial port: a device path or a pyserial URL (serial links)")
-    p.add_argument("--baudrate", type=int, default=115200, help="the cable's line speed (default: 115200)")
-    bus = add_bus_arguments(p, group_title="on a robot whose modules share a CAN bus (instead of --port)")
-    bus.add_argument("--contact", help="the cable's connector-local channel: a UART device (or a pty)")
-    bus.add_argument("--contact-pin", help="the contact switch's GPIO value file (active low, as on the modules)")
-    bus.add_argument(
-        "--cable-connector",
-        default="back",
-        choices=CONRO.connectors,
-        help="which connector of the profile the cable is (default: back, which docks to a free front)",
-    )
-    add_cycle_argument(p, "the robot's cycle period")
+    add_cable_arguments(p)
     p.add_argument("--timeout", type=float, default=120.0, help="seconds before the flasher gives up (default: 120)")
     p.add_argument("--confirm", action="store_true", help="wait until every module confirmed the image (trial over)")
     p.add_argument(
@@ -130,6 +119,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="the rollout report as one JSON object")
     p.add_argument("--quiet", action="store_true", help="no progress on standard error")
     return p
+
+
+def add_cable_arguments(p: argparse.ArgumentParser) -> None:
+    """The cable's options (``dh2rt console`` takes the same): ``--port`` and ``--baudrate``
+    on serial links, or a node on the bus and its ``--contact``; and ``--cycle-ms``."""
+    p.add_argument("--port", help="the cable's serial port: a device path or a pyserial URL (serial links)")
+    p.add_argument("--baudrate", type=int, default=115200, help="the cable's line speed (default: 115200)")
+    bus = add_bus_arguments(p, group_title="on a robot whose modules share a CAN bus (instead of --port)")
+    bus.add_argument("--contact", help="the cable's connector-local channel: a UART device (or a pty)")
+    bus.add_argument("--contact-pin", help="the contact switch's GPIO value file (active low, as on the modules)")
+    bus.add_argument(
+        "--cable-connector",
+        default="back",
+        choices=CONRO.connectors,
+        help="which connector of the profile the cable is (default: back, which docks to a free front)",
+    )
+    add_cycle_argument(p, "the robot's cycle period")
 
 
 @dataclass(frozen=True, slots=True)

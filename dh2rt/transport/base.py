@@ -61,7 +61,7 @@ from typing import ClassVar, NamedTuple
 
 from dh2rt.closing import Closing
 from dh2rt.errors import CodecError, TransportError
-from dh2rt.wire.frame import TRANSFER_FAMILY, Frame, FrameCodec
+from dh2rt.wire.frame import CONTROL_FAMILY, TRANSFER_FAMILY, Frame, FrameCodec
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,20 +116,26 @@ class FrameFamily(Enum):
       the loop's own code instead of a handler that would only append to a list.
     * ``TRANSFER``: flashing's frames (:mod:`dh2rt.wire.transfer`, top bits 2), for the rollout
       host or the cable's flasher, as they arrive.
+    * ``CONTROL``: the operator's commands and the modules' answers (:mod:`dh2rt.wire.operator`,
+      top bits 0), for the module's operator channel or the console's cable.
     * ``MANAGEMENT``: frames of the medium itself, on no link: CAN link negotiation's
       (:data:`dh2rt.wire.can_frames.MANAGEMENT_ID`), which only a CAN transport carries.
     """
 
     HORMONE = "hormone"
     TRANSFER = "transfer"
+    CONTROL = "control"
     MANAGEMENT = "management"
 
     @classmethod
     def of_link_payload(cls, payload: bytes) -> FrameFamily:
         """The family of a payload that came in on a link, from byte 0's top two bits
-        (anything not a transfer frame is read as a link frame, and counted corrupted if it
-        does not decode as one)."""
-        return cls.TRANSFER if payload and payload[0] >> 6 == TRANSFER_FAMILY else cls.HORMONE
+        (anything else is read as a link frame, and counted corrupted if it does not decode
+        as one: the old link version 1 among them)."""
+        top = payload[0] >> 6 if payload else None
+        if top == TRANSFER_FAMILY:
+            return cls.TRANSFER
+        return cls.CONTROL if top == CONTROL_FAMILY else cls.HORMONE
 
 
 #: The connector of an :class:`Inbound` frame on no link (a management frame).
@@ -216,7 +222,9 @@ class Transport(Closing, ABC):
     #: the kernel, where every module's frames wake every module.
     read_between_cycles: ClassVar[bool] = True
     #: The frame families the medium carries (:meth:`listen` refuses any other).
-    families: ClassVar[frozenset[FrameFamily]] = frozenset({FrameFamily.HORMONE, FrameFamily.TRANSFER})
+    families: ClassVar[frozenset[FrameFamily]] = frozenset(
+        {FrameFamily.HORMONE, FrameFamily.TRANSFER, FrameFamily.CONTROL}
+    )
 
     def __init__(self, codec: FrameCodec) -> None:
         self.codec = codec

@@ -43,6 +43,8 @@ from dh2rt.hormone import MAX_HOPS_LIMIT, Hormone, Vocabulary
 WIRE_VERSION = 3
 #: The same two bits of a transfer frame (:mod:`dh2rt.wire.transfer`): a second frame family.
 TRANSFER_FAMILY = 2
+#: The same two bits of a control frame (:mod:`dh2rt.wire.operator`): the operator's family.
+CONTROL_FAMILY = 0
 #: Bytes of program digest a hello carries.
 HELLO_DIGEST_BYTES = 6
 #: The digest of a peer that runs no program: a programming cable's Hello (dh2rt flash). A

@@ -57,6 +57,8 @@ from enum import IntEnum
 from typing import NamedTuple
 
 from dh2rt.errors import DecodeError, EncodeError
+from dh2rt.wire.fields import FieldReader, check_class, check_range, encode_path, read_header
+from dh2rt.wire.fields import Path as Path
 from dh2rt.wire.frame import TRANSFER_FAMILY as TRANSFER_FAMILY
 from dh2rt.wire.frame import FrameKind
 from dh2rt.wire.frame import VersionedHello as VersionedHello
@@ -85,9 +87,6 @@ MAX_WINDOW = 64
 SACK_BITS = 16
 _U16 = 0xFFFF
 _U32 = 0xFFFFFFFF
-
-#: A path: hops ``(sent_through, received_at)``, from the entry point outwards.
-Path = tuple[tuple[int, int], ...]
 
 
 class MessageType(IntEnum):
@@ -292,7 +291,7 @@ def message_class(message: Message) -> int:
 
 def encode(sender: int, message: Message) -> bytes:
     """The frame carrying ``message`` sent through connector ``sender``."""
-    _check_range("sender connector", sender, 1, MAX_CONNECTOR)
+    check_range("sender connector", sender, 1, MAX_CONNECTOR)
     kind, body = _body(message)
     head = (TRANSFER_FAMILY << 6) | (message_class(message) << 4) | sender
     return bytes((head, kind)) + body
@@ -302,41 +301,41 @@ def _body(m: Message) -> tuple[int, bytes]:
     match m:
         case Offer():
             _check_image(m.image)
-            _check_range("version", m.version, 0, _U32)
-            _check_range("image length", m.length, 1, _U32)
-            _check_range("segment size", m.segment_size, 1, MAX_SEGMENT_SIZE)
+            check_range("version", m.version, 0, _U32)
+            check_range("image length", m.length, 1, _U32)
+            check_range("segment size", m.segment_size, 1, MAX_SEGMENT_SIZE)
             count = _segments(m.length, m.segment_size)
             if count > _U16:
                 raise EncodeError(f"{m.length} bytes in segments of {m.segment_size} need more than {_U16} segments")
-            _check_range("segments held", m.held, 0, count)
+            check_range("segments held", m.held, 0, count)
             head = struct.pack(">I8sIHHB", m.version, m.image, m.length, m.segment_size, m.held, int(m.running))
-            return MessageType.OFFER, head + _path(m.path)
+            return MessageType.OFFER, head + encode_path(m.path)
         case Request():
             _check_image(m.image)
-            _check_range("next segment", m.next, 0, _U16)
-            _check_range("window", m.window, 1, MAX_WINDOW)
+            check_range("next segment", m.next, 0, _U16)
+            check_range("window", m.window, 1, MAX_WINDOW)
             return MessageType.REQUEST, struct.pack(">8sHBB", m.image, m.next, m.window, int(m.probe))
         case Segment():
-            _check_range("tag", m.tag, 0, _U16)
-            _check_range("segment index", m.index, 0, _U16)
-            _check_range("segment bytes", len(m.data), 1, MAX_SEGMENT_SIZE)
+            check_range("tag", m.tag, 0, _U16)
+            check_range("segment index", m.index, 0, _U16)
+            check_range("segment bytes", len(m.data), 1, MAX_SEGMENT_SIZE)
             return MessageType.SEGMENT, struct.pack(">HH", m.tag, m.index) + bytes(m.data)
         case Ack():
-            _check_range("tag", m.tag, 0, _U16)
-            _check_range("next segment", m.next, 0, _U16)
-            _check_range("sack", m.sack, 0, _U16)
+            check_range("tag", m.tag, 0, _U16)
+            check_range("next segment", m.next, 0, _U16)
+            check_range("sack", m.sack, 0, _U16)
             return MessageType.ACK, struct.pack(">HHH", m.tag, m.next, m.sack)
         case Decline():
             _check_image(m.image)
-            _check_range("version", m.version, 0, _U32)
+            check_range("version", m.version, 0, _U32)
             return MessageType.DECLINE, struct.pack(">8sBI", m.image, DeclineReason(m.reason), m.version)
         case Cancel():
             _check_image(m.image)
             return MessageType.CANCEL, bytes(m.image) + _ascii(m.verdict)
         case Commit():
             _check_image(m.image)
-            _check_range("remaining µs", m.remaining_us, 0, _U32)
-            _check_range("hops", m.hops, 0, 255)
+            check_range("remaining µs", m.remaining_us, 0, _U32)
+            check_range("hops", m.hops, 0, 255)
             return MessageType.COMMIT, struct.pack(">8sIB", m.image, m.remaining_us, m.hops)
         case CommitAck():
             _check_image(m.image)
@@ -344,32 +343,21 @@ def _body(m: Message) -> tuple[int, bytes]:
         case Report():
             return MessageType.REPORT, _report(m)
         case ReportAck():
-            _check_range("report seq", m.seq, 0, _U16)
+            check_range("report seq", m.seq, 0, _U16)
             return MessageType.REPORT_ACK, struct.pack(">H", m.seq)
     raise EncodeError(f"not a transfer message: {m!r}")
 
 
 def _report(m: Report) -> bytes:
-    _check_range("tag", m.tag, 0, _U16)
-    _check_range("report seq", m.seq, 0, _U16)
-    _check_range("version", m.version, 0, _U32)
-    _check_range("hops left", m.left, 1, len(m.path))
+    check_range("tag", m.tag, 0, _U16)
+    check_range("report seq", m.seq, 0, _U16)
+    check_range("version", m.version, 0, _U32)
+    check_range("hops left", m.left, 1, len(m.path))
     head = struct.pack(">HHBIB", m.tag, m.seq, Outcome(m.outcome), m.version, m.left)
     reason = m.reason.encode()
     if len(reason) > MAX_REASON:
         raise EncodeError(f"report reason of {len(reason)} bytes exceeds {MAX_REASON} (cut_reason cuts it)")
-    return head + _path(m.path) + _ascii(m.verdict) + bytes((len(reason),)) + reason
-
-
-def _path(path: Path) -> bytes:
-    if len(path) > MAX_PATH:
-        raise EncodeError(f"path of {len(path)} hops exceeds {MAX_PATH}")
-    out = bytearray((len(path),))
-    for sent, received in path:
-        _check_range("path connector", sent, 1, MAX_CONNECTOR)
-        _check_range("path connector", received, 1, MAX_CONNECTOR)
-        out.append(sent << 4 | received)
-    return bytes(out)
+    return head + encode_path(m.path) + _ascii(m.verdict) + bytes((len(reason),)) + reason
 
 
 def _ascii(text: str) -> bytes:
@@ -383,11 +371,6 @@ def _check_image(image: bytes) -> None:
         raise EncodeError(f"image id of {len(image)} bytes; it must be {IMAGE_ID_BYTES}")
 
 
-def _check_range(name: str, value: int, low: int, high: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise EncodeError(f"{name} {value!r} is outside {low}..{high}")
-
-
 def _segments(length: int, size: int) -> int:
     return -(-length // size)
 
@@ -395,34 +378,10 @@ def _segments(length: int, size: int) -> int:
 # ---------------------------------------------------------------- decoding
 
 
-class _Reader:
-    """Reads fields from a frame in order; every shortfall is a DecodeError naming the field."""
+class _Reader(FieldReader):
+    """The shared reader, and the texts transfer frames carry."""
 
-    __slots__ = ("data", "pos", "what")
-
-    def __init__(self, data: bytes, what: str) -> None:
-        self.data = data
-        self.pos = 2
-        self.what = what
-
-    def take(self, n: int, field: str) -> bytes:
-        if self.pos + n > len(self.data):
-            raise DecodeError(f"{self.what}: cut short in the {field} at byte {self.pos}")
-        out = self.data[self.pos : self.pos + n]
-        self.pos += n
-        return out
-
-    def unpack(self, fmt: str, field: str) -> tuple[int, ...]:
-        return struct.unpack(fmt, self.take(struct.calcsize(fmt), field))
-
-    def path(self) -> Path:
-        (n,) = self.take(1, "path length")
-        if n > MAX_PATH:
-            raise DecodeError(f"{self.what}: path of {n} hops exceeds {MAX_PATH}")
-        hops = tuple((b >> 4, b & 0x0F) for b in self.take(n, "path"))
-        if any(not (s and r) for s, r in hops):
-            raise DecodeError(f"{self.what}: a path hop names connector 0")
-        return hops
+    __slots__ = ()
 
     def text(self, field: str, limit: int, *, ascii_only: bool) -> str:
         (n,) = self.take(1, f"{field} length")
@@ -441,29 +400,16 @@ class _Reader:
         self.pos = len(self.data)
         return out
 
-    def end(self) -> None:
-        if self.pos != len(self.data):
-            raise DecodeError(f"{self.what}: {len(self.data) - self.pos} trailing byte(s)")
-
 
 def decode(data: bytes) -> Transfer:
     """Decode one whole transfer frame; raises DecodeError for anything else."""
     data = bytes(data)
-    if len(data) < 2:
-        raise DecodeError(f"transfer frame: {len(data)} bytes, too short for a header and a type")
-    head = data[0]
-    if head >> 6 != TRANSFER_FAMILY:
-        raise DecodeError(f"transfer frame: family {head >> 6}, expected {TRANSFER_FAMILY}")
-    sender = head & 0x0F
-    if sender == 0:
-        raise DecodeError("transfer frame: sender connector 0")
+    sender, type_byte = read_header(data, TRANSFER_FAMILY, "transfer frame")
     try:
-        kind = MessageType(data[1])
+        kind = MessageType(type_byte)
     except ValueError:
-        raise DecodeError(f"transfer frame: unknown message type {data[1]}") from None
-    expected = _CLASSES.get(kind, CONTROL_CLASS)
-    if (head >> 4) & 3 != expected:
-        raise DecodeError(f"transfer frame {kind.name}: class {(head >> 4) & 3}, expected {expected}")
+        raise DecodeError(f"transfer frame: unknown message type {type_byte}") from None
+    check_class(data, f"transfer frame {kind.name}", _CLASSES.get(kind, CONTROL_CLASS))
     reader = _Reader(data, f"transfer frame {kind.name}")
     message = _DECODERS[kind](reader)
     reader.end()

@@ -26,7 +26,7 @@ import pytest
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
-from dh2rt.wire import can_frames, transfer
+from dh2rt.wire import can_frames, operator, transfer
 from dh2rt.wire.can_frames import FIRST, LAST, Segmenter, make_arbitration_id, parse_arbitration_id, segment
 from dh2rt.wire.frame import WIRE_VERSION, FrameCodec, FrameKind, Hello, KeepAlive, program_digest
 from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
@@ -663,3 +663,74 @@ def test_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     broken.write_text("hormone X(\n", encoding="utf-8")
     assert main(["--program", str(broken)]) == 2
     assert "broken.dh2" in capsys.readouterr().err
+
+
+# -- control frames (the operator's) --------------------------------------------------------
+
+KEY_ID = bytes.fromhex("0011223344556677")
+OTHER_DIGEST = bytes.fromhex("abcdef012345")  # a program no capture here carries
+STATUS = operator.ModuleStatus(OTHER_DIGEST, 1, True, 300, 70_000, (2, 0, 0, 0), (1,), (-5, 1 << 40), (1, 0, 2))
+CONTROL_MESSAGES: list[operator.Message] = [
+    operator.Signed(operator.Inject(OTHER_DIGEST, b"\x02\x05", ((BACK, FRONT), (LEFT, FRONT))), 1, KEY_ID, bytes(64)),
+    operator.Signed(operator.Pause(), 1_764_288_000_123_456, KEY_ID, bytes(64), 3),
+    operator.Signed(operator.Resume(), (1 << 64) - 1, KEY_ID, bytes(64)),
+    operator.Signed(operator.StateRequest(((BACK, FRONT),)), 9, KEY_ID, bytes(64), 1),
+    operator.StateReply(9, 1, ((BACK, FRONT),), STATUS),
+    operator.Refused(10, 0, (), operator.RefusalReason.REPLAYED),
+    operator.Signed(operator.Watch(500, 3), 11, KEY_ID, bytes(64)),
+    operator.Signed(operator.Watch(65535), 12, KEY_ID, bytes(64)),
+    operator.Watched(11, 1 << 40, LEFT, bytes.fromhex("c100000a")),
+    operator.Watched(11, 7, 0, bytes.fromhex("c1")),
+]
+
+
+def broken_control_frames() -> list[bytes]:
+    """Control frames the codec refuses, each for another reason."""
+    pause = operator.encode(BACK, CONTROL_MESSAGES[1])
+    reply = operator.encode(BACK, CONTROL_MESSAGES[4])
+    refused = operator.encode(BACK, CONTROL_MESSAGES[5])
+    return [
+        bytes((0x22, 70)),  # the reserved docking range
+        bytes((0x22, 6)),  # an unknown type
+        pause + b"\x00",  # a trailing byte
+        pause[:-1],  # cut short in the signature
+        bytes((pause[0] ^ 0x30,)) + pause[1:],  # the class of another type
+        refused[:-1] + b"\x09",  # an unknown reason
+        refused[:10] + b"\x01" + refused[11:],  # a hop left of a 0-hop path
+        reply[:20] + b"\x02" + reply[21:],  # unknown flags
+        reply[:21] + b"\x80\x00" + reply[23:],  # LocalTimer not in its shortest form (300 = ac 02)
+        operator.encode(BACK, CONTROL_MESSAGES[7])[:19] + b"\x00\x00\x00" + bytes(64),  # a watch of 0 cycles
+        operator.encode(BACK, CONTROL_MESSAGES[9])[:-2] + b"\x00",  # an empty frame
+        operator.encode(BACK, CONTROL_MESSAGES[8]) + b"\x01",  # a trailing byte
+    ]
+
+
+def test_control_frames_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Every control message and frames broken as the codec refuses them, on CAN (signed
+    commands are segment trains) and on a serial link: the dissector shows each as dump does."""
+    path = tmp_path / "control.pcapng"
+    rec = Recorder(path, programs)
+    try:
+        for frame in [operator.encode(BACK, m) for m in CONTROL_MESSAGES] + broken_control_frames():
+            rec.can(frame, 5, 0)
+            rec.serial(encode_serial(frame), 3, 1)
+    finally:
+        rec.writer.close()
+    rows = run_tshark(tshark, COMMITTED, path, tmp_path / "home", fields=(*FIELDS, "_ws.expert.message"))
+    hops = dump_hops(path)
+    assert len(rows) == len(hops)
+    shown = [hop for hop in hops if hop.kind != "segment"]
+    assert [hop.kind for hop in shown].count("control") == 2 * len(CONTROL_MESSAGES)
+    assert [hop.kind for hop in shown].count("error") == 2 * len(broken_control_frames())
+    for row, hop in zip(rows, hops, strict=True):
+        number, medium, link, side, kind, text, info, expert = row
+        assert (medium, int(link), int(side), kind, text) == (hop.medium, hop.link, hop.side, hop.kind, hop.text)
+        assert info == dump_line(hop, path), number
+        assert expert == (hop.error if hop.kind == "error" else ""), number
+    lines = [row[6] for row in rows if row[4] == "control"]
+    assert lines[1] == (
+        "ir      3 side 1  control   INJECT #1 key 0011223344556677 hops 0, hormone 0205 of program abcdef012345"
+        " at back>front left>front via back"
+    )

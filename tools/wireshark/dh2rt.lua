@@ -10,7 +10,9 @@
 --   * the emulated infrared serial links (link type 147, USER0): the 8-byte "D2" record
 --     (side, lost, corrupted, link id), then the frame as on the wire: COBS, CRC-32, 0x00;
 --   * on both, flashing's transfer frames (the second frame family: OFFER, REQUEST, SEGMENT,
---     ACK, COMMIT, REPORT ...), each field as `dh2rt dump` names it (dh2rt.transfer.*).
+--     ACK, COMMIT, REPORT ...), each field as `dh2rt dump` names it (dh2rt.transfer.*), and the
+--     operator's control frames (the third: INJECT, PAUSE, RESUME, STATE, STATE_REPLY,
+--     REFUSED; dh2rt.control.*), as `dh2rt dump` shows them.
 -- The Info column is the line `dh2rt dump` prints for the frame, without its time.
 --
 -- Frames carry hormone indices, not names. This file, as committed, knows no program: it
@@ -277,6 +279,8 @@ local PROGRAMS = {}
 
 local FRAME_KINDS = LAYOUT.kind_names
 local TRANSFER = LAYOUT.transfer
+-- byte 0's top bits of the operator's control frames (dh2rt.wire.operator.CONTROL_FAMILY)
+local CONTROL_FAMILY = 0
 local SEGMENTS = LAYOUT.segment_names
 local INT_MIN, INT_MAX = -2147483648, 2147483647
 local TWO32 = 4294967296
@@ -383,7 +387,7 @@ end
 local dh2rt = Proto("dh2rt", "dh2rt hormone frames")
 
 local F = {
-    kind = ProtoField.string("dh2rt.kind", "Kind (hormone, routed, keepalive, hello, transfer, segment, error)"),
+    kind = ProtoField.string("dh2rt.kind", "Kind (hormone, routed, keepalive, hello, transfer, control, segment, error)"),
     medium = ProtoField.string("dh2rt.medium", "Medium (can, serial)"),
     link = ProtoField.uint32("dh2rt.link", "Link id"),
     side = ProtoField.uint8("dh2rt.side", "Side that sent it"),
@@ -436,6 +440,9 @@ local F = {
     class = ProtoField.uint8("dh2rt.transfer.class", "Class (CAN priority)", base.DEC, nil,
         (2 ^ LAYOUT.header.kind.width - 1) * 2 ^ LAYOUT.header.kind.shift),
     message = ProtoField.string("dh2rt.transfer.message", "Transfer message (OFFER, REQUEST, SEGMENT, ...)"),
+    -- control frames (the operator's): the message and its counter
+    control_message = ProtoField.string("dh2rt.control.message", "Control message (INJECT, PAUSE, STATE, ...)"),
+    control_counter = ProtoField.string("dh2rt.control.counter", "Command counter"),
 }
 
 -- A field of each name the transfer messages' fields have (dh2rt.transfer.NAME), of the type
@@ -698,6 +705,9 @@ function Decode:frame()
     if version == TRANSFER.family then
         return self:transfer()
     end
+    if version == CONTROL_FAMILY then
+        return self:control()
+    end
     local header = self:range(0, 1)
     self.tree:add(F.version, header)
     if version ~= LAYOUT.wire_version then
@@ -918,10 +928,12 @@ local function transfer_show(field, value)
     return string.format(how, value)
 end
 
-function Decode:transfer()
+-- The header a transfer or control frame starts with (``name``: "transfer frame", "control
+-- frame"), as dh2rt.wire.fields.read_header reads it: its sender connector.
+function Decode:family_header(name)
     local data = self.data
     if #data < 2 then
-        decode_error(string.format("transfer frame: %d bytes, too short for a header and a type", #data))
+        decode_error(string.format("%s: %d bytes, too short for a header and a type", name, #data))
     end
     local header = self:range(0, 1)
     self.tree:add(F.family, header)
@@ -929,8 +941,14 @@ function Decode:transfer()
     self.tree:add(F.sender, header)
     local sender = bits(data:byte(1), LAYOUT.header.sender)
     if sender == 0 then
-        decode_error("transfer frame: sender connector 0")
+        decode_error(name .. ": sender connector 0")
     end
+    return sender
+end
+
+function Decode:transfer()
+    local data = self.data
+    local sender = self:family_header("transfer frame")
     local message = TRANSFER.messages[data:byte(2)]
     if message == nil then
         decode_error(string.format("transfer frame: unknown message type %d", data:byte(2)))
@@ -975,6 +993,220 @@ function Decode:transfer()
     end
     local text = message.line:gsub("{([%w_]+)}", shown)
     return { kind = "transfer", text = text, sender = connector_name(sender) }
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Control frames (dh2rt.wire.operator.decode): the operator's signed commands and the
+-- modules' answers (the third family, top bits 0), shown with the line dump prints
+-- (tools.control_view.control_text). Counters are u64 (Wireshark's UInt64); the varints of a
+-- status are exact up to 2^53.
+
+local CONTROL_TYPES = {
+    [1] = { name = "INJECT", class = 1, signed = true },
+    [2] = { name = "PAUSE", class = 1, signed = true },
+    [3] = { name = "RESUME", class = 1, signed = true },
+    [4] = { name = "STATE", class = 2, signed = true },
+    [5] = { name = "WATCH", class = 2, signed = true },
+    [16] = { name = "STATE_REPLY", class = 2 },
+    [17] = { name = "REFUSED", class = 2 },
+    [18] = { name = "WATCHED", class = 3 },
+}
+local REFUSAL_REASONS = { "BAD_SIGNATURE", "UNTRUSTED_KEY", "REPLAYED", "NO_ROUTE", "WRONG_PROGRAM", "NO_CONTROL" }
+local CONTROL_MAX_PATH = 64
+
+-- A path (n, then a byte a hop: sent << 4 | received) as dump names its hops.
+function Decode:control_path(what, pos, field)
+    local count = self:take(what, pos, 1, field .. " length"):byte()
+    if count > CONTROL_MAX_PATH then
+        decode_error(string.format("%s: %s of %d hops exceeds %d", what, field, count, CONTROL_MAX_PATH))
+    end
+    local raw = self:take(what, pos + 1, count, field)
+    local hops = {}
+    for i = 1, count do
+        local b = raw:byte(i)
+        local sent, received = math.floor(b / 16), b % 16
+        if sent == 0 or received == 0 then
+            decode_error(string.format("%s: a %s hop names connector 0", what, field))
+        end
+        hops[i] = connector_name(sent) .. ">" .. connector_name(received)
+    end
+    return hops, pos + 1 + count
+end
+
+local function control_path_text(hops)
+    return #hops > 0 and table.concat(hops, " ") or "(cable's module)"
+end
+
+-- An unsigned LEB128 varint of up to 64 bits, in its shortest form.
+function Decode:control_varint(what, pos, field)
+    local result, scale, shift = 0, 1, 0
+    while true do
+        local b = self:take(what, pos, 1, field):byte()
+        pos = pos + 1
+        if shift >= 64 or (shift == 63 and b > 1) then
+            decode_error(string.format("%s: %s does not fit 64 bits", what, field))
+        end
+        result = result + (b % 128) * scale
+        if b < 128 then
+            if b == 0 and shift > 0 then
+                decode_error(string.format("%s: %s is not in its shortest form", what, field))
+            end
+            return result, pos
+        end
+        scale, shift = scale * 128, shift + 7
+    end
+end
+
+-- n u8, then n zig-zag varints (sensors, variables): only read, dump does not show them.
+function Decode:control_values(what, pos, name)
+    local n = self:take(what, pos, 1, "number of " .. name):byte()
+    pos = pos + 1
+    for _ = 1, n do
+        local _value
+        _value, pos = self:control_varint(what, pos, "a value of " .. name)
+    end
+    return pos
+end
+
+-- An INJECT's hormone: named by the program its digest names, when the dissector carries it.
+function Decode:control_hormone(digest, content, pos)
+    local known = KNOWN_DIGESTS[tohex(digest)]
+    if known ~= nil then
+        local saved = self.program
+        self.program = PROGRAMS[known]
+        local ok, name, args, after = pcall(self.content, self, pos)
+        self.program = saved
+        if ok and after == pos + #content then
+            return #args > 0 and (name .. "(" .. table.concat(args, ", ") .. ")") or name
+        end
+    end
+    return "hormone " .. tohex(content) .. " of program " .. tohex(digest)
+end
+
+function Decode:control()
+    local data = self.data
+    local sender = self:family_header("control frame")
+    local kind = data:byte(2)
+    if kind >= 64 and kind < 128 then
+        decode_error(string.format("control frame: message type %d is reserved (docking motion, not yet defined)", kind))
+    end
+    local message = CONTROL_TYPES[kind]
+    if message == nil then
+        decode_error(string.format("control frame: unknown message type %d", kind))
+    end
+    self.tree:add(F.control_message, self:range(1, 1), message.name)
+    local what = "control frame " .. message.name
+    local class = bits(data:byte(1), LAYOUT.header.kind)
+    if class ~= message.class then
+        decode_error(string.format("%s: class %d, expected %d", what, class, message.class))
+    end
+    local text
+    if message.signed then
+        local hops = self:take(what, 2, 1, "hops"):byte()
+        local key = self:take(what, 3, 16, "counter and key id")
+        local counter = tostring(self:range(3, 8):uint64())
+        self.tree:add(F.control_counter, self:range(3, 8), counter)
+        text = string.format("%s #%s key %s hops %d", message.name, counter, tohex(key:sub(9, 16)), hops)
+        local pos = 19
+        if message.name == "INJECT" then
+            local digest = self:take(what, pos, 6, "program digest")
+            local route
+            route, pos = self:control_path(what, pos + 6, "route")
+            local n = self:take(what, pos, 1, "content length"):byte()
+            if n == 0 then
+                decode_error(what .. ": empty hormone content")
+            end
+            local content = self:take(what, pos + 1, n, "content")
+            text = text .. ", " .. self:control_hormone(digest, content, pos + 1) .. " at " .. control_path_text(route)
+            pos = pos + 1 + n
+        elseif message.name == "STATE" then
+            local route
+            route, pos = self:control_path(what, pos, "route")
+            text = text .. ", at " .. control_path_text(route)
+        elseif message.name == "WATCH" then
+            local fields = self:take(what, pos, 3, "watch cycles and hormones")
+            local cycles, n = fields:byte(1) * 256 + fields:byte(2), fields:byte(3)
+            if cycles == 0 or n > 1 then
+                decode_error(string.format("%s: %d cycles of %d hormone(s): not a watch", what, cycles, n))
+            end
+            pos = pos + 3
+            local watched = "every hormone"
+            if n == 1 then
+                watched = "hormone #" .. self:take(what, pos, 1, "hormone index"):byte()
+                pos = pos + 1
+            end
+            text = string.format("%s, %s for %d cycles", text, watched, cycles)
+        end
+        self:take(what, pos, 64, "signature")
+        pos = pos + 64
+        if pos ~= #data then
+            decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
+        end
+    elseif message.name == "WATCHED" then
+        self:take(what, 2, 8, "counter")
+        local counter = tostring(self:range(2, 8):uint64())
+        self.tree:add(F.control_counter, self:range(2, 8), counter)
+        local cycle, pos = self:control_varint(what, 10, "cycle")
+        local at = self:take(what, pos, 1, "connector"):byte()
+        if at > 15 then
+            decode_error(string.format("%s: connector %d is outside 0..15", what, at))
+        end
+        local n = self:take(what, pos + 1, 1, "frame length"):byte()
+        if n == 0 then
+            decode_error(what .. ": an empty frame")
+        end
+        local frame = self:take(what, pos + 2, n, "frame")
+        text = string.format("WATCHED #%s cycle %.0f at %s: %s", counter, cycle,
+            at > 0 and connector_name(at) or "(injected)", tohex(frame))
+        if pos + 2 + n ~= #data then
+            decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos - 2 - n))
+        end
+    else
+        local head = self:take(what, 2, 9, "counter and hops left")
+        local counter = tostring(self:range(2, 8):uint64())
+        self.tree:add(F.control_counter, self:range(2, 8), counter)
+        local left = head:byte(9)
+        local path, pos = self:control_path(what, 11, "path")
+        if left > #path then
+            decode_error(string.format("%s: %d hops left of a %d-hop path", what, left, #path))
+        end
+        local where = string.format("#%s from %s, left %d", counter, control_path_text(path), left)
+        if message.name == "REFUSED" then
+            local reason = self:take(what, pos, 1, "reason"):byte()
+            if REFUSAL_REASONS[reason] == nil then
+                decode_error(string.format("%s: unknown reason %d", what, reason))
+            end
+            text = "REFUSED " .. where .. ": " .. REFUSAL_REASONS[reason]
+            pos = pos + 1
+        else
+            self:take(what, pos, 6, "program digest")
+            local type_index = self:take(what, pos + 6, 1, "type index"):byte()
+            local flags = self:take(what, pos + 7, 1, "flags"):byte()
+            if flags > 1 then
+                decode_error(string.format("%s: unknown flags 0x%02x", what, flags))
+            end
+            local timer, cycle
+            timer, pos = self:control_varint(what, pos + 8, "LocalTimer")
+            cycle, pos = self:control_varint(what, pos, "cycle")
+            local n = self:take(what, pos, 1, "number of connectors"):byte()
+            local raw = self:take(what, pos + 1, n, "ConnectorStatus")
+            local statuses = {}
+            for i = 1, n do
+                statuses[i] = string.format("%d", raw:byte(i))
+            end
+            pos = self:control_values(what, pos + 1 + n, "sensors")
+            pos = self:control_values(what, pos, "variables")
+            local receptors = self:take(what, pos, 1, "number of receptors"):byte()
+            self:take(what, pos + 1, receptors, "receptor statuses")
+            pos = pos + 1 + receptors
+            text = string.format("STATE_REPLY %s: type %d, LocalTimer %.0f, cycle %.0f, status %s%s", where,
+                type_index, timer, cycle, table.concat(statuses, ","), flags == 1 and ", paused" or "")
+        end
+        if pos ~= #data then
+            decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
+        end
+    end
+    return { kind = "control", text = text, sender = connector_name(sender) }
 end
 
 -- Decode ``tvb`` as one frame; a frame that does not decode gives an error hop.
@@ -1074,7 +1306,8 @@ local function parse_can_id(id)
 end
 
 -- Whether a CAN frame is dh2rt's: an extended id whose kind the frame's first byte repeats
--- with the wire version (or the transfer family), or a later segment from a link end that sent dh2rt frames.
+-- with the wire version (or the transfer or control family), or a later segment from a link end that sent
+-- dh2rt frames.
 local function is_dh2rt(tvb, id)
     if id.segment == LAYOUT.segments.single or id.segment == LAYOUT.segments.first then
         if tvb:len() < 1 then
@@ -1082,7 +1315,8 @@ local function is_dh2rt(tvb, id)
         end
         local head = tvb:range(0, 1):uint()
         local version = bits(head, LAYOUT.header.version)
-        return (version == LAYOUT.wire_version or version == TRANSFER.family) and bits(head, LAYOUT.header.kind) == id.kind
+        local family = version == LAYOUT.wire_version or version == TRANSFER.family or version == CONTROL_FAMILY
+        return family and bits(head, LAYOUT.header.kind) == id.kind
     end
     return state.ends[id.link .. ":" .. id.side] == true
 end

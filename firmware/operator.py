@@ -1,0 +1,308 @@
+"""A module's operator channel: the control family's commands, checked, carried out, passed on
+(docs/console.md). :class:`OperatorCore` is the state machine, sans-IO (frames in, frames out
+as :class:`Out`); :class:`OperatorChannel` drives it from the module's transport
+(``Transport.listen(FrameFamily.CONTROL, ...)``, as :mod:`firmware.flash.door` takes the
+transfer family) and persists the last counter accepted in the module's flash directory.
+
+The rules, for every signed command (:mod:`dh2rt.wire.operator`):
+
+* trusted key (module.toml's ``trust``, the keys its flash trusts), a signature that holds
+  (libsodium's strict check), and a counter above the last one accepted, or the command is
+  **refused**: counted by reason, logged, answered with REFUSED (routed back to the cable)
+  when it came straight from the cable or along a route, and never passed on. A module that
+  trusts no key takes no command at all (``NO_CONTROL``).
+* The counter a module accepted last is written to its flash directory before the command
+  is carried out, so a restart does not reopen replays (of commands that act: a STATE, which
+  only reads, is not written, so that reading the robot costs no flash writes).
+* A flooded command's copies come back around: one with the counter accepted last, from a
+  neighbour (hops > 0), and the same signature is a *duplicate*, dropped and counted, not a
+  refusal. The same from the cable (hops 0) is a replay.
+* INJECT and STATE travel along their route: a module that is not the end of it passes the
+  command on through the route's next connector (NO_ROUTE if nothing is linked there, or the
+  command came in elsewhere than the route says); the module at its end injects the hormone
+  (its program's, by the digest) or answers with its status.
+* PAUSE and RESUME are carried out and flooded through every other attached connector.
+* Answers (STATE_REPLY, REFUSED) from further out are relayed towards the cable; the
+  cable's connector is the one the last command with hops 0 came in at.
+* WATCH, from the cable only, makes the module send the cable a WATCHED frame for every
+  hormone it receives (or is given) for the cycles the watch asks, each as the link frame
+  it came in as.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from dh2rt.errors import DecodeError, HormoneError
+from dh2rt.hormone import Arrival, Hormone
+from dh2rt.runtime import ModuleRuntime
+from dh2rt.transport.base import FrameFamily, Inbound, Listening
+from dh2rt.wire import operator as op
+
+#: The file in a module's flash directory that holds the last counter it accepted.
+COUNTER_FILE = "operator.json"
+
+
+@dataclass(frozen=True, slots=True)
+class Out:
+    """A frame to send through ``connector``."""
+
+    connector: int
+    frame: bytes
+
+
+class OperatorCore:
+    """The operator channel's state machine for one module (no I/O: the caller sends what
+    :meth:`received` returns, reads the module through ``module`` and persists through
+    ``persist``)."""
+
+    def __init__(
+        self,
+        trust: Sequence[bytes],
+        module: ModuleRuntime,
+        *,
+        last_counter: int | None = None,
+        persist: Callable[[int], None] = lambda counter: None,
+    ) -> None:
+        self.trust = {op.key_id(k): bytes(k) for k in trust}
+        self.module = module
+        #: the counter accepted last (None: none yet) and that command's signature
+        self.last_counter = last_counter
+        self._last_signature: bytes | None = None
+        self.persist = persist
+        #: the connector the cable is on (where the last command with hops 0 came in)
+        self.cable: int | None = None
+        #: the WATCH under way: (its counter, the hormone index or None, the cycle it ends at)
+        self.watch: tuple[int, int | None, int] | None = None
+        self.refused: Counter[op.RefusalReason] = Counter()
+        self.accepted = 0
+        self.duplicates = 0
+        self.malformed = 0
+        self.relayed = 0
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """What the module's status shows of its operator channel."""
+        out = {"accepted": self.accepted, "duplicates": self.duplicates, "malformed": self.malformed}
+        out["relayed"] = self.relayed
+        out.update({f"refused_{r.name.lower()}": n for r, n in sorted(self.refused.items())})
+        return out
+
+    def received(self, connector: int, payload: bytes) -> list[Out]:
+        """A control frame came in at ``connector``: what to send in answer or onwards."""
+        try:
+            sender, message = op.decode(payload)
+        except DecodeError as exc:
+            self.malformed += 1
+            self._log(f"operator: a frame at connector {connector} does not decode: {exc}")
+            return []
+        if isinstance(message, op.Signed):
+            return self._command(connector, sender, message)
+        if isinstance(message, op.Watched):  # for a cable, never relayed
+            return []
+        return self._relay(message)
+
+    # -- commands ----------------------------------------------------------------------------
+
+    def _command(self, connector: int, sender: int, m: op.Signed) -> list[Out]:
+        if m.hops == 0:
+            self.cable = connector
+        reason = self._judge(m)
+        if reason is None and self.last_counter == m.counter:
+            self.duplicates += 1  # a flooded copy that came around
+            return []
+        kind = op.message_type(m).name
+        route = op.route_of(m.command)
+        if reason is None and route is not None and not self._on_route(connector, sender, m.hops, route):
+            reason = op.RefusalReason.NO_ROUTE
+        if reason is None and isinstance(m.command, op.Watch) and m.hops:
+            reason = op.RefusalReason.NO_ROUTE  # a watch is the cable's module's only
+        if reason is not None:
+            self.refused[reason] += 1
+            self._log(f"operator: refused {kind} {m.counter} at connector {connector}: {reason.name}")
+            return self._refusal(m, route, reason)
+        self.accepted += 1
+        self.last_counter, self._last_signature = m.counter, m.signature
+        if not isinstance(m.command, op.StateRequest | op.Watch):
+            # a STATE only reads: replaying one after a restart tells nothing new, so the flash
+            # is written (an fsync on the module's loop) only for commands that act
+            self.persist(m.counter)
+        if isinstance(m.command, op.Watch):
+            return self._start_watch(m, m.command)
+        if route is None:  # PAUSE / RESUME: here, then every other way
+            self.module.pause(isinstance(m.command, op.Pause))
+            return [Out(c, op.encode(c, m.onward())) for c in sorted(self.module.transport.links) if c != connector]
+        if m.hops < len(route):
+            through = route[m.hops][0]
+            if through not in self.module.transport.links:
+                self.refused[op.RefusalReason.NO_ROUTE] += 1
+                self._log(f"operator: {kind} {m.counter}: nothing linked at connector {through}")
+                return self._refusal(m, route, op.RefusalReason.NO_ROUTE)
+            return [Out(through, op.encode(through, m.onward()))]
+        if isinstance(m.command, op.Inject):
+            return self._inject(m, m.command, route)
+        return self._answer(op.StateReply(m.counter, m.hops, route, self.status()))
+
+    def _judge(self, m: op.Signed) -> op.RefusalReason | None:
+        """Why ``m`` is refused here, or None; a duplicate passes (the caller tells it)."""
+        if not self.trust:
+            return op.RefusalReason.NO_CONTROL
+        key = self.trust.get(m.key_id)
+        if key is None:
+            return op.RefusalReason.UNTRUSTED_KEY
+        if not op.signature_holds(m, key):
+            return op.RefusalReason.BAD_SIGNATURE
+        last = self.last_counter
+        if last is not None and (
+            m.counter < last or (m.counter == last and (m.hops == 0 or m.signature != self._last_signature))
+        ):
+            return op.RefusalReason.REPLAYED
+        return None
+
+    def _on_route(self, connector: int, sender: int, hops: int, route: op.Path) -> bool:
+        """Whether a routed command that passed ``hops`` modules came in where its route says."""
+        if hops > len(route):
+            return False
+        return hops == 0 or route[hops - 1] == (sender, connector)
+
+    def _inject(self, m: op.Signed, command: op.Inject, route: op.Path) -> list[Out]:
+        rt = self.module
+        if command.digest != rt.digest:
+            self.refused[op.RefusalReason.WRONG_PROGRAM] += 1
+            self._log(f"operator: INJECT {m.counter} for program {command.digest.hex()}, not this one")
+            return self._refusal(m, route, op.RefusalReason.WRONG_PROGRAM)
+        try:
+            name, args, end = rt.program.vocabulary.decode_content(command.content)
+            if end != len(command.content):
+                raise DecodeError(f"{len(command.content) - end} byte(s) after the hormone")
+            hormone = Hormone(name, args)
+            rt.inject(hormone)
+        except (DecodeError, HormoneError) as exc:
+            self.refused[op.RefusalReason.WRONG_PROGRAM] += 1
+            self._log(f"operator: INJECT {m.counter}: {exc}")
+            return self._refusal(m, route, op.RefusalReason.WRONG_PROGRAM)
+        self._log(f"operator: injected {hormone.content()} ({m.counter})")
+        return []
+
+    def _start_watch(self, m: op.Signed, watch: op.Watch) -> list[Out]:
+        self.watch = (m.counter, watch.hormone, self.module.cycle + watch.cycles)
+        self._log(f"operator: watching for {watch.cycles} cycles ({m.counter})")
+        return []
+
+    def arrivals(self, arrivals: list[Arrival]) -> list[Out]:
+        """The hormones this cycle brought (the runtime's ``on_arrivals``): WATCHED frames
+        for the cable while a watch is under way."""
+        watch, rt = self.watch, self.module
+        if watch is None:
+            return []
+        counter, index, ends = watch
+        if rt.cycle >= ends or self.cable is None or self.cable not in rt.transport.links:
+            self.watch = None
+            return []
+        out = []
+        codec = rt.transport.codec
+        for a in arrivals:
+            if index is not None and codec.vocabulary.by_name[a.hormone.name].index != index:
+                continue
+            frame = codec.encode(a.remote or self.cable, a.hormone)
+            if len(frame) <= op.MAX_WATCHED_FRAME:
+                out.append(Out(self.cable, op.encode(self.cable, op.Watched(counter, rt.cycle, a.at, frame))))
+        return out
+
+    def _refusal(self, m: op.Signed, route: op.Path | None, reason: op.RefusalReason) -> list[Out]:
+        """REFUSED towards the cable, when the way back is known: straight from the cable,
+        or along the part of the route the command travelled. A flooded copy's is not."""
+        if m.hops == 0:
+            return self._answer(op.Refused(m.counter, 0, (), reason))
+        if route is None or m.hops > len(route):
+            return []
+        return self._answer(op.Refused(m.counter, m.hops, route[: m.hops], reason))
+
+    # -- answers -----------------------------------------------------------------------------
+
+    def _relay(self, answer: op.Answer) -> list[Out]:
+        """An answer from further out, one hop nearer the cable now."""
+        self.relayed += 1
+        return self._answer(answer)
+
+    def _answer(self, answer: op.Answer) -> list[Out]:
+        """Send ``answer`` (held here: ``left`` hops from the cable) one hop back."""
+        if answer.left == 0:
+            if self.cable is None or self.cable not in self.module.transport.links:
+                self._log(f"operator: an answer to {answer.counter} has no cable to go to")
+                return []
+            return [Out(self.cable, op.encode(self.cable, answer))]
+        through = answer.path[answer.left - 1][1]
+        if isinstance(answer, op.StateReply):
+            back: op.Answer = op.StateReply(answer.counter, answer.left - 1, answer.path, answer.status)
+        else:
+            back = op.Refused(answer.counter, answer.left - 1, answer.path, answer.reason)
+        return [Out(through, op.encode(through, back))]
+
+    def status(self) -> op.ModuleStatus:
+        """This module's state as a STATE_REPLY carries it."""
+        rt = self.module
+        e = rt.engine
+        return op.ModuleStatus(
+            digest=rt.digest,
+            type_index=e.type_index,
+            paused=rt.paused,
+            timer=e.timer,
+            cycle=rt.cycle,
+            connectors=tuple(e.status),
+            sensors=tuple(e.sensors),
+            variables=tuple(e.vars),
+            receptors=tuple(e.rstatus),
+        )
+
+    def _log(self, message: str) -> None:
+        self.module.log.append(f"cycle {self.module.cycle}: {message}")
+
+
+class OperatorChannel:
+    """:class:`OperatorCore` on a module's transport, its counter kept in ``directory``."""
+
+    def __init__(self, rt: ModuleRuntime, trust: Sequence[bytes], directory: Path | None) -> None:
+        self.rt = rt
+        self.path = None if directory is None else Path(directory) / COUNTER_FILE
+        self.core = OperatorCore(trust, rt, last_counter=self._read(), persist=self._write)
+        self.listening: Listening = rt.transport.listen(FrameFamily.CONTROL, self._on_control)
+        rt.on_arrivals = self._on_arrivals
+
+    def _on_arrivals(self, arrivals: list[Arrival]) -> None:
+        for out in self.core.arrivals(arrivals):
+            self.rt.transport.send_raw(out.connector, out.frame)
+
+    def _on_control(self, frame: Inbound) -> None:
+        for out in self.core.received(frame.connector, frame.payload):
+            self.rt.transport.send_raw(out.connector, out.frame)
+
+    def _read(self) -> int | None:
+        if self.path is None or not self.path.exists():
+            return None
+        try:
+            value = json.loads(self.path.read_text())["last_counter"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            # an unreadable record must not reopen replays: refuse every command until the
+            # operator's counter passes the largest one can be
+            self.rt.log.append(f"operator: {self.path} unreadable ({exc}); commands refused until it is rewritten")
+            return (1 << 64) - 1
+        return int(value) if isinstance(value, int) and value >= 0 else (1 << 64) - 1
+
+    def _write(self, counter: int) -> None:
+        if self.path is None:
+            return
+        tmp = self.path.with_suffix(".tmp")
+        with open(tmp, "w") as f:
+            f.write(json.dumps({"last_counter": counter}))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+
+    def close(self) -> None:
+        self.listening.close()

@@ -1,0 +1,231 @@
+"""The module's operator channel (firmware.operator) on a chain of real module runtimes over
+the in-process bus, with a cable (a transport of its own) plugged into the head's free front:
+signed commands carried out, routed, flooded, answered; forged, untrusted and replayed ones
+refused and counted; the counter surviving a restart."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from nacl.signing import SigningKey
+
+from dh2rt.bundled import compile_bundled
+from dh2rt.hormone import Hormone
+from dh2rt.runtime import ModuleRuntime
+from dh2rt.transport.base import BusEnd, FrameFamily, Inbound
+from dh2rt.transport.inproc import InprocBus, InprocTransport
+from dh2rt.wire import operator as op
+from dh2rt.wire.frame import FrameCodec
+from firmware.operator import COUNTER_FILE, OperatorChannel
+
+FRONT, BACK = 1, 2
+KEY = bytes(range(32))
+PUBLIC = bytes(SigningKey(KEY).verify_key)
+STRANGER = bytes(range(100, 132))
+PROGRAM = compile_bundled("legs_to_snake.dh2")
+
+
+class Chain:
+    """Modules m0..m(n-1), each one's back on the next one's front; the cable on m0's front."""
+
+    def __init__(self, n: int, flash: Path, trust: tuple[bytes, ...] = (PUBLIC,)) -> None:
+        self.bus = InprocBus()
+        codec = FrameCodec(PROGRAM.vocabulary, PROGRAM.profile.connector_count)
+        self.modules = [ModuleRuntime(PROGRAM, InprocTransport(codec, bus=self.bus), module=i) for i in range(n)]
+        self.channels = []
+        for i, rt in enumerate(self.modules):
+            (flash / f"m{i}").mkdir(exist_ok=True)
+            self.channels.append(OperatorChannel(rt, trust, flash / f"m{i}"))
+        for i in range(n - 1):
+            self.modules[i].attach(BACK, BusEnd(i, 0))
+            self.modules[i + 1].attach(FRONT, BusEnd(i, 1))
+        self.cable = InprocTransport(codec, bus=self.bus)
+        self.cable.attach(BACK, BusEnd(1000, 0))
+        self.modules[0].attach(FRONT, BusEnd(1000, 1))
+        self.answers: list[op.Message] = []
+        self.cable.listen(FrameFamily.CONTROL, self._answer)
+        self.counter = 0
+
+    def _answer(self, frame: Inbound) -> None:
+        self.answers.append(op.decode(frame.payload).message)
+
+    def send(self, command: op.Command, key: bytes = KEY, counter: int | None = None) -> op.Signed:
+        self.counter = self.counter + 1 if counter is None else counter
+        signed = op.sign(command, self.counter, key)
+        self.send_signed(signed)
+        return signed
+
+    def send_signed(self, signed: op.Signed) -> None:
+        assert self.cable.send_raw(BACK, op.encode(BACK, signed))
+
+    def cycles(self, n: int = 1) -> None:
+        """n cycles of every module, frames between them carried at once (inproc)."""
+        for _ in range(n):
+            for rt in self.modules:
+                rt.step()
+            for _ in range(len(self.modules) + 1):  # control frames pass a hop a poll
+                for rt in self.modules:
+                    rt.take_in()
+            self.cable.poll()
+
+    def close(self) -> None:
+        for rt in self.modules:
+            rt.close()
+        self.cable.close()
+
+
+@pytest.fixture
+def chain(tmp_path: Path) -> Iterator[Chain]:
+    c = Chain(3, tmp_path)
+    c.cycles(3)
+    yield c
+    c.close()
+
+
+def route_to(i: int) -> op.Path:
+    return ((BACK, FRONT),) * i
+
+
+def test_state_is_routed_to_each_module_and_back(chain: Chain) -> None:
+    for i, rt in enumerate(chain.modules):
+        chain.answers.clear()
+        chain.send(op.StateRequest(route_to(i)))
+        chain.cycles(1)
+        (reply,) = chain.answers
+        assert isinstance(reply, op.StateReply) and reply.path == route_to(i) and reply.left == 0
+        s = reply.status
+        assert s.digest == rt.digest and s.type_index == rt.engine.type_index
+        assert s.connectors == tuple(rt.engine.status) and s.variables == tuple(rt.engine.vars)
+        assert s.receptors == tuple(rt.engine.rstatus) and not s.paused
+    assert [ch.core.accepted for ch in chain.channels] == [3, 2, 1]
+    assert chain.channels[0].core.relayed == 2 and chain.channels[1].core.relayed == 1
+
+
+def test_inject_reaches_the_module_its_route_names(chain: Chain) -> None:
+    injected: list[tuple[int, Hormone]] = []
+
+    def recorder(i: int) -> Callable[[Hormone], None]:
+        return lambda h: injected.append((i, h))
+
+    for i, rt in enumerate(chain.modules):
+        rt.inject = recorder(i)  # type: ignore[method-assign, assignment]
+    content = PROGRAM.vocabulary.encode_content(Hormone("LTS", ()))
+    chain.send(op.Inject(chain.modules[0].digest, content, route_to(2)))
+    chain.cycles(1)
+    assert injected == [(2, Hormone("LTS", ()))] and chain.answers == []
+
+
+def test_pause_floods_holds_every_engine_and_resume_goes_on_where_it_stopped(chain: Chain) -> None:
+    chain.send(op.Pause())
+    chain.cycles(1)
+    assert all(rt.paused for rt in chain.modules)
+    timers = [rt.engine.timer for rt in chain.modules]
+    chain.cycles(5)
+    assert [rt.engine.timer for rt in chain.modules] == timers
+    assert all(rt.verified(FRONT) for rt in chain.modules[1:])  # links kept alive meanwhile
+    chain.send(op.Resume())
+    chain.cycles(2)  # the head takes the RESUME in as its cycle starts: two steps each
+    assert not any(rt.paused for rt in chain.modules)
+    clock = PROGRAM.clock_cycle
+    assert [rt.engine.timer for rt in chain.modules] == [(t + 2) % clock for t in timers]
+    assert [ch.core.accepted for ch in chain.channels] == [2, 2, 2]
+
+
+def test_wrong_key_forgery_and_replay_are_refused_answered_and_counted(chain: Chain) -> None:
+    chain.send(op.Pause(), key=STRANGER)
+    good = op.sign(op.Pause(), 50, KEY)
+    chain.send_signed(op.Signed(good.command, 50, good.key_id, bytes(64)))  # forged signature
+    chain.send_signed(op.Signed(op.Resume(), 50, good.key_id, good.signature))  # PAUSE's signature on a RESUME
+    chain.cycles(1)
+    assert not any(rt.paused for rt in chain.modules)
+    chain.send_signed(good)
+    chain.cycles(1)
+    assert all(rt.paused for rt in chain.modules)
+    chain.send_signed(good)  # the same again, from the cable: a replay
+    chain.send(op.Resume(), counter=49)  # an older counter
+    chain.cycles(1)
+    assert all(rt.paused for rt in chain.modules)
+    reasons = [a.reason for a in chain.answers if isinstance(a, op.Refused)]
+    why = op.RefusalReason
+    assert reasons == [why.UNTRUSTED_KEY, why.BAD_SIGNATURE, why.BAD_SIGNATURE, why.REPLAYED, why.REPLAYED]
+    head = chain.channels[0].core.counters
+    assert head["refused_untrusted_key"] == 1 and head["refused_bad_signature"] == 2
+    assert head["refused_replayed"] == 2 and head["accepted"] == 1
+    assert any("refused PAUSE 50 at connector 1: REPLAYED" in line for line in chain.modules[0].log)
+
+
+def test_a_route_through_nothing_is_refused_along_the_way_back(chain: Chain) -> None:
+    chain.send(op.StateRequest((*route_to(2), (3, FRONT))))  # m2 has nothing at its right
+    chain.cycles(1)
+    assert chain.answers == [op.Refused(chain.counter, 0, route_to(2), op.RefusalReason.NO_ROUTE)]
+
+
+def test_the_last_counter_survives_a_restart(tmp_path: Path) -> None:
+    first = Chain(1, tmp_path)
+    first.send(op.Pause(), counter=77)
+    first.cycles(1)
+    first.close()
+    assert (tmp_path / "m0" / COUNTER_FILE).read_text() == '{"last_counter": 77}'
+    again = Chain(1, tmp_path)
+    again.send(op.Pause(), counter=77)
+    again.send(op.Pause(), counter=78)
+    again.cycles(1)
+    assert [a.reason for a in again.answers if isinstance(a, op.Refused)] == [op.RefusalReason.REPLAYED]
+    assert again.modules[0].paused
+    again.close()
+
+
+def test_a_module_that_trusts_no_key_takes_no_command(tmp_path: Path) -> None:
+    c = Chain(1, tmp_path, trust=())
+    c.send(op.Pause())
+    c.cycles(1)
+    assert c.answers == [op.Refused(1, 0, (), op.RefusalReason.NO_CONTROL)] and not c.modules[0].paused
+    c.close()
+
+
+def test_garbage_is_counted_malformed(chain: Chain) -> None:
+    chain.cable.send_raw(BACK, bytes((0x21, 64, 0)))  # the reserved docking range
+    chain.cycles(1)
+    assert chain.channels[0].core.malformed == 1
+    assert any("reserved" in line for line in chain.modules[0].log)
+
+
+def test_a_state_request_writes_no_flash(tmp_path: Path) -> None:
+    c = Chain(1, tmp_path)
+    c.send(op.StateRequest(), counter=5)
+    c.cycles(1)
+    assert not (tmp_path / "m0" / COUNTER_FILE).exists() and c.channels[0].core.last_counter == 5
+    c.send(op.Pause(), counter=6)
+    c.cycles(1)
+    assert (tmp_path / "m0" / COUNTER_FILE).read_text() == '{"last_counter": 6}'
+    c.close()
+
+
+def test_watch_sends_the_cable_what_its_module_receives_then_ends(chain: Chain) -> None:
+    lts = PROGRAM.vocabulary.encode_content(Hormone("LTS", ()))
+    index = PROGRAM.vocabulary.by_name["RCT"].index
+    chain.send(op.Watch(3, index))  # RCT only: the LTS below is not shown
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    assert not [a for a in chain.answers if isinstance(a, op.Watched)]
+    chain.send(op.Watch(2))
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    (watched,) = [a for a in chain.answers if isinstance(a, op.Watched)]
+    assert watched.counter == chain.counter - 1 and watched.at == 0  # injected at the cable's module
+    codec = chain.modules[0].transport.codec
+    assert codec.decode(watched.frame).frame == Hormone("LTS", ())
+    chain.cycles(3)
+    chain.send(op.Inject(chain.modules[0].digest, lts))
+    chain.cycles(1)
+    assert len([a for a in chain.answers if isinstance(a, op.Watched)]) == 1  # the watch ended by itself
+    assert chain.channels[0].core.watch is None and chain.channels[0].core.counters["accepted"] == 5
+
+
+def test_a_watch_from_beyond_the_cables_module_is_refused(chain: Chain) -> None:
+    signed = op.sign(op.Watch(5), 99, KEY)
+    chain.send_signed(op.Signed(signed.command, 99, signed.key_id, signed.signature, hops=1))
+    chain.cycles(1)
+    assert chain.channels[0].core.refused[op.RefusalReason.NO_ROUTE] == 1 and chain.channels[0].core.watch is None

@@ -1,0 +1,69 @@
+"""`dh2rt dump` shows the operator's control frames (:mod:`dh2rt.wire.operator`) as kind
+``control``, one line a message, on CAN (segment trains reassembled) and on serial links; an
+INJECT names its hormone when the capture carries the program; a broken or reserved frame is
+an error that says why."""
+
+from __future__ import annotations
+
+import pytest
+
+from dh2rt.hormone import Hormone
+from dh2rt.program import CompiledProgram
+from dh2rt.wire import operator as op
+from dh2rt.wire.can_frames import segment
+from dh2rt.wire.frame import program_digest
+from dh2rt.wire.serial_framing import encode_serial
+from tools.capture_reader import CanRecord, Record
+from tools.decode import Decoder
+from tools.serial_records import SerialRecord
+
+FRONT, BACK = 1, 2
+KEY_ID = bytes.fromhex("0011223344556677")
+
+
+def records(payloads: list[bytes], medium: str) -> list[Record]:
+    if medium == "serial":
+        return [SerialRecord(at, 3, 0, encode_serial(p)) for at, p in enumerate(payloads)]
+    return [CanRecord(at, f.arbitration_id, f.data, True) for at, p in enumerate(payloads) for f in segment(p, 5, 0)]
+
+
+@pytest.mark.parametrize("medium", ["can", "serial"])
+def test_control_frames_read_in_operator_terms(medium: str, caterpillar: CompiledProgram) -> None:
+    digest = program_digest(caterpillar.image)
+    content = caterpillar.vocabulary.encode_content(Hormone("X", ("A",)))
+    messages: list[tuple[op.Message, str]] = [
+        (
+            op.Signed(op.Inject(digest, content, ((BACK, FRONT),)), 7, KEY_ID, bytes(64), 1),
+            "INJECT #7 key 0011223344556677 hops 1, X(A) at back>front",
+        ),
+        (op.Signed(op.Pause(), 8, KEY_ID, bytes(64)), "PAUSE #8 key 0011223344556677 hops 0"),
+        (
+            op.Signed(op.Watch(100, 0), 11, KEY_ID, bytes(64)),
+            "WATCH #11 key 0011223344556677 hops 0, hormone #0 for 100 cycles",
+        ),
+        (op.Watched(11, 42, BACK, bytes.fromhex("c10000")), "WATCHED #11 cycle 42 at back: c10000"),
+        (
+            op.Refused(9, 0, ((BACK, FRONT),), op.RefusalReason.REPLAYED),
+            "REFUSED #9 from back>front, left 0: REPLAYED",
+        ),
+        (
+            op.StateReply(10, 1, ((BACK, FRONT),), op.ModuleStatus(digest, 1, True, 3, 44, (0, 1, 0, 0))),
+            "STATE_REPLY #10 from back>front, left 1: type 1, LocalTimer 3, cycle 44, status 0,1,0,0, paused",
+        ),
+    ]
+    payloads = [op.encode(BACK, m) for m, _ in messages]
+    hops = [h for h in Decoder([caterpillar]).hops(records(payloads, medium)) if h.kind != "segment"]
+    texts = [h.text.removesuffix(" (reassembled)") for h in hops]  # a CAN segment train says so
+    assert [(h.kind, h.sender) for h in hops] == [("control", "back")] * len(messages)
+    assert texts == [text for _, text in messages]
+
+
+@pytest.mark.parametrize("medium", ["can", "serial"])
+def test_a_broken_control_frame_is_an_error_naming_the_reason(medium: str, caterpillar: CompiledProgram) -> None:
+    pause = op.encode(BACK, op.Signed(op.Pause(), 8, KEY_ID, bytes(64)))
+    broken = [bytes((0x22, 70)), pause + b"\x00"]
+    hops = [h for h in Decoder([caterpillar]).hops(records(broken, medium)) if h.kind != "segment"]
+    assert [h.error for h in hops] == [
+        "control frame: message type 70 is reserved (docking motion, not yet defined)",
+        "control frame PAUSE: 1 trailing byte(s)",
+    ]
