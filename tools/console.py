@@ -50,7 +50,7 @@ from dh2rt.transport.base import Transport
 from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec, program_digest
 from tools.console_link import ConsoleLink, Outcome
-from tools.flash import _check_options, add_cable_arguments, open_bus_cable, open_cable
+from tools.flash import add_cable_arguments, check_cable_options, open_bus_cable, open_cable
 
 EXIT_CODES = """\
 exit codes:
@@ -427,7 +427,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _main(ns: argparse.Namespace) -> int:
     try:
         ns.timeout, ns.confirm = 1.0, False  # what the flash command's option check reads
-        _check_options(ns)
+        check_cable_options(ns)
         key = read_private_key(ns.key)
         program = load_program(ns.program)
         script = _open_script(ns.script)

@@ -154,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help (0) or a bad option (2): argparse has said why
         return int(exc.code) if isinstance(exc.code, int) else EXIT_USAGE
     try:
-        _check_options(ns)
+        check_cable_options(ns)
         image = read_image(ns.image, trust=[read_public_key(k) for k in ns.trust])
         pacing, segment = cable_pacing(ns, image)
     except (ValueError, OSError) as exc:  # SignedImageError and KeyFileError are ValueErrors; a key file unread
@@ -192,7 +192,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return EXIT_OK if result.succeeded else EXIT_FAIL
 
 
-def _check_options(ns: argparse.Namespace) -> None:
+def check_cable_options(ns: argparse.Namespace) -> None:
+    """The cable and timing options `dh2rt flash` and `dh2rt console` share, checked (ValueError
+    naming the option)."""
     if not (math.isfinite(ns.cycle_ms) and ns.cycle_ms > 0):
         raise ValueError(f"--cycle-ms {ns.cycle_ms:g}: must be a positive number of milliseconds")
     if math.isnan(ns.timeout) or ns.timeout <= 0:

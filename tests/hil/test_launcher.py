@@ -241,8 +241,8 @@ def test_killed_module_restarts_on_its_links(capsys: pytest.CaptureFixture[str],
     code = PACE.call(
         cli.main,
         ["--transport", "serial", "--module-count", "4", "--cycles", "150", "--cycle-ms", "20",
-         "--silence-cycles", "6", "--event", "30:kill:m2", "--event", "70:restart:m2", "--json", "--stand-in", "recording",
-         "--trace", str(trace)]
+         "--silence-cycles", "6", "--event", "30:kill:m2", "--event", "70:restart:m2", "--json",
+         "--stand-in", "recording", "--trace", str(trace)]
     )  # fmt: skip
     assert code == 0
     lives: dict[str, set[int]] = {}
