@@ -112,7 +112,15 @@ def test_demo_runs_and_reports_ok(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 @pytest.mark.parametrize(
-    "args", [["--help"], ["check", "--help"], ["run", "--help"], ["image", "--help"], ["demo", "--help"]]
+    "args",
+    [
+        ["--help"],
+        ["check", "--help"],
+        ["run", "--help"],
+        ["image", "--help"],
+        ["demo", "--help"],
+        ["console", "--help"],
+    ],
 )
 def test_console_script_help(args: list[str]) -> None:
     exe = Path(sys.executable).with_name("dh2rt")
