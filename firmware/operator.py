@@ -12,8 +12,14 @@ The rules, for every signed command (:mod:`dh2rt.wire.operator`):
   when it came straight from the cable or along a route, and never passed on. A module that
   trusts no key takes no command at all (``NO_CONTROL``).
 * The counter a module accepted last is written to its flash directory before the command
-  is carried out, so a restart does not reopen replays (of commands that act: a STATE, which
-  only reads, is not written, so that reading the robot costs no flash writes).
+  is carried out (at the module's next cycle), so a restart does not reopen replays (of
+  commands that act: a STATE, which only reads, is not written, so that reading the robot
+  costs no flash writes). It is written *after* the command is passed on (:meth:`OperatorCore.save`,
+  called once the frames :meth:`OperatorCore.received` returned are sent): a flood waits for
+  no flash write on its way, where an fsync per hop once spread a PAUSE over 8 modules past
+  2 cycles on a busy machine. A module that dies between passing a command on and writing
+  its counter takes that one command again once after its restart, which only does what
+  the operator asked.
 * A flooded command's copies come back around: one with the counter accepted last, from a
   neighbour (hops > 0), and the same signature is a *duplicate*, dropped and counted, not a
   refusal. The same from the cable (hops 0) is a replay.
@@ -75,6 +81,8 @@ class OperatorCore:
         self.last_counter = last_counter
         self._last_signature: bytes | None = None
         self.persist = persist
+        #: a counter accepted and not yet written (:meth:`save` writes it)
+        self.unsaved: int | None = None
         #: the connector the cable is on (where the last command with hops 0 came in)
         self.cable: int | None = None
         #: the WATCH under way: (its counter, the hormone index or None, the cycle it ends at)
@@ -107,6 +115,13 @@ class OperatorCore:
             return []
         return self._relay(message)
 
+    def save(self) -> None:
+        """Write the counter accepted last, if it is not written yet: the caller calls this
+        after sending what :meth:`received` returned, before the module's next cycle."""
+        if self.unsaved is not None:
+            counter, self.unsaved = self.unsaved, None
+            self.persist(counter)
+
     # -- commands ----------------------------------------------------------------------------
 
     def _command(self, connector: int, sender: int, m: op.Signed) -> list[Out]:
@@ -130,8 +145,8 @@ class OperatorCore:
         self.last_counter, self._last_signature = m.counter, m.signature
         if not isinstance(m.command, op.StateRequest | op.Watch):
             # a STATE only reads: replaying one after a restart tells nothing new, so the flash
-            # is written (an fsync on the module's loop) only for commands that act
-            self.persist(m.counter)
+            # is written (an fsync on the module's loop) only for commands that act, by save()
+            self.unsaved = m.counter
         if isinstance(m.command, op.Watch):
             return self._start_watch(m, m.command)
         if route is None:  # PAUSE / RESUME: here, then every other way
@@ -281,6 +296,7 @@ class OperatorChannel:
     def _on_control(self, frame: Inbound) -> None:
         for out in self.core.received(frame.connector, frame.payload):
             self.rt.transport.send_raw(out.connector, out.frame)
+        self.core.save()
 
     def _read(self) -> int | None:
         if self.path is None or not self.path.exists():

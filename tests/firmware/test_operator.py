@@ -177,6 +177,34 @@ def test_the_last_counter_survives_a_restart(tmp_path: Path) -> None:
     again.close()
 
 
+def test_a_flood_is_passed_on_before_the_counter_is_written(tmp_path: Path) -> None:
+    """A PAUSE's copies leave before the module's flash write (an fsync per hop once spread a
+    PAUSE over 8 modules past 2 cycles on a busy machine); the write still comes before the
+    module's next cycle, and a restart after it refuses the replay."""
+    c = Chain(2, tmp_path)
+    order: list[str] = []
+    head = c.channels[0]
+    send_raw = c.modules[0].transport.send_raw
+    write = head.core.persist
+
+    def sent(connector: int, frame: bytes) -> bool:
+        order.append(f"send {connector}")
+        return send_raw(connector, frame)
+
+    def written(counter: int) -> None:
+        order.append(f"write {counter}")
+        write(counter)
+
+    c.modules[0].transport.send_raw = sent  # type: ignore[method-assign]
+    head.core.persist = written
+    c.send(op.Pause(), counter=9)
+    c.cycles(1)
+    assert order[:2] == [f"send {BACK}", "write 9"], order
+    assert (tmp_path / "m0" / COUNTER_FILE).read_text() == '{"last_counter": 9}'
+    assert all(rt.paused for rt in c.modules) and head.core.unsaved is None
+    c.close()
+
+
 def test_a_module_that_trusts_no_key_takes_no_command(tmp_path: Path) -> None:
     c = Chain(1, tmp_path, trust=())
     c.send(op.Pause())
