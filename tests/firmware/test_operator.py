@@ -195,7 +195,7 @@ def test_a_flood_is_passed_on_before_the_counter_is_written(tmp_path: Path) -> N
         order.append(f"write {counter}")
         write(counter)
 
-    c.modules[0].transport.send_raw = sent  # type: ignore[method-assign]
+    c.modules[0].transport.send_raw = sent  # type: ignore[method-assign, assignment]
     head.core.persist = written
     c.send(op.Pause(), counter=9)
     c.cycles(1)
