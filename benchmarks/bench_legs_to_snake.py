@@ -6,7 +6,9 @@ first winning foot killed 400 cycles into its trip (``trip``) and killed as its 
 (``dock``). Each run twice, in the same benchmark: with today's dock, whose plan leaves the
 distance to the creeping foot (``free_distance``), and with the plan before it, which asked
 the tail's last two modules to put their face 3 cm in front of the foot
-(``PhysicsRun.docking.options.free_distance = False``). Reported: how many formed the snake, the cycle it
+(``PhysicsRun.docking.options.free_distance = False``); and, with ``--variants ...,filtered``,
+free_distance with the modules smoothing the tracker's reports (:mod:`firmware.motion.floor_filter`,
+``--filter-alpha``). Reported: how many formed the snake, the cycle it
 formed (median and range), the docks that gave up, and the latches' distances and attitudes.
 ``--variants`` runs only some of the two. ``--tracker`` gives the overhead tracker the foot's
 trip steers by (sim.tracker.OverheadTracker) noise, latency and dropouts (exact by default);
@@ -15,7 +17,8 @@ state instead of the chain's kinematics and the tracker (PhysicsRun.oracle_poses
 what the modules' own sensing costs).
 
     python -m benchmarks.bench_legs_to_snake [--seeds 0,1,2,3] [--kills none,dock,trip] [--jobs 2] [--quick]
-        [--variants free_distance,standoff] [--tracker NOISE_MM,NOISE_DEG,LATENCY,DROPOUT] [--oracle]
+        [--variants free_distance,standoff,filtered] [--filter-alpha 0.3]
+        [--tracker NOISE_MM,NOISE_DEG,LATENCY,DROPOUT] [--oracle]
 
 One run is 30 to 45 s on one core. The last line is one JSON object.
 """
@@ -32,18 +35,25 @@ from typing import Any
 
 from benchmarks import jobs_arg, run_variants, seeds_arg, strict_json
 from dh2rt.compiler import compile_file
+from firmware.motion.floor_filter import FloorFilter
 from sim.legs_to_snake import KILLS, KillWinner, reconfigure
 from sim.runner import PhysicsRun
 from sim.tracker import OverheadTracker
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "legs_to_snake.dh2"
-VARIANTS = {"free_distance": True, "standoff": False}
+#: variant -> (the dock's plan leaves the distance free, the floor filter's alpha or None: raw)
+VARIANTS: dict[str, tuple[bool, float | None]] = {
+    "free_distance": (True, None),
+    "standoff": (False, None),
+    "filtered": (True, 0.3),
+}
+DEFAULT_VARIANTS = ("free_distance", "standoff")
 
 
 def one_run(
     seed: int,
     kill: str,
-    free_distance: bool,
+    variant: tuple[bool, float | None],
     tracker: tuple[float, float, int, float] = (0, 0, 0, 0),
     oracle: bool = False,
 ) -> dict[str, Any]:
@@ -52,9 +62,11 @@ def one_run(
     program = compile_file(str(EXAMPLE))
     hook = KillWinner(kill)
     noise_mm, noise_deg, latency, dropout = tracker
+    free_distance, alpha = variant
 
     def setup(run: PhysicsRun) -> None:
         run.docking.options.free_distance = free_distance
+        run.motion_sensors.floor_filter = None if alpha is None else FloorFilter(alpha)
         run.oracle_poses = oracle
         run.motion_sensors.tracker = OverheadTracker(
             run.world, noise_m=noise_mm / 1000, noise_deg=noise_deg, latency=latency, dropout=dropout, seed=seed
@@ -104,7 +116,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2, help="runs at once, one process each (default 2)")
     parser.add_argument("--quick", action="store_true", help="seed 0 without a kill (a smoke test)")
     parser.add_argument(
-        "--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)} (default both)"
+        "--variants",
+        default=",".join(DEFAULT_VARIANTS),
+        help=f"comma-separated, of {', '.join(VARIANTS)} (default {','.join(DEFAULT_VARIANTS)}); filtered is "
+        "free_distance with the modules smoothing the tracker's reports (firmware.motion.floor_filter)",
+    )
+    parser.add_argument(
+        "--filter-alpha", type=float, default=0.3, help="the filtered variant's alpha, in (0, 1] (default 0.3)"
     )
     parser.add_argument(
         "--tracker",
@@ -126,6 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--tracker: four numbers NOISE_MM,NOISE_DEG,LATENCY,DROPOUT, got {args.tracker!r}")
     if min(tracker) < 0 or tracker[3] >= 1:
         parser.error(f"--tracker: noise and latency >= 0, dropout in [0, 1), got {args.tracker!r}")
+    if not 0 < args.filter_alpha <= 1:
+        parser.error(f"--filter-alpha: in (0, 1], got {args.filter_alpha}")
+    chosen = {**VARIANTS, "filtered": (True, args.filter_alpha)}
     seeds = seeds_arg(parser, args.seeds)
     kills = args.kills.split(",")
     unknown = [k for k in kills if k not in KILLS]
@@ -135,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.quick:
         seeds, kills = [0], ["none"]
     cases = [
-        (name, one_run, (seed, kill, VARIANTS[name], tracker, args.oracle))
+        (name, one_run, (seed, kill, chosen[name], tracker, args.oracle))
         for name in variants
         for seed in seeds
         for kill in kills
@@ -166,7 +187,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"latches {s['latch_mm']['median']} mm / {s['latch_deg']['median']} deg median, "
             f"not formed {s['not_formed'] or 'none'}"
         )
-    if set(VARIANTS) <= set(variants):
+    if {"free_distance", "filtered"} <= set(variants):
+        raw, smooth = out["free_distance"]["cycles"]["median"], out["filtered"]["cycles"]["median"]
+        out["filtered_cycle_ratio"] = round(smooth / raw, 3) if smooth and raw else None
+        print(f"median cycle the snake formed, filtered / raw tracker reports: {out['filtered_cycle_ratio']}")
+    if set(DEFAULT_VARIANTS) <= set(variants):
         now, before = out["free_distance"]["cycles"]["median"], out["standoff"]["cycles"]["median"]
         out["median_cycle_ratio"] = round(now / before, 3) if now and before else None
         print(f"median cycle the snake formed, free_distance / standoff: {out['median_cycle_ratio']}")

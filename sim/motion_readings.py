@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dh2rt.docking import End
+from firmware.motion.floor_filter import FloorFilter
 from firmware.motion.readings import FloorPoses, Readings
 from firmware.motion.underway import Motion
 from sim.sensors import PhysicsSensors
@@ -33,9 +34,13 @@ Where = Callable[[int, int], str]
 class MotionSensors:
     """The sensors the docking motions read in ``world``, with ``tracker`` over the arena."""
 
-    def __init__(self, world: World, tracker: OverheadTracker | None = None) -> None:
+    def __init__(
+        self, world: World, tracker: OverheadTracker | None = None, floor_filter: FloorFilter | None = None
+    ) -> None:
         self.world = world
         self.tracker = tracker or OverheadTracker(world)
+        #: what the modules' firmware smooths the tracker's reports with (None: raw reports)
+        self.floor_filter = floor_filter
         model = world.model
         self.ir = PhysicsSensors(world, [f"ir_{c.name}{s}" for c in model.connectors for s in ("", "_align")])
         self.imu = PhysicsSensors(world, ["roll", "pitch"])
@@ -58,6 +63,8 @@ class MotionSensors:
         wanted = sorted(set(infrared))
         ir = dict(self.ir.read(wanted)) if wanted else {}
         poses = self.tracker.reading(cycle) if floor else FloorPoses()
+        if floor and self.floor_filter is not None:
+            poses = self.floor_filter.update(cycle, poses)
         exact = {pair: self._exact(*pair) for pair in oracle}
         tilted = sorted(set(attitude))
         imu = {m: (r["roll"], r["pitch"]) for m, r in self.imu.read(tilted).items()} if tilted else {}
