@@ -83,7 +83,14 @@ def snake(tmp_path: Path, n: int, program: CompiledProgram = PROGRAM, *, at_tail
         t.start()
     (tmp_path / "robot.key").write_bytes(private_key_pem(KEY))
     (tmp_path / "other.key").write_bytes(private_key_pem(OTHER))
+
+    def linked() -> bool:  # every module's engine sees its neighbours (the tests read types)
+        inner = [modules[i].engine.status[BACK - 1] for i in range(n - 1)]
+        return all(inner) and all(modules[i].engine.status[FRONT - 1] for i in range(1, n))
+
     try:
+        # a busy machine may take a while to link the snake; what follows is not about that
+        assert until(linked, 20.0), [rt.engine.status for rt in modules]
         yield Robot(modules, channels, cable.paths[0], tmp_path / "robot.key", tmp_path / "other.key")
     finally:
         stop.set()
@@ -322,7 +329,7 @@ def test_the_console_on_a_can_bus(tmp_path: Path) -> None:
     link = ConsoleLink(cable, KEY, connector=BACK, period=PERIOD).start()
     out = io.StringIO()
     try:
-        time.sleep(10 * PERIOD)
+        assert until(lambda: bool(modules[0].engine.status[BACK - 1] and modules[1].engine.status[FRONT - 1]), 20.0)
         session = console.Session(link, PROGRAM, PERIOD, out)
         session.state("back>front")
         session.pause()
