@@ -2,7 +2,8 @@
 each a ModuleRuntime on a serial transport with its operator channel), linked by the link
 emulator's pty pairs, and the console's cable a third link into the head's free front. The
 console reads states, draws the robot, injects LTS at a module, pauses and resumes; a replayed
-command and one signed with another key are refused and counted; bad input exits 2 naming it."""
+command and one signed with another key are refused and counted by every module; bad input
+exits 2 naming it."""
 
 from __future__ import annotations
 
@@ -129,8 +130,11 @@ def test_state_topology_pause_resume_and_inject(
 def test_refusals_are_answered_counted_and_exit_1(
     robot: Robot, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert run_console(robot, tmp_path, "pause\n", key=robot.other_key_file) == 1
-    assert "refused by the module at .: UNTRUSTED_KEY" in capsys.readouterr().out
+    assert run_console(robot, tmp_path, "pause\nstate back>front\n", key=robot.other_key_file) == 1
+    out = capsys.readouterr().out
+    # the flood is answered by the module at the cable, the routed STATE by its route's end
+    assert "refused by the module at .: UNTRUSTED_KEY" in out, out
+    assert "refused by the module at back>front: UNTRUSTED_KEY" in out, out
     transport = open_cable(robot.cable, 115200)
     link = ConsoleLink(transport, KEY, period=PERIOD).start()
     try:
@@ -143,8 +147,13 @@ def test_refusals_are_answered_counted_and_exit_1(
     finally:
         link.close()
         transport.close()
-    head = robot.channels[0].core.counters
-    assert head["refused_untrusted_key"] == 1 and head["refused_replayed"] == 1, head
+
+    # every module judged each command for itself and counted its refusal
+    def counted() -> list[dict[str, int]]:
+        return [ch.core.counters for ch in robot.channels]
+
+    assert until(lambda: all(c.get("refused_replayed") == 1 for c in counted())), counted()
+    assert all(c["refused_untrusted_key"] == 2 for c in counted()), counted()
     assert not robot.modules[0].paused
 
 
