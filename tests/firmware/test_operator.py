@@ -21,20 +21,32 @@ from dh2rt.transport.base import BusEnd, FrameFamily, Inbound
 from dh2rt.transport.inproc import InprocBus, InprocTransport
 from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec
-from firmware.operator import COUNTER_FILE, REFUSED_PER_CYCLE, OperatorChannel
+from firmware.operator import COUNTER_FILE, MAX_HOPS, REFUSED_MEMORY_CYCLES, REFUSED_PER_CYCLE, OperatorChannel
 
-FRONT, BACK, LEFT = 1, 2, 3
+FRONT, BACK, LEFT, RIGHT = 1, 2, 3, 4
 KEY = bytes(range(32))
 PUBLIC = bytes(SigningKey(KEY).verify_key)
 STRANGER = bytes(range(100, 132))
 PROGRAM = compile_bundled("legs_to_snake.dh2")
+#: links between modules: (module, connector, module, connector) each
+Links = tuple[tuple[int, int, int, int], ...]
 
 
 class Chain:
     """Modules m0..m(n-1), each one's back on the next one's front; the cable on m0's front;
-    with ``ring``, the last one's back on m0's left too."""
+    with ``ring``, the last one's back on m0's left too; ``extra`` links (module, connector,
+    module, connector) besides (or alone, not ``chained``)."""
 
-    def __init__(self, n: int, flash: Path, trust: tuple[bytes, ...] = (PUBLIC,), *, ring: bool = False) -> None:
+    def __init__(
+        self,
+        n: int,
+        flash: Path,
+        trust: tuple[bytes, ...] = (PUBLIC,),
+        *,
+        ring: bool = False,
+        extra: Links = (),
+        chained: bool = True,
+    ) -> None:
         self.bus = InprocBus()
         codec = FrameCodec(PROGRAM.vocabulary, PROGRAM.profile.connector_count)
         self.modules = [ModuleRuntime(PROGRAM, InprocTransport(codec, bus=self.bus), module=i) for i in range(n)]
@@ -42,12 +54,14 @@ class Chain:
         for i, rt in enumerate(self.modules):
             (flash / f"m{i}").mkdir(exist_ok=True)
             self.channels.append(OperatorChannel(rt, trust, flash / f"m{i}"))
-        for i in range(n - 1):
+        for i in range(n - 1 if chained else 0):
             self.modules[i].attach(BACK, BusEnd(i, 0))
             self.modules[i + 1].attach(FRONT, BusEnd(i, 1))
         if ring:
-            self.modules[-1].attach(BACK, BusEnd(n, 0))
-            self.modules[0].attach(LEFT, BusEnd(n, 1))
+            extra = ((n - 1, BACK, 0, LEFT), *extra)
+        for link, (a, ca, b, cb) in enumerate(extra, start=n):
+            self.modules[a].attach(ca, BusEnd(link, 0))
+            self.modules[b].attach(cb, BusEnd(link, 1))
         self.cable = InprocTransport(codec, bus=self.bus)
         self.cable.attach(BACK, BusEnd(1000, 0))
         self.modules[0].attach(FRONT, BusEnd(1000, 1))
@@ -249,6 +263,55 @@ def test_in_a_ring_a_refused_flood_is_counted_by_every_module_and_its_copies_die
     ring.cycles(5)
     assert sent.total() == 0  # nothing circles
     ring.close()
+
+
+#: m0..m3 a ring, m4 on m2's left and on m0's right: two rings sharing m0 and m2
+TWO_RINGS: Links = ((0, BACK, 1, FRONT), (1, BACK, 2, FRONT), (2, BACK, 3, FRONT), (3, BACK, 0, LEFT))
+TWO_RINGS += ((2, LEFT, 4, FRONT), (4, BACK, 0, RIGHT))
+#: a body (m0) with three legs (m1..m3) linked to each other, and m4 between two legs
+BODY: Links = ((0, BACK, 1, FRONT), (0, LEFT, 2, FRONT), (0, RIGHT, 3, FRONT), (1, BACK, 2, BACK))
+BODY += ((2, LEFT, 3, BACK), (3, LEFT, 4, FRONT), (4, BACK, 1, LEFT))
+
+
+@pytest.mark.parametrize("links", [TWO_RINGS, BODY], ids=["two-rings", "body-and-linked-legs"])
+def test_refused_floods_in_loopy_bodies_reach_every_module_once(tmp_path: Path, links: Links) -> None:
+    """In bodies with several loops, a PAUSE signed with another key and a replayed one are
+    refused once by every module, answered once, passed on once a connector, and die out."""
+    n = 5
+    body = Chain(n, tmp_path, extra=links, chained=False)
+    body.cycles(3)
+    sent = SentCommands(body)
+    why = op.RefusalReason
+    body.send(op.Pause(), key=STRANGER)
+    body.cycles(2)
+    sent.once_a_connector()
+    good = body.send(op.Pause())
+    body.cycles(1)
+    assert all(rt.paused for rt in body.modules)
+    sent.once_a_connector()
+    body.send_signed(good)
+    body.cycles(2)
+    sent.once_a_connector()
+    body.cycles(5)
+    assert sent.total() == 0
+    assert [ch.core.refused[why.UNTRUSTED_KEY] for ch in body.channels] == [1] * n
+    assert [ch.core.refused[why.REPLAYED] for ch in body.channels] == [1] * n
+    assert [ch.core.accepted for ch in body.channels] == [1] * n
+    assert [a.reason for a in body.answers if isinstance(a, op.Refused)] == [why.UNTRUSTED_KEY, why.REPLAYED]
+    body.close()
+
+
+def test_a_refused_command_is_passed_on_again_once_forgotten_and_never_past_255_hops(chain: Chain) -> None:
+    stranger = chain.send(op.Pause(), key=STRANGER)
+    chain.cycles(1)
+    chain.cycles(REFUSED_MEMORY_CYCLES + 1)
+    chain.send_signed(stranger)  # forgotten by now: judged and passed on again, as new
+    chain.cycles(1)
+    assert [ch.core.refused[op.RefusalReason.UNTRUSTED_KEY] for ch in chain.channels] == [2, 2, 2]
+    far = op.sign(op.Pause(), 7, STRANGER)
+    chain.send_signed(replace(far, hops=MAX_HOPS - 1))  # m0 passes it on with 255 hops; m1 no further
+    chain.cycles(1)
+    assert [ch.core.refused[op.RefusalReason.UNTRUSTED_KEY] for ch in chain.channels] == [3, 3, 2]
 
 
 def test_a_flood_of_made_up_frames_costs_a_module_one_relay_each_and_a_few_a_cycle(tmp_path: Path) -> None:
