@@ -280,13 +280,15 @@ VARS_HELP = (
 
 
 def variable_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Each running module's variables and sensors, ``m0: V.waiting=0 V.quiet=3 S.roll=0``, for
-    a text summary (``--vars``); none when the program declares neither."""
+    """Each module's variables and sensors, ``m0: V.waiting=0 V.quiet=3 S.roll=0``, for a text
+    summary (``--vars``): as it left them (a robot's stopped module has none; a module process
+    that ended, as every one at a run's end, has those of its last status); none when the
+    program declares neither."""
     out: list[str] = []
     for r in rows:
         values = [f"V.{k}={v}" for k, v in r.get("variables", {}).items()]
         values += [f"S.{k}={v}" for k, v in r.get("sensors", {}).items()]
-        if values and r.get("alive", True):
+        if values:
             out.append(f"  {r['name']}: {' '.join(values)}")
     return (["variables and sensors:", *out]) if out else []
 

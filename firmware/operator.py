@@ -8,9 +8,20 @@ The rules, for every signed command (:mod:`dh2rt.wire.operator`):
 
 * trusted key (module.toml's ``trust``, the keys its flash trusts), a signature that holds
   (libsodium's strict check), and a counter above the last one accepted, or the command is
-  **refused**: counted by reason, logged, answered with REFUSED (routed back to the cable)
-  when it came straight from the cable or along a route, and never passed on. A module that
-  trusts no key takes no command at all (``NO_CONTROL``).
+  **refused**: counted by reason, logged, and passed on as an accepted one would be (flooded,
+  or along its route), so that every module judges it for itself and counts its own refusal.
+  Only the module at the cable (a flooded command) or where a routed one stops (its route's
+  end, or where it cannot go on) answers with REFUSED, routed back to the cable: the console
+  gets one answer, not one a module. A module that trusts no key takes no command at all
+  (``NO_CONTROL``).
+* A refused command opens no loop and no amplifier: a module passes on at most
+  :data:`REFUSED_PER_CYCLE` refused commands in one of its cycles (the rest are counted
+  ``not_passed_on``), never one with 255 hops, and remembers each one it passed on (the whole
+  signed command) for :data:`REFUSED_MEMORY_CYCLES` cycles: a copy that comes back around a
+  ring is a *duplicate*, dropped and counted, and the same frame again from the cable is
+  refused and answered again but not passed on. A frame is passed on by each module at most
+  once however many copies of it reach it, so a flood of made-up frames costs each module at
+  most one relay per distinct frame, and at most :data:`REFUSED_PER_CYCLE` a cycle.
 * The counter a module accepted last is written to its flash directory before the command
   is carried out (at the module's next cycle), so a restart does not reopen replays (of
   commands that act: a STATE, which only reads, is not written, so that reading the robot
@@ -20,9 +31,12 @@ The rules, for every signed command (:mod:`dh2rt.wire.operator`):
   2 cycles on a busy machine. A module that dies between passing a command on and writing
   its counter takes that one command again once after its restart, which only does what
   the operator asked.
-* A flooded command's copies come back around: one with the counter accepted last, from a
-  neighbour (hops > 0), and the same signature is a *duplicate*, dropped and counted, not a
-  refusal. The same from the cable (hops 0) is a replay.
+* A command's copies come back around (a flood's in a ring; a routed command's never): the
+  command accepted last arriving again from a neighbour (hops > 0) at a connector no copy of
+  it came in at yet is a *duplicate*, dropped and counted, not a refusal (each neighbour
+  passes a command on to a module once: a second copy through the same connector is not a
+  copy). The same from the cable (hops 0), or again through a connector, is a replay: each
+  module a replayed command reaches counts it ``REPLAYED``.
 * INJECT and STATE travel along their route: a module that is not the end of it passes the
   command on through the route's next connector (NO_ROUTE if nothing is linked there, or the
   command came in elsewhere than the route says); the module at its end injects the hormone
@@ -41,7 +55,7 @@ import json
 import os
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from dh2rt.errors import DecodeError, HormoneError
@@ -52,6 +66,13 @@ from dh2rt.wire import operator as op
 
 #: The file in a module's flash directory that holds the last counter it accepted.
 COUNTER_FILE = "operator.json"
+#: Refused commands a module passes on in one of its cycles, at most.
+REFUSED_PER_CYCLE = 8
+#: Cycles a module remembers a refused command it passed on (its copies that come back
+#: within them are duplicates; a ring's come back within a cycle or two).
+REFUSED_MEMORY_CYCLES = 16
+#: The most hops a command carries (a byte): one with as many is passed on no further.
+MAX_HOPS = 255
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,6 +101,12 @@ class OperatorCore:
         #: the counter accepted last (None: none yet) and that command's signature
         self.last_counter = last_counter
         self._last_signature: bytes | None = None
+        #: the connectors copies of the command accepted last came in at
+        self._last_from: set[int] = set()
+        #: the refused commands passed on (hops 0), each with the cycle it was passed on at
+        self._passed_refused: dict[op.Signed, int] = {}
+        #: (a cycle, the refused commands passed on in it)
+        self._refused_spent = (-1, 0)
         self.persist = persist
         #: a counter accepted and not yet written (:meth:`save` writes it)
         self.unsaved: int | None = None
@@ -92,12 +119,15 @@ class OperatorCore:
         self.duplicates = 0
         self.malformed = 0
         self.relayed = 0
+        self.not_passed_on = 0
 
     @property
     def counters(self) -> dict[str, int]:
         """What the module's status shows of its operator channel."""
         out = {"accepted": self.accepted, "duplicates": self.duplicates, "malformed": self.malformed}
         out["relayed"] = self.relayed
+        if self.not_passed_on:
+            out["not_passed_on"] = self.not_passed_on
         out.update({f"refused_{r.name.lower()}": n for r, n in sorted(self.refused.items())})
         return out
 
@@ -127,44 +157,92 @@ class OperatorCore:
     def _command(self, connector: int, sender: int, m: op.Signed) -> list[Out]:
         if m.hops == 0:
             self.cable = connector
-        reason = self._judge(m)
+        seen = replace(m, hops=0)  # the command itself, however far it came
+        passed = self._passed_on_refused(seen)
+        if passed and m.hops:
+            self.duplicates += 1  # a refused command's copy that came around
+            return []
+        reason = self._judge(connector, m)
         if reason is None and self.last_counter == m.counter:
             self.duplicates += 1  # a flooded copy that came around
+            self._last_from.add(connector)
             return []
         kind = op.message_type(m).name
         route = op.route_of(m.command)
-        if reason is None and route is not None and not self._on_route(connector, sender, m.hops, route):
+        on_route = route is None or self._on_route(connector, sender, m.hops, route)
+        if reason is None and not on_route:
             reason = op.RefusalReason.NO_ROUTE
         if reason is None and isinstance(m.command, op.Watch) and m.hops:
             reason = op.RefusalReason.NO_ROUTE  # a watch is the cable's module's only
         if reason is not None:
             self.refused[reason] += 1
             self._log(f"operator: refused {kind} {m.counter} at connector {connector}: {reason.name}")
+            ways = self._ways_on(connector, m, route) if on_route and not passed else None
+            if ways and self._may_pass_refused(m, seen):
+                onward = [Out(c, op.encode(c, m.onward())) for c in ways]
+                # a flood is answered by the cable's module; a routed command where it stops
+                return onward + self._refusal(m, None, reason) if route is None else onward
             return self._refusal(m, route, reason)
         self.accepted += 1
-        self.last_counter, self._last_signature = m.counter, m.signature
+        self.last_counter, self._last_signature, self._last_from = m.counter, m.signature, {connector}
         if not isinstance(m.command, op.StateRequest | op.Watch):
             # a STATE only reads: replaying one after a restart tells nothing new, so the flash
             # is written (an fsync on the module's loop) only for commands that act, by save()
             self.unsaved = m.counter
         if isinstance(m.command, op.Watch):
             return self._start_watch(m, m.command)
+        ways = self._ways_on(connector, m, route)
         if route is None:  # PAUSE / RESUME: here, then every other way
             self.module.pause(isinstance(m.command, op.Pause))
-            return [Out(c, op.encode(c, m.onward())) for c in sorted(self.module.transport.links) if c != connector]
-        if m.hops < len(route):
-            through = route[m.hops][0]
-            if through not in self.module.transport.links:
-                self.refused[op.RefusalReason.NO_ROUTE] += 1
-                self._log(f"operator: {kind} {m.counter}: nothing linked at connector {through}")
-                return self._refusal(m, route, op.RefusalReason.NO_ROUTE)
-            return [Out(through, op.encode(through, m.onward()))]
-        if isinstance(m.command, op.Inject):
-            return self._inject(m, m.command, route)
-        return self._answer(op.StateReply(m.counter, m.hops, route, self.status()))
+        elif ways is None:
+            self.refused[op.RefusalReason.NO_ROUTE] += 1
+            self._log(f"operator: {kind} {m.counter}: nothing linked at connector {route[m.hops][0]}")
+            return self._refusal(m, route, op.RefusalReason.NO_ROUTE)
+        elif not ways:  # the route's end
+            if isinstance(m.command, op.Inject):
+                return self._inject(m, m.command, route)
+            return self._answer(op.StateReply(m.counter, m.hops, route, self.status()))
+        return [Out(c, op.encode(c, m.onward())) for c in ways or ()]
 
-    def _judge(self, m: op.Signed) -> op.RefusalReason | None:
-        """Why ``m`` is refused here, or None; a duplicate passes (the caller tells it)."""
+    def _ways_on(self, connector: int, m: op.Signed, route: op.Path | None) -> list[int] | None:
+        """The connectors ``m`` goes on through from here when it is accepted: every other
+        linked one (flooded), the route's next (routed), none (a WATCH, the route's end), or
+        None when the route's next has nothing linked."""
+        links = self.module.transport.links
+        if isinstance(m.command, op.Watch):
+            return []
+        if route is None:
+            return [c for c in sorted(links) if c != connector]
+        if m.hops >= len(route):
+            return []
+        through = route[m.hops][0]
+        return [through] if through in links else None
+
+    def _passed_on_refused(self, seen: op.Signed) -> bool:
+        """Whether this module passed the refused command ``seen`` on lately (forgetting
+        those older than :data:`REFUSED_MEMORY_CYCLES`)."""
+        passed, oldest = self._passed_refused, self.module.cycle - REFUSED_MEMORY_CYCLES
+        while passed and next(iter(passed.values())) < oldest:
+            del passed[next(iter(passed))]
+        return seen in passed
+
+    def _may_pass_refused(self, m: op.Signed, seen: op.Signed) -> bool:
+        """Whether the refused ``m`` may go on (this cycle's allowance and the hop byte
+        permitting), remembering it if so."""
+        cycle = self.module.cycle
+        spent = self._refused_spent[1] if self._refused_spent[0] == cycle else 0
+        if m.hops >= MAX_HOPS:
+            return False
+        if spent >= REFUSED_PER_CYCLE:
+            self.not_passed_on += 1
+            return False
+        self._refused_spent = (cycle, spent + 1)
+        self._passed_refused[seen] = cycle
+        return True
+
+    def _judge(self, connector: int, m: op.Signed) -> op.RefusalReason | None:
+        """Why ``m``, come in at ``connector``, is refused here, or None; a duplicate passes
+        (the caller tells it)."""
         if not self.trust:
             return op.RefusalReason.NO_CONTROL
         key = self.trust.get(m.key_id)
@@ -173,10 +251,10 @@ class OperatorCore:
         if not op.signature_holds(m, key):
             return op.RefusalReason.BAD_SIGNATURE
         last = self.last_counter
-        if last is not None and (
-            m.counter < last or (m.counter == last and (m.hops == 0 or m.signature != self._last_signature))
-        ):
-            return op.RefusalReason.REPLAYED
+        if last is not None and m.counter <= last:
+            came_around = m.counter == last and m.hops and m.signature == self._last_signature
+            if not came_around or connector in self._last_from:
+                return op.RefusalReason.REPLAYED
         return None
 
     def _on_route(self, connector: int, sender: int, hops: int, route: op.Path) -> bool:
@@ -231,7 +309,8 @@ class OperatorCore:
 
     def _refusal(self, m: op.Signed, route: op.Path | None, reason: op.RefusalReason) -> list[Out]:
         """REFUSED towards the cable, when the way back is known: straight from the cable,
-        or along the part of the route the command travelled. A flooded copy's is not."""
+        or along the part of the route the command travelled. A flooded copy's is not (the
+        module at the cable answers for the flood)."""
         if m.hops == 0:
             return self._answer(op.Refused(m.counter, 0, (), reason))
         if route is None or m.hops > len(route):

@@ -333,3 +333,6 @@ def test_variables_and_sensors_are_in_the_trace_the_json_summary_and_with_vars_t
         assert f"  {r['name']}: V.waiting={v['waiting']} V.quiet={v['quiet']} S.docking=0" in text.splitlines()
     assert main(run) == 0
     assert "variables and sensors:" not in capsys.readouterr().out  # only when asked
+    assert main([*run, "--trace", "-"]) == 0  # the trace on standard output, the summary on stderr
+    out = capsys.readouterr().out
+    assert [json.loads(x)["variables"] for x in out.splitlines()] == [r["variables"] for r in records]

@@ -108,13 +108,16 @@ def test_console_states_and_refusals_in_the_loop(tmp_path: Path, capsys: pytest.
     out = captured.out
     assert "module .: " in out and "module back>front: " in out and "paused (flooded" in out
     assert "refused by the module at .: UNTRUSTED_KEY" in out
+    assert "refused by the module at back>front: UNTRUSTED_KEY" in out  # the routed STATE's end answers
     assert code == 0, captured.err[-3000:]
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["frames"]["unaccounted"] == 0, summary["frames"]
     first = summary["modules"][0]["operator"]
     assert first["refused_untrusted_key"] == 4 and first["refused_replayed"] == 1, first  # the whole script
     assert first["accepted"] == 5, first  # two states, pause, resume; the link's state
-    assert summary["modules"][1]["operator"]["accepted"] == 3  # its state, pause, resume
+    second = summary["modules"][1]["operator"]
+    assert second["accepted"] == 3, second  # its state, pause, resume
+    assert second["refused_untrusted_key"] == 3, second  # the same three, signed with the other key
     assert not cable_file.exists()
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from dh2rt import cli
+from dh2rt.cmdline import variable_lines
 from dh2rt.transport.can_bus import socketcan_problem
 from hil import launcher
 from hil.netns import NETNS_ENV
@@ -88,6 +89,7 @@ def test_bad_input_exits_2(argv: list[str], needle: str, capsys: pytest.CaptureF
 #: advises.
 THREADS_MS = 20
 
+
 def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trace = tmp_path / "t.jsonl"
     code = PACE.call(
@@ -112,6 +114,34 @@ def test_threads_over_virtual_run_and_summarise(tmp_path: Path, capsys: pytest.C
     assert {"cycle", "module", "name", "type", "T", "timer", "actuators", "status", "received", "sent"} <= set(
         records[0]
     )
+
+
+def test_the_summary_carries_each_modules_variables_as_its_last_record_left_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Legs to snake's V and S by name in the launcher's summary (issue 29): each module's
+    as its last status gave them, the same as its last trace record; and the text summary's
+    --vars lines for every module, ended as they all are at a run's end."""
+    trace = tmp_path / "t.jsonl"
+    code = PACE.call(
+        cli.main,
+        ["--transport", "virtual", "--program", str(ROOT / "examples" / "legs_to_snake.dh2"), "--topology", "snake:2",
+         "--cycles", "25", "--cycle-ms", str(THREADS_MS), "--stand-in", "recording", "--json", "--trace", str(trace),
+         "--event", "3:inject:m1:RCT"]
+    )  # fmt: skip
+    assert code == 0
+    rows = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["modules"]
+    last = {r["name"]: r for r in map(json.loads, trace.read_text().splitlines())}
+    for row in rows:
+        assert (row["variables"], row["sensors"]) == (last[row["name"]]["variables"], last[row["name"]]["sensors"])
+    head, tail = (row["variables"] for row in rows)
+    assert head == {"waiting": 0, "quiet": 0}
+    assert tail["quiet"] == 1 and 0 < tail["waiting"] < 80, tail  # the RCT took: it waits to re-arm
+    assert variable_lines(rows) == [
+        "variables and sensors:",
+        "  m0: V.waiting=0 V.quiet=0 S.docking=0",
+        f"  m1: V.waiting={tail['waiting']} V.quiet=1 S.docking=0",
+    ]
 
 
 def _children(pid: int) -> list[int]:

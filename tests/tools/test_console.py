@@ -2,7 +2,8 @@
 each a ModuleRuntime on a serial transport with its operator channel), linked by the link
 emulator's pty pairs, and the console's cable a third link into the head's free front. The
 console reads states, draws the robot, injects LTS at a module, pauses and resumes; a replayed
-command and one signed with another key are refused and counted; bad input exits 2 naming it."""
+command and one signed with another key are refused and counted by every module; bad input
+exits 2 naming it."""
 
 from __future__ import annotations
 
@@ -133,11 +134,22 @@ def test_state_topology_pause_resume_and_inject(
     assert any("injected LTS" in line for line in tail.log)
 
 
-def test_refusals_are_answered_counted_and_exit_1(
+def test_refusals_are_answered_counted_by_every_module_and_exit_1(
     robot: Robot, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """A PAUSE signed with another key, a STATE likewise, and a replayed PAUSE: each refused
+    and counted by both modules, each answered once (the flood by the module at the cable,
+    the routed STATE by its route's end)."""
+
+    def counted(name: str) -> list[int]:
+        return [ch.core.counters.get(name, 0) for ch in robot.channels]
+
     assert run_console(robot, tmp_path, "pause\n", key=robot.other_key_file) == 1
-    assert "refused by the module at .: UNTRUSTED_KEY" in capsys.readouterr().out
+    assert capsys.readouterr().out.splitlines()[-1] == "refused by the module at .: UNTRUSTED_KEY"
+    assert until(lambda: counted("refused_untrusted_key") == [1, 1]), counted("refused_untrusted_key")
+    assert run_console(robot, tmp_path, "state back>front\n", key=robot.other_key_file) == 1
+    assert capsys.readouterr().out.splitlines()[-1] == "refused by the module at back>front: UNTRUSTED_KEY"
+    assert counted("refused_untrusted_key") == [2, 2]
     transport = open_cable(robot.cable, 115200)
     link = ConsoleLink(transport, KEY, period=PERIOD).start()
     try:
@@ -145,14 +157,14 @@ def test_refusals_are_answered_counted_and_exit_1(
         assert first.answers == () and until(lambda: all(rt.paused for rt in robot.modules))
         replay = op.sign(op.Pause(), first.counter, KEY)
         link.send_signed(replay)
+        assert until(lambda: counted("refused_replayed") == [1, 1]), counted("refused_replayed")
         late = link.command(op.Resume(), 0.5)
         assert late.refused is None
     finally:
         link.close()
         transport.close()
-    head = robot.channels[0].core.counters
-    assert head["refused_untrusted_key"] == 1 and head["refused_replayed"] == 1, head
-    assert not robot.modules[0].paused
+    assert until(lambda: not any(rt.paused for rt in robot.modules))
+    assert counted("refused_untrusted_key") == [2, 2] and counted("accepted")[1] == 2  # the tail: PAUSE, RESUME
 
 
 @pytest.mark.parametrize(
