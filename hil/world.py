@@ -171,7 +171,8 @@ class World:
         self.phases = [self.phase_draw.next(program.clock_cycle) for _ in topology.names]
         self.cycle_period = cycle_period
         self.cycles = cycles
-        self.trace = trace
+        #: modules report their cycles for --trace, and for --capture's cycle marks
+        self.trace = trace or capture is not None
         self.silence_cycles = silence_cycles
         self.status_every = status_every
         self.handshake = handshake
@@ -523,6 +524,9 @@ class World:
                     v.failed = True
         elif isinstance(rep, TraceRecord):
             self.records.append(dict(rep.record))
+            if self.capture is not None:  # the cycle marks replay needs (tools.capture_cycles)
+                links = {k: ((w.a, w.a_conn), (w.b, w.b_conn)) for k, w in self.link_map.links.items()}
+                self.capture.cycle_mark(rep.record, links)
         elif isinstance(rep, Effect):
             self.effects.append((module, rep))
             self.log.append(f"{v.name}: effect {rep.kind} {rep.args}")

@@ -19,16 +19,17 @@ from __future__ import annotations
 
 import copy
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from dh2rt.errors import DecodeError, OptionError
 from dh2rt.wire.serial_framing import decode_serial
-from tools import serial_records
+from tools import capture_cycles, serial_records
 from tools.capture_reader import PYTHON_CAN_SUFFIXES, write_sidecar
 from tools.pcap import CapturedFrame, PcapWriter, socketcan_packet
-from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
+from tools.pcapng import CAN_INTERFACE, MARK_INTERFACE, SERIAL_INTERFACE, PcapngWriter
 from tools.serial_records import SerialRecord
 
 #: Suffixes a capture can be written in; only pcapng holds the serial links' frames.
@@ -52,6 +53,7 @@ class FileSink:
         self._logger: Any = None
         #: BLF and ASC number their channels; other formats keep python-can's channel as it is
         self._numbered_channels = suffix in (".blf", ".asc")
+        self._links_marked: set[int] = set()
         if suffix == ".pcapng":
             self._pcapng = PcapngWriter(path, programs)
         elif suffix == ".pcap":
@@ -87,6 +89,25 @@ class FileSink:
         with self._lock:
             self._pcapng.write(SERIAL_INTERFACE, timestamp, packet)
             self.count += 1
+
+    def cycle_mark(
+        self, record: Mapping[str, Any], links: Mapping[int, tuple[tuple[int, int], tuple[int, int]]]
+    ) -> None:
+        """A module's report of one cycle (its trace record), kept as a cycle mark
+        (:mod:`tools.capture_cycles`), after a link mark for each of ``links`` (link id ->
+        (module, connector) at side 0 and side 1) not marked yet. Only pcapng keeps marks;
+        other formats ignore them. Marks are not frames: :attr:`count` does not count them."""
+        if self._pcapng is None:
+            return
+        now = time.time()
+        with self._lock:
+            for link, ends in sorted(links.items()):
+                if link not in self._links_marked:
+                    self._links_marked.add(link)
+                    mark = capture_cycles.link_mark_json(link, ends)
+                    self._pcapng.write(MARK_INTERFACE, now, capture_cycles.pack(mark))
+            started = capture_cycles.wall_time(float(record["t"]))
+            self._pcapng.write(MARK_INTERFACE, started, capture_cycles.pack(capture_cycles.cycle_mark_json(record)))
 
     def flush(self) -> None:
         with self._lock:
