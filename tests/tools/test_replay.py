@@ -8,6 +8,7 @@ never from replay."""
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +22,8 @@ from tools import dump
 from tools.capture_cycles import CycleMark, LinkMark, read_marks
 from tools.capture_reader import read_records
 from tools.pcapng import LINKTYPE_CAN_SOCKETCAN, LINKTYPE_USER0, LINKTYPE_USER1, Packet, PcapngReader, PcapngWriter
+from tools.reading import open_capture
+from tools.replay import main
 
 pytestmark = pytest.mark.realtime
 
@@ -43,6 +46,12 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Record]]:
     )  # fmt: skip
     assert code == 0
     return capture, [json.loads(line) for line in trace.read_text().splitlines()]
+
+
+def replay(capsys: pytest.CaptureFixture[str], *args: str | Path, code: int = 0) -> tuple[str, str]:
+    assert main([str(a) for a in args]) == code
+    out = capsys.readouterr()
+    return out.out, out.err
 
 
 def key(rec: Record) -> tuple[int, int, int]:
@@ -87,3 +96,151 @@ def test_the_capture_keeps_a_mark_per_reported_cycle_and_the_frames_read_as_befo
     frames = list(read_records(capture))
     assert dump.main([str(capture)]) == 0
     assert len(capsys.readouterr().out.splitlines()) == len(frames)
+
+
+# ----------------------------------------------------------------------------- the rebuild
+
+
+def test_replay_rebuilds_every_modules_trace_records(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, records = run
+    out, err = replay(capsys, capture)
+    rebuilt = [json.loads(line) for line in out.splitlines()]
+    assert {key(r): r for r in rebuilt} == {key(r): r for r in records}
+    assert len(rebuilt) == len(records)
+    assert not_run_facts(err) == []  # a complete capture: nothing replay cannot know, no divergence
+
+
+def not_run_facts(err: str) -> list[str]:
+    """The notes in replay's standard error other than frames a module ignored (a fact of
+    the run: on a busy machine a link may fall silent for a moment, and the module then
+    ignores what comes until its peer is verified again)."""
+    return [line for line in err.splitlines() if not line.startswith("replay: ignored: ")]
+
+
+def first_by_time(records: list[Record], wanted: Callable[[Record], bool]) -> tuple[int, int]:
+    hit = min((r for r in records if wanted(r)), key=lambda r: r["t"])
+    return hit["module"], hit["cycle"]
+
+
+def stops(capsys: pytest.CaptureFixture[str], capture: Path, *args: str) -> list[dict[str, Any]]:
+    out, _ = replay(capsys, capture, "--json", *args)
+    found: list[dict[str, Any]] = json.loads(out)["stops"]
+    return found
+
+
+def test_a_receptor_breakpoint_stops_where_the_head_first_ran_it(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, records = run
+    # head_a: the head's DOF1(+45) and X(A) out of its back, at LocalTimer 0
+    expected = first_by_time(
+        records, lambda r: r["type"] == "head" and {"hormone": "X(A)", "through": "back"} in r["sent"]
+    )
+    (stop,) = stops(capsys, capture, "--break", "receptor head_a fires", "--first")
+    assert (stop["module"], stop["cycle"]) == expected
+    assert stop["fired"] == ["head_a"] and stop["record"]["timer"] == 0
+
+
+def test_a_hormone_breakpoint_stops_where_it_is_first_taken_in_or_sent(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, records = run
+    expected = first_by_time(records, lambda r: any(h["hormone"] == "X(C)" for h in (*r["received"], *r["sent"])))
+    (stop,) = stops(capsys, capture, "--break", "hormone X(C)", "--first")
+    assert (stop["module"], stop["cycle"]) == expected
+
+
+def test_a_type_breakpoint_stops_at_every_change_of_that_module(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, records = run
+    m3 = sorted((r for r in records if r["module"] == 3), key=key)
+    expected = [b["cycle"] for a, b in itertools.pairwise(m3) if a["type"] != b["type"]]
+    assert expected, "the cut changes m3's type (its back is lost): the run must show it"
+    found = stops(capsys, capture, "--break", "type of m3 changes")
+    assert [s["cycle"] for s in found] == expected
+    assert found[0]["record"]["type"] == m3[[r["cycle"] for r in m3].index(expected[0])]["type"]
+    # the text form says where and the state
+    out, _ = replay(capsys, capture, "--break", "type of 3 changes", "--first")
+    assert out.startswith(f"break at m3 (module 3) cycle {expected[0]}, t ")
+    assert "  receptors: head_a active" in out
+
+
+# ----------------------------------------------------------------------------- gaps
+
+
+def test_a_frame_removed_from_the_capture_is_said_with_where_and_replay_carries_on(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    capture, records = run
+    hops = list(open_capture(capture).hops())
+    # the third hormone m4 sent m5 (link 4, side 0): which serial frame it is, and which of
+    # m5's cycles took it in (the third hormone it took in at its front)
+    serial = [h for h in hops if h.medium == "serial"]
+    sent = [i for i, h in enumerate(serial) if (h.link, h.side, h.kind) == (4, 0, "hormone") and not h.lost]
+    m5 = sorted((r for r in records if r["module"] == 5), key=key)
+    taken = [r["cycle"] for r in m5 for a in r["received"] if a["at"] == "front"]
+    removed = rewrite(capture, tmp_path / "removed.pcapng", lambda i, _p: i != sent[2])
+    out, _err = replay(capsys, removed, "--json")
+    doc = json.loads(out)
+    missing = [n for n in doc["notes"] if n["kind"] == "missing"]
+    assert [(n["module"], n["cycle"]) for n in missing] == [(5, taken[2])]
+    assert "at front" in missing[0]["text"] and "missing from the capture" in missing[0]["text"]
+    # m4 sent it and the capture lacks it: said at m4
+    assert any(n["module"] == 4 and n["kind"] == "diverged" and "not in the capture" in n["text"] for n in doc["notes"])
+    # carried on: every cycle rebuilt, every other module's records as the run's
+    rebuilt, _ = replay(capsys, removed)
+    again = {key(r): r for r in map(json.loads, rebuilt.splitlines())}
+    assert set(again) == {key(r) for r in records}
+    assert all(again[key(r)] == r for r in records if r["module"] != 5)
+    assert all(again[key(r)] == r for r in m5 if r["cycle"] < taken[2])
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_a_file_that_is_not_a_capture_exits_2_naming_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    bogus = tmp_path / "bogus.pcapng"
+    bogus.write_text("not a capture\n")
+    _, err = replay(capsys, bogus, code=2)
+    assert str(bogus) in err and "not a pcapng file" in err
+    _, err = replay(capsys, tmp_path / "absent.pcapng", code=2)
+    assert "absent.pcapng: no such capture file" in err
+
+
+def test_a_capture_with_only_the_wire_exits_2_saying_what_replay_lacks(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    wire = rewrite(run[0], tmp_path / "wire.pcapng", lambda _i, p: p.linktype != LINKTYPE_USER1)
+    _, err = replay(capsys, wire, code=2)
+    assert f"{wire}: no cycle marks in it" in err and "timer phase" in err
+
+
+def test_a_program_the_hellos_do_not_name_exits_2(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    other = ROOT / "examples" / "legs_to_snake.dh2"
+    _, err = replay(capsys, run[0], "--program", other, code=2)
+    assert f"--program {other}: digest " in err and "not the program the robot ran" in err
+    # the robot's own program is taken
+    _, err = replay(capsys, run[0], "--program", ROOT / "examples" / "caterpillar.dh2")
+    assert not_run_facts(err) == []
+
+
+@pytest.mark.parametrize(
+    ("spec", "says"),
+    [
+        ("receptor head_z fires", "no receptor head_z in the program"),
+        ("type of m9 changes", "no module m9 in the capture"),
+        ("hormone Q", "no hormone Q in the program"),
+        ("when it moves", "a breakpoint is 'hormone H'"),
+    ],
+)
+def test_a_breakpoint_that_names_nothing_exits_2(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], spec: str, says: str
+) -> None:
+    _, err = replay(capsys, run[0], "--break", spec, code=2)
+    assert f"--break {spec!r}" in err or "--break hormone" in err
+    assert says in err
