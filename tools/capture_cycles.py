@@ -4,8 +4,8 @@ The frames on the links say what each module sent and, through the link emulator
 delivered to it; they do not say *at which of its cycles* a module took a frame in, what it
 believed of its links then, nor its LocalTimer phase. A module's engine cannot be rebuilt
 cycle by cycle without those. In the loop the launcher has them: every module reports each
-cycle's record (the trace record of :mod:`dh2rt.records`), and the launcher writes a small
-part of it into the capture, beside the frames:
+cycle's record (the trace record of :mod:`dh2rt.records`), and the launcher's ``--capture``
+keeps a small part of it beside the frames:
 
 * a **cycle mark** per module per cycle: the module (index, name, life), its cycle number,
   ``t`` (its own clock when the cycle began), LocalTimer as the cycle began, the status it
@@ -23,13 +23,12 @@ statuses, the hormones sent and which hormones came in.
 A capture on a real robot has only the wire: no marks. Replay then says what it cannot know
 (which cycle took what in, the timer phases) instead of guessing.
 
-Marks are packets on a third pcapng interface, link type 148 (``LINKTYPE_USER1``, a link
-type for private use, as 147 is for the serial links' frames): ``D2CY``, a version byte (1)
-and the mark as compact JSON (ASCII). The packet's time is the cycle's start on the capture's
-clock (the module's monotonic ``t`` moved to the wall clock the serial frames are stamped
-with), or the moment the link mark was written. Readers of frames skip them
-(:func:`tools.capture_reader.read_records`); :func:`read_marks` reads them. Only pcapng holds
-marks (the other formats hold CAN frames only).
+The marks are a file of their own beside the capture, ``CAPTURE.cycles.jsonl`` (JSON Lines:
+a header ``{"format": "dh2rt-cycle-marks", "version": 1}``, then one mark a line, each with
+``time``: the cycle's start on the capture's clock, the module's monotonic ``t`` moved to
+the wall clock the link emulator stamps frames with, or when a link mark was written). The
+capture file itself stays what was on the wire, as every reader of it (dump, Wireshark)
+expects: the marks are the modules' reports, not frames.
 """
 
 from __future__ import annotations
@@ -42,9 +41,10 @@ from pathlib import Path
 from typing import Any
 
 from dh2rt.errors import CaptureError
-from tools.pcapng import LINKTYPE_USER1, PcapngReader
+from dh2rt.output_paths import shown_path
 
-MAGIC = b"D2CY"
+SUFFIX = ".cycles.jsonl"
+FORMAT = "dh2rt-cycle-marks"
 VERSION = 1
 
 
@@ -109,8 +109,18 @@ def link_mark_json(link: int, ends: tuple[tuple[int, int], tuple[int, int]]) -> 
     return {"kind": "link", "link": link, "ends": [list(ends[0]), list(ends[1])]}
 
 
-def pack(mark: Mapping[str, Any]) -> bytes:
-    return MAGIC + bytes([VERSION]) + json.dumps(mark, separators=(",", ":")).encode("ascii")
+def marks_path(capture: Path) -> Path:
+    """Where the marks of ``capture`` are: beside it."""
+    return capture.with_name(capture.name + SUFFIX)
+
+
+def header() -> str:
+    return json.dumps({"format": FORMAT, "version": VERSION}) + "\n"
+
+
+def line(mark: Mapping[str, Any], when: float) -> str:
+    """One mark as a line of the file, ``when`` its time on the capture's clock."""
+    return json.dumps({"time": when, **mark}, separators=(",", ":")) + "\n"
 
 
 def wall_time(monotonic_t: float) -> float:
@@ -119,21 +129,17 @@ def wall_time(monotonic_t: float) -> float:
     return monotonic_t + (time.time() - time.monotonic())
 
 
-def unpack(timestamp: float, data: bytes, where: str) -> Mark:
-    """One mark packet; CaptureError naming ``where`` when it is not one."""
-    if not data.startswith(MAGIC) or len(data) < 5:
-        raise CaptureError(f"{where}: a packet of link type {LINKTYPE_USER1} that is not a dh2rt cycle mark")
-    if data[4] != VERSION:
-        raise CaptureError(f"{where}: cycle mark version {data[4]}, this dh2rt reads {VERSION}")
+def unpack(obj: Any, where: str) -> Mark:
+    """One mark of the file; CaptureError naming ``where`` when it is not one."""
     try:
-        obj = json.loads(data[5:].decode("ascii"))
+        when = float(obj["time"])
         if obj["kind"] == "link":
             (m0, c0), (m1, c1) = obj["ends"]
-            return LinkMark(timestamp, int(obj["link"]), ((int(m0), int(c0)), (int(m1), int(c1))))
+            return LinkMark(when, int(obj["link"]), ((int(m0), int(c0)), (int(m1), int(c1))))
         if obj["kind"] != "cycle":
             raise ValueError(f"kind {obj['kind']!r}")
         return CycleMark(
-            timestamp,
+            when,
             int(obj["module"]),
             str(obj["name"]),
             int(obj["life"]),
@@ -145,19 +151,31 @@ def unpack(timestamp: float, data: bytes, where: str) -> Mark:
             tuple(str(h) for h in obj.get("injected", ())),
             {str(k): int(v) for k, v in obj.get("sensors", {}).items()},
         )
-    except (ValueError, KeyError, TypeError, AttributeError, UnicodeError) as exc:
-        raise CaptureError(f"{where}: a damaged cycle mark ({type(exc).__name__}: {exc})") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise CaptureError(f"{where}: not a cycle mark ({type(exc).__name__}: {exc})") from None
 
 
-def read_marks(path: Path) -> Iterator[Mark]:
-    """The marks of a capture, in file order (none in a file other than pcapng)."""
-    from tools.capture_reader import open_capture_file
-
-    if path.suffix.lower() != ".pcapng":
+def read_marks(capture: Path) -> Iterator[Mark]:
+    """The marks kept beside ``capture``, in file order (none when there is no such file)."""
+    path = marks_path(capture)
+    try:
+        fh = path.open(encoding="utf-8")
+    except FileNotFoundError:
         return
-    with open_capture_file(path) as fh:
-        reader = PcapngReader(fh, path)
-        reader.read_header()
-        for packet in reader:
-            if packet.linktype == LINKTYPE_USER1:
-                yield unpack(packet.timestamp, packet.data, f"{path}: offset {packet.offset}")
+    except OSError as exc:
+        raise CaptureError(f"{shown_path(path)}: cannot be read ({exc.strerror or exc})") from None
+    with fh:
+        try:
+            first = json.loads(fh.readline() or "null")
+            if not isinstance(first, dict) or first.get("format") != FORMAT:
+                raise ValueError(f"no {FORMAT} header")
+            if first.get("version") != VERSION:
+                raise ValueError(f"version {first.get('version')}, this dh2rt reads {VERSION}")
+        except (ValueError, UnicodeError) as exc:
+            raise CaptureError(f"{path}:1: not a cycle marks file ({exc})") from None
+        for number, text in enumerate(fh, start=2):
+            try:
+                obj = json.loads(text)
+            except (ValueError, UnicodeError) as exc:
+                raise CaptureError(f"{path}:{number}: not JSON ({exc})") from None
+            yield unpack(obj, f"{path}:{number}")

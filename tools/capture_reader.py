@@ -25,7 +25,7 @@ from dh2rt.lang.image import MAGIC as IMAGE_MAGIC
 from dh2rt.output_paths import shown_path
 from tools import serial_records
 from tools.pcap import CAN_EFF_FLAG, LINKTYPE_CAN_SOCKETCAN
-from tools.pcapng import LINKTYPE_USER0, LINKTYPE_USER1, PcapngReader
+from tools.pcapng import LINKTYPE_USER0, PcapngReader
 from tools.serial_records import SerialRecord
 
 _PCAP_MAGICS = {0xA1B2C3D4: 1e-6, 0xA1B23C4D: 1e-9}
@@ -81,10 +81,10 @@ def _read_pcapng(path: Path) -> Iterator[Record]:
                     yield serial_records.unpack(packet.timestamp, packet.data)
                 except DecodeError as exc:
                     raise CaptureError(f"{path}: offset {packet.offset}: {exc}") from None
-            elif packet.linktype != LINKTYPE_USER1:  # cycle marks: tools.capture_cycles reads them
+            else:
                 raise CaptureError(
-                    f"{path}: offset {packet.offset}: link type {packet.linktype} is neither CAN (227), "
-                    f"dh2rt serial ({LINKTYPE_USER0}) nor dh2rt cycle marks ({LINKTYPE_USER1})"
+                    f"{path}: offset {packet.offset}: link type {packet.linktype} is neither CAN (227) "
+                    f"nor dh2rt serial ({LINKTYPE_USER0})"
                 )
 
 
@@ -143,11 +143,6 @@ def _check_exists(path: Path) -> None:
     """Raise CaptureError unless ``path`` is a file that can be read (no traceback for a name
     too long, a folder or a file not to be read)."""
     _open(path).close()
-
-
-def open_capture_file(path: Path) -> BinaryIO:
-    """``path`` opened to read; CaptureError naming it when it cannot be."""
-    return _open(path)
 
 
 def _open(path: Path) -> BinaryIO:

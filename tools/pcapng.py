@@ -2,16 +2,14 @@
 own format, streamed in both directions (a writer that appends block by block, a reader that
 yields one packet at a time).
 
-A dh2rt capture is one section with three interfaces:
+A dh2rt capture is one section with two interfaces:
 
 * interface 0, link type 227 (``LINKTYPE_CAN_SOCKETCAN``): CAN frames as SocketCAN hands them
   to Wireshark (8-byte header: big-endian id with the EFF/RTR/ERR flags, length, FD flags);
 * interface 1, link type 147 (``LINKTYPE_USER0``): frames of the emulated infrared serial
   links, each with the 8-byte header of :mod:`tools.serial_records` (link id, the side that
   sent it, lost, corrupted) and the frame's bytes as they were on the wire (COBS, CRC-32 and
-  the 0x00 delimiter);
-* interface 2, link type 148 (``LINKTYPE_USER1``): the modules' cycle marks of a loop run
-  (:mod:`tools.capture_cycles`), not frames: what replay needs beside the wire.
+  the 0x00 delimiter).
 
 The program images the robot ran are in the section header, one ``opt_comment`` each (an
 image is ASCII: ``DH2IMG1`` and canonical JSON), so a capture decodes on another machine with
@@ -40,9 +38,8 @@ IF_NAME, IF_DESCRIPTION, IF_TSRESOL = 2, 3, 9
 SHB_USERAPPL = 4
 LINKTYPE_CAN_SOCKETCAN = 227
 LINKTYPE_USER0 = 147
-LINKTYPE_USER1 = 148
 #: The interface numbers of a dh2rt capture.
-CAN_INTERFACE, SERIAL_INTERFACE, MARK_INTERFACE = 0, 1, 2
+CAN_INTERFACE, SERIAL_INTERFACE = 0, 1
 _MAX_OPTION = 0xFFFF
 _MAX_BLOCK = 16 * 1024 * 1024
 _new = tuple.__new__
@@ -72,7 +69,6 @@ class PcapngWriter:
         self._fh.write(header)
         self._fh.write(_interface(LINKTYPE_CAN_SOCKETCAN, can_name, "dh2rt CAN bus (link id and side in the id)"))
         self._fh.write(_interface(LINKTYPE_USER0, "dh2rt-serial", "dh2rt emulated infrared serial links"))
-        self._fh.write(_interface(LINKTYPE_USER1, "dh2rt-cycles", "dh2rt modules' cycle marks (tools.capture_cycles)"))
         self.count = 0
 
     @staticmethod

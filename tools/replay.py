@@ -2,9 +2,9 @@
 loop run, and print each module's trace records as ``dh2rt run --trace`` writes them, or
 stop at breakpoints.
 
-The capture must hold the modules' cycle marks (:mod:`tools.capture_cycles`: the launcher's
-``--capture`` writes them on serial links); how each cycle is rebuilt, and what replay says
-where the capture lacks something, is :mod:`tools.replay_rebuild`.
+The capture must have the modules' cycle marks beside it (:mod:`tools.capture_cycles`: the
+launcher's ``--capture`` writes them; replay reads those of serial links); how each cycle is
+rebuilt, and what replay says where the capture lacks something, is :mod:`tools.replay_rebuild`.
 
 Breakpoints (``--break``, repeatable), checked after each rebuilt cycle, in the capture's
 time order:
@@ -41,7 +41,7 @@ from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError, OptionError
 from dh2rt.program import ACTIVE, PASSIVE, CompiledProgram
 from dh2rt.wire.frame import program_digest
-from tools.capture_cycles import CycleMark, read_marks
+from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture
 from tools.replay_rebuild import Note, Rebuild, Step
 
@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         "records, or stops at breakpoints.",
         epilog="Example: dh2rt replay robot.pcapng --break 'receptor head_a fires' --first",
     )
-    p.add_argument("capture", type=Path, help="a pcapng written by the launcher's --capture (it holds cycle marks)")
+    p.add_argument("capture", type=Path, help="a pcapng the launcher's --capture wrote (its cycle marks beside it)")
     p.add_argument("--program", type=Path, help=PROGRAM_HELP + "; its digest must be the one the Hellos name")
     p.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC", help=_BREAK_FORMS)
     p.add_argument("--first", action="store_true", help="end at the first breakpoint hit")
@@ -125,8 +125,9 @@ def _open(ns: argparse.Namespace, capture: Capture) -> tuple[Rebuild, list[Break
     cycles = [m for m in marks if isinstance(m, CycleMark)]
     if not cycles:
         raise CaptureError(
-            f"{ns.capture}: no cycle marks in it: it holds only the wire, and replay needs each module's cycles "
-            "(which frames it took in at which cycle, its timer phase); a loop run's --capture .pcapng holds them"
+            f"{ns.capture}: no cycle marks beside it ({marks_path(ns.capture).name}): it holds only the wire, and "
+            "replay needs each module's cycles (which frames it took in at which cycle, its timer phase); "
+            "a loop run's --capture keeps them"
         )
     rebuild = Rebuild(capture.program, marks, capture.hops())
     _check_digest(capture, rebuild, ns.program)

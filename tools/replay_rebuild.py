@@ -326,9 +326,9 @@ class Rebuild:
         Times: a frame is stamped when the link emulator read it, after its cycle began and
         possibly (the emulator lagging) after the next one began, but never before its cycle
         began. So a frame stamped before this cycle began that does not match is an earlier
-        cycle's that no rebuilt cycle sent (said and let go), and one stamped more than a
-        period after this cycle ended is a later cycle's (what the engine sent is not in the
-        capture)."""
+        cycle's that no rebuilt cycle sent (said and let go), and one that does not match
+        stamped after this cycle ended is a later cycle's (what the engine sent is not in the
+        capture); one that matches is this cycle's however late the emulator stamped it."""
         cname = self.profile.connector_name
         period = self.period.get(mark.module, 0.1)
         for c in range(1, self.profile.connector_count + 1):  # sent two cycles ago or more, unmatched
@@ -338,7 +338,7 @@ class Rebuild:
             self._let_go(mark, em.through, earlier_other(mark.time - CLOCKS, em.hormone))
             queue = self.frames.outbound.get((mark.module, em.through), deque())
             what = f"sent {self.describe(em.hormone)} through {cname(em.through)}"
-            if not queue or queue[0].time > end + period:
+            if not queue or (queue[0].time > end and not same(queue[0].hormone, em.hormone)):
                 self._note("diverged", mark, f"{what}: not in the capture (missing from it, or diverged)")
                 continue
             hop = queue.popleft()

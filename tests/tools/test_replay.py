@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -19,9 +20,9 @@ import pytest
 from hil import launcher
 from hil.pace import PACE
 from tools import dump
-from tools.capture_cycles import CycleMark, LinkMark, read_marks
+from tools.capture_cycles import CycleMark, LinkMark, marks_path, read_marks
 from tools.capture_reader import read_records
-from tools.pcapng import LINKTYPE_CAN_SOCKETCAN, LINKTYPE_USER0, LINKTYPE_USER1, Packet, PcapngReader, PcapngWriter
+from tools.pcapng import LINKTYPE_CAN_SOCKETCAN, LINKTYPE_USER0, PcapngReader, PcapngWriter
 from tools.reading import open_capture
 from tools.replay import main
 
@@ -58,10 +59,10 @@ def key(rec: Record) -> tuple[int, int, int]:
     return rec["module"], rec.get("life", 0), rec["cycle"]
 
 
-def rewrite(source: Path, target: Path, keep: Callable[[int, Packet], bool]) -> Path:
-    """``source`` again with only the packets ``keep(i, packet)`` keeps (``i`` counts serial
-    frames from 0, -1 for other packets)."""
-    interface = {LINKTYPE_CAN_SOCKETCAN: 0, LINKTYPE_USER0: 1, LINKTYPE_USER1: 2}
+def rewrite(source: Path, target: Path, keep: Callable[[int], bool]) -> Path:
+    """``source`` again, with its cycle marks, keeping only the serial frames ``keep(i)``
+    keeps (``i`` counts them from 0)."""
+    interface = {LINKTYPE_CAN_SOCKETCAN: 0, LINKTYPE_USER0: 1}
     with source.open("rb") as fh:
         reader = PcapngReader(fh, source)
         reader.read_header()
@@ -69,9 +70,10 @@ def rewrite(source: Path, target: Path, keep: Callable[[int, Packet], bool]) -> 
         serial = -1
         for packet in reader:
             serial += packet.linktype == LINKTYPE_USER0
-            if keep(serial if packet.linktype == LINKTYPE_USER0 else -1, packet):
+            if packet.linktype != LINKTYPE_USER0 or keep(serial):
                 writer.write(interface[packet.linktype], packet.timestamp, packet.data)
         writer.close()
+    shutil.copyfile(marks_path(source), marks_path(target))
     return target
 
 
@@ -92,10 +94,11 @@ def test_the_capture_keeps_a_mark_per_reported_cycle_and_the_frames_read_as_befo
         rec = by_key[(m.module, m.life, m.cycle)]
         assert (m.timer, dict(m.status), m.t) == (rec["timer"], rec["status"], rec["t"])
         assert sum(m.took.values()) == len(rec["received"])
-    # frame readers skip the marks: dump reads every frame, and only frames
+    # the capture itself is the wire's, as before: dump reads every frame, and only frames
     frames = list(read_records(capture))
     assert dump.main([str(capture)]) == 0
     assert len(capsys.readouterr().out.splitlines()) == len(frames)
+    assert marks_path(capture).name == "robot.pcapng.cycles.jsonl"
 
 
 # ----------------------------------------------------------------------------- the rebuild
@@ -182,7 +185,7 @@ def test_a_frame_removed_from_the_capture_is_said_with_where_and_replay_carries_
     sent = [i for i, h in enumerate(serial) if (h.link, h.side, h.kind) == (4, 0, "hormone") and not h.lost]
     m5 = sorted((r for r in records if r["module"] == 5), key=key)
     taken = [r["cycle"] for r in m5 for a in r["received"] if a["at"] == "front"]
-    removed = rewrite(capture, tmp_path / "removed.pcapng", lambda i, _p: i != sent[2])
+    removed = rewrite(capture, tmp_path / "removed.pcapng", lambda i: i != sent[2])
     out, _err = replay(capsys, removed, "--json")
     doc = json.loads(out)
     missing = [n for n in doc["notes"] if n["kind"] == "missing"]
@@ -213,9 +216,10 @@ def test_a_file_that_is_not_a_capture_exits_2_naming_it(capsys: pytest.CaptureFi
 def test_a_capture_with_only_the_wire_exits_2_saying_what_replay_lacks(
     run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
-    wire = rewrite(run[0], tmp_path / "wire.pcapng", lambda _i, p: p.linktype != LINKTYPE_USER1)
+    wire = tmp_path / "wire.pcapng"
+    shutil.copyfile(run[0], wire)  # the capture without the marks beside it: what a real robot's has
     _, err = replay(capsys, wire, code=2)
-    assert f"{wire}: no cycle marks in it" in err and "timer phase" in err
+    assert f"{wire}: no cycle marks beside it (wire.pcapng.cycles.jsonl)" in err and "timer phase" in err
 
 
 def test_a_program_the_hellos_do_not_name_exits_2(
@@ -244,3 +248,17 @@ def test_a_breakpoint_that_names_nothing_exits_2(
     _, err = replay(capsys, run[0], "--break", spec, code=2)
     assert f"--break {spec!r}" in err or "--break hormone" in err
     assert says in err
+
+
+def test_damaged_cycle_marks_exit_2_naming_the_file_and_line(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    damaged = rewrite(run[0], tmp_path / "damaged.pcapng", lambda _i: True)
+    marks = marks_path(damaged)
+    lines = marks.read_text().splitlines()
+    marks.write_text("\n".join([*lines[:5], '{"kind": "cycle", "time": 1}', *lines[5:]]) + "\n")
+    _, err = replay(capsys, damaged, code=2)
+    assert f"{marks}:6: not a cycle mark (KeyError: 'module')" in err
+    marks.write_text("hello\n")
+    _, err = replay(capsys, damaged, code=2)
+    assert f"{marks}:1: not a cycle marks file" in err
