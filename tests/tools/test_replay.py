@@ -11,6 +11,8 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -262,3 +264,11 @@ def test_damaged_cycle_marks_exit_2_naming_the_file_and_line(
     marks.write_text("hello\n")
     _, err = replay(capsys, damaged, code=2)
     assert f"{marks}:1: not a cycle marks file" in err
+
+
+def test_the_command_is_registered() -> None:
+    exe = Path(sys.executable).with_name("dh2rt")
+    proc = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0 and "  replay     Rebuild every module's engine" in proc.stdout
+    proc = subprocess.run([str(exe), "replay", "--help"], capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: dh2rt replay")
