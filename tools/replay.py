@@ -30,67 +30,21 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
+import signal
 import sys
+import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError, OptionError
-from dh2rt.program import ACTIVE, PASSIVE, CompiledProgram
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture
-from tools.replay_rebuild import Note, Rebuild, Step
-
-_BREAK_FORMS = "'hormone H', 'receptor NAME fires' or 'type of MODULE changes'"
-
-
-@dataclass(frozen=True, slots=True)
-class Breakpoint:
-    """``kind`` is hormone, receptor or type; ``what`` the hormone (name or content), the
-    receptor's name or the module's index; ``text`` as the user wrote it."""
-
-    kind: str
-    what: str
-    text: str
-
-    def hit(self, step: Step) -> bool:
-        if self.kind == "receptor":
-            return self.what in step.fired
-        if self.kind == "type":
-            return (
-                str(step.mark.module) == self.what
-                and step.previous_type is not None
-                and step.record["type"] != step.previous_type
-            )
-        hormones = [a.hormone for a in step.arrivals] + [e.hormone for e in step.sent]
-        return any(self.what in (h.name, h.content()) for h in hormones)
-
-
-def parse_break(text: str, capture: Capture, modules: dict[str, int]) -> Breakpoint:
-    """A ``--break`` as written; OptionError naming it when it is none of the forms, or names
-    what the program or the capture does not have."""
-    words = text.split()
-    if len(words) == 2 and words[0] == "hormone":
-        return Breakpoint("hormone", capture.hormone(words[1], "--break hormone"), text)
-    if len(words) == 3 and words[0] == "receptor" and words[2] == "fires":
-        names = [r.name for r in capture.program.receptors]
-        if words[1] not in names:
-            raise OptionError(f"--break {text!r}: no receptor {words[1]} in the program (it has {', '.join(names)})")
-        return Breakpoint("receptor", words[1], text)
-    match = re.fullmatch(r"type of (\S+) changes", " ".join(words))
-    if match:
-        who = match.group(1)
-        if who in modules:
-            return Breakpoint("type", str(modules[who]), text)
-        if who.isdigit() and int(who) in modules.values():
-            return Breakpoint("type", who, text)
-        known = ", ".join(sorted(modules, key=modules.__getitem__))
-        raise OptionError(f"--break {text!r}: no module {who} in the capture (it has {known})")
-    raise OptionError(f"--break {text!r}: a breakpoint is {_BREAK_FORMS}")
+from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
+from tools.replay_rebuild import Note, Rebuild
+from tools.replay_view import BREAK_FORMS, Breakpoint, parse_break, view, view_text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,10 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("capture", type=Path, help="a pcapng the launcher's --capture wrote (its cycle marks beside it)")
     p.add_argument("--program", type=Path, help=PROGRAM_HELP + "; its digest must be the one the Hellos name")
-    p.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC", help=_BREAK_FORMS)
+    p.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC", help=BREAK_FORMS)
     p.add_argument("--first", action="store_true", help="end at the first breakpoint hit")
     p.add_argument("--trace", type=Path, metavar="FILE", help="write the rebuilt trace records to FILE (JSON Lines)")
     p.add_argument("--json", action="store_true", help="one JSON summary: stops, notes, counts")
+    p.add_argument("--step", action="store_true", help="walk the cycles forward and back at a prompt")
+    p.add_argument("--script", metavar="FILE", help="the prompt's commands from FILE (- for standard input)")
     return p
 
 
@@ -151,6 +107,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         err(f"--trace {ns.trace}: cannot be written ({exc.strerror or exc})")
         return EXIT_USAGE
+    if ns.step or ns.script is not None:
+        return _prompt(ns, capture, rebuild, breaks)
     records_out = sys.stdout if not breaks and not ns.json else None
     stops: list[dict[str, Any]] = []
     count = 0
@@ -162,9 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     out.write(json.dumps(step.record, separators=(",", ":")) + "\n")
             hits = [b for b in breaks if b.hit(step)]
             if hits:
-                stops.append(_stop(step, hits, capture.program))
+                stops.append(view(step, [b.text for b in hits], capture.program))
                 if not ns.json:
-                    print(_stop_text(stops[-1]))
+                    print(view_text(stops[-1]))
                 if ns.first:
                     break
     except CaptureError as exc:
@@ -197,44 +155,26 @@ def _summary(
         print("no breakpoint was hit", file=sys.stdout)
 
 
-def _stop(step: Step, hits: Sequence[Breakpoint], program: CompiledProgram) -> dict[str, Any]:
-    """Where replay stopped and the module's state there (the record after the cycle)."""
-    engine = step.engine
-    status = {ACTIVE: "active", PASSIVE: "passive"}
-    receptors = {r.name: status.get(s, "absent") for r, s in zip(program.receptors, engine.rstatus, strict=True)}
-    return {
-        "break": [b.text for b in hits],
-        "module": step.mark.module,
-        "name": step.mark.name,
-        "life": step.mark.life,
-        "cycle": step.mark.cycle,
-        "t": step.mark.t,
-        "fired": list(step.fired),
-        "receptors": receptors,
-        "uncertain": step.uncertain or None,
-        "record": step.record,
-    }
-
-
-def _stop_text(stop: dict[str, Any]) -> str:
-    rec = stop["record"]
-    life = f", life {stop['life']}" if stop["life"] else ""
-    status = ", ".join(f"{c} {r}" for c, r in rec["status"].items())
-    lines = [
-        f"break at {stop['name']} (module {stop['module']}) cycle {stop['cycle']}{life}, t {stop['t']:.6f}: "
-        + "; ".join(stop["break"]),
-        f"  type {rec['type']} (T {rec['T']}), LocalTimer {rec['timer']}, status {status}",
-        f"  DOF1 {rec['actuators']['DOF1']:g}, DOF2 {rec['actuators']['DOF2']:g}",
-    ]
-    for key in ("variables", "sensors"):
-        if rec.get(key):
-            lines.append(f"  {key}: " + ", ".join(f"{k} {v}" for k, v in rec[key].items()))
-    lines.append("  receptors: " + ", ".join(f"{k} {v}" for k, v in stop["receptors"].items()))
-    if stop["fired"]:
-        lines.append("  fired: " + ", ".join(stop["fired"]))
-    took = [f"{a['hormone']} at {a['at'] or '(injected)'}" for a in rec["received"]]
-    sent = [f"{s['hormone']} through {s['through']}" for s in rec["sent"]]
-    lines.append("  took in: " + (", ".join(took) or "nothing") + "; sent: " + (", ".join(sent) or "nothing"))
-    if stop["uncertain"]:
-        lines.append(f"  uncertain: {stop['uncertain']}")
-    return "\n".join(lines)
+def _prompt(ns: argparse.Namespace, capture: Capture, rebuild: Rebuild, breaks: Sequence[Breakpoint]) -> int:
+    """``--step`` (the prompt) or ``--script`` (its commands from a file): see tools.replay_prompt."""
+    prompt = ReplayPrompt(Timeline(rebuild, capture), capture, sys.stdout, breaks)
+    if ns.script is None:
+        if threading.current_thread() is threading.main_thread():  # Ctrl-C at the prompt: exit 130, said
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        interactive(prompt)
+        return EXIT_OK
+    try:
+        script = sys.stdin if ns.script == "-" else open(ns.script, encoding="utf-8")  # noqa: SIM115
+    except OSError as exc:
+        err(f"--script {ns.script}: cannot be read ({exc.strerror or exc})")
+        return EXIT_USAGE
+    prompt.prompt = "replay> "
+    try:
+        failed = run_script(prompt, script, "-" if ns.script == "-" else ns.script)
+    finally:
+        if script is not sys.stdin:
+            script.close()
+    if failed is not None:
+        err(failed)
+        return EXIT_USAGE
+    return EXIT_OK

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -272,3 +273,78 @@ def test_the_command_is_registered() -> None:
     assert proc.returncode == 0 and "  replay     Rebuild every module's engine" in proc.stdout
     proc = subprocess.run([str(exe), "replay", "--help"], capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 0 and proc.stdout.startswith("usage: dh2rt replay")
+
+
+# ----------------------------------------------------------------------------- the prompt
+
+
+def test_the_prompts_commands_step_forward_and_back_from_a_script(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    capture, records = run
+    module, cycle = first_by_time(
+        records, lambda r: r["type"] == "head" and {"hormone": "X(A)", "through": "back"} in r["sent"]
+    )
+    script = tmp_path / "walk.txt"
+    script.write_text("break receptor head_a fires\ncontinue\nnext 2\nback 2\nreverse\nstate m3\n")
+    out, _ = replay(capsys, capture, "--script", script)
+    here = f"break at m{module} (module {module}) cycle {cycle}, t "
+    assert out.count(here) == 2  # continue, then back 2 after next 2
+    assert "replay> reverse\nno breakpoint hit that way" in out
+    state = out.split("replay> state m3\n")[1]
+    m3 = max((r for r in records if r["module"] == 3 and r["t"] <= records_t(records, module, cycle)), key=key)
+    assert state.startswith(f"at m3 (module 3) cycle {m3['cycle']}, t ")
+    script.write_text("next\ngoto m9 3\n")
+    _, err = replay(capsys, capture, "--script", script, code=2)
+    assert f"{script}:2: no module 'm9' in the capture" in err
+
+
+def records_t(records: list[Record], module: int, cycle: int) -> float:
+    t: float = next(r["t"] for r in records if (r["module"], r["cycle"]) == (module, cycle))
+    return t
+
+
+def spawn_prompt(capture: Path, home: Path) -> Any:
+    """``dh2rt replay CAPTURE --step`` on a pty, at its first prompt, as a person starts it."""
+    import pexpect
+
+    exe = Path(sys.executable).with_name("dh2rt")
+    env = {**os.environ, "HOME": str(home), "TERM": "dumb"}
+    child = pexpect.spawn(str(exe), ["replay", str(capture), "--step"], env=env, encoding="utf-8", timeout=30)
+    child.expect_exact("replay> ")
+    return child
+
+
+def test_the_interactive_prompt_completes_steps_and_leaves_on_ctrl_d(
+    run: tuple[Path, list[Record]], tmp_path: Path
+) -> None:
+    pexpect = pytest.importorskip("pexpect", reason="pexpect (the dev extra) drives the interactive prompt")
+    child = spawn_prompt(run[0], tmp_path)
+    try:
+        child.send("break rec\t")  # completion: the kind of breakpoint
+        child.expect_exact("receptor")
+        child.send(" head_\t")  # no single completion: complete the name by hand
+        child.send("b fires\r")
+        child.expect_exact("breakpoint 1: receptor head_b fires")
+        child.sendline("continue")
+        child.expect_exact(": receptor head_b fires")
+        child.expect_exact("fired: head_b")
+        child.expect_exact("replay> ")
+        child.sendeof()  # Ctrl-D
+        child.expect(pexpect.EOF)
+    finally:
+        child.close()
+    assert child.exitstatus == 0, child.before
+    assert "break receptor head_b fires" in (tmp_path / ".dh2rt_replay_history").read_text()
+
+
+def test_ctrl_c_at_the_prompt_exits_130_without_a_traceback(run: tuple[Path, list[Record]], tmp_path: Path) -> None:
+    pexpect = pytest.importorskip("pexpect", reason="pexpect (the dev extra) drives the interactive prompt")
+    child = spawn_prompt(run[0], tmp_path)
+    try:
+        child.sendintr()  # Ctrl-C
+        child.expect(pexpect.EOF)
+        said = child.before
+    finally:
+        child.close()
+    assert child.exitstatus == 130 and "interrupted" in said and "Traceback" not in said, said
