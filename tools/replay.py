@@ -21,7 +21,12 @@ and sent), then goes on to the next (``--first``: ends at the first). Without br
 prints the records (JSON Lines); ``--trace FILE`` writes them to a file in either case.
 ``--json`` prints one JSON summary instead: the stops, the notes, the counts.
 
-Exit codes: 0 (whatever the notes say: a missing frame, a divergence), 2 bad input (not a
+``--model`` compares the rebuilt run with the in-process model of the same topology and
+inputs by ``dh2rt diff``'s rule (:mod:`tools.replay_model`); ``--step`` and ``--script``
+walk the cycles forward and back at a prompt (:mod:`tools.replay_prompt`).
+
+Exit codes: 0 (whatever the notes say: a missing frame, a divergence from the capture), 1 a
+divergence from the model (``--model``), 2 bad input (not a
 capture, no cycle marks in it, a ``--program`` whose digest no Hello of the capture names,
 a breakpoint that names no hormone, receptor or module), 130 interrupted.
 """
@@ -32,16 +37,18 @@ import argparse
 import json
 import signal
 import sys
+import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from dh2rt.cmdline import EXIT_OK, EXIT_USAGE, err
+from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
 from dh2rt.errors import CaptureError, OptionError
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture
+from tools.replay_model import ModelResult, compare_with_model, lost_links
 from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
 from tools.replay_rebuild import Note, Rebuild
 from tools.replay_view import BREAK_FORMS, Breakpoint, parse_break, view, view_text
@@ -60,6 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first", action="store_true", help="end at the first breakpoint hit")
     p.add_argument("--trace", type=Path, metavar="FILE", help="write the rebuilt trace records to FILE (JSON Lines)")
     p.add_argument("--json", action="store_true", help="one JSON summary: stops, notes, counts")
+    p.add_argument(
+        "--model",
+        action="store_true",
+        help="compare the rebuilt run with the in-process model of the same topology and inputs (diff's rule)",
+    )
     p.add_argument("--step", action="store_true", help="walk the cycles forward and back at a prompt")
     p.add_argument("--script", metavar="FILE", help="the prompt's commands from FILE (- for standard input)")
     return p
@@ -109,12 +121,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     if ns.step or ns.script is not None:
         return _prompt(ns, capture, rebuild, breaks)
-    records_out = sys.stdout if not breaks and not ns.json else None
+    records_out = sys.stdout if not breaks and not ns.json and not ns.model else None
+    rebuilt: list[dict[str, Any]] = []
     stops: list[dict[str, Any]] = []
     count = 0
     try:
         for step in rebuild.steps():
             count += 1
+            if ns.model:
+                rebuilt.append(step.record)
             for out in (records_out, trace_out):
                 if out is not None:
                     out.write(json.dumps(step.record, separators=(",", ":")) + "\n")
@@ -131,21 +146,40 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if trace_out is not None:
             trace_out.close()
-    _summary(ns, rebuild.notes, stops, count, len(rebuild.period))
-    return EXIT_OK
+    model = _model(ns, capture, rebuild, rebuilt) if ns.model else None
+    _summary(ns, rebuild.notes, stops, count, len(rebuild.period), model)
+    return EXIT_FAIL if model is not None and model.first is not None else EXIT_OK
+
+
+def _model(ns: argparse.Namespace, capture: Capture, rebuild: Rebuild, rebuilt: list[dict[str, Any]]) -> ModelResult:
+    with tempfile.TemporaryDirectory(prefix="dh2rt-replay-") as folder:
+        result = compare_with_model(rebuilt, capture.program, rebuild.marks, Path(folder), ns.capture)
+    result.unknown.extend(lost_links(rebuild.frames.first_lost))
+    if not ns.json:
+        print("\n".join(result.lines))
+        for line in result.unknown:
+            print(f"the model cannot know: {line}")
+    return result
 
 
 def _summary(
-    ns: argparse.Namespace, notes: Sequence[Note], stops: Sequence[dict[str, Any]], cycles: int, modules: int
+    ns: argparse.Namespace,
+    notes: Sequence[Note],
+    stops: Sequence[dict[str, Any]],
+    cycles: int,
+    modules: int,
+    model: ModelResult | None,
 ) -> None:
     if ns.json:
-        doc = {
+        doc: dict[str, Any] = {
             "capture": str(ns.capture),
             "modules": modules,
             "cycles": cycles,
             "stops": list(stops),
             "notes": [n.to_json() for n in notes],
         }
+        if model is not None:
+            doc["model"] = {"divergence": model.first, "lines": model.lines, "unknown": model.unknown}
         print(json.dumps(doc, indent=1))
         return
     stream: IO[str] = sys.stderr

@@ -124,6 +124,7 @@ class Frames:
     outbound: dict[End, deque[Hop]] = field(default_factory=lambda: defaultdict(deque))
     digests: set[str] = field(default_factory=set)
     unmapped: set[int] = field(default_factory=set)
+    first_lost: dict[int, float] = field(default_factory=dict)  # link -> its first frame lost
 
 
 def sort_frames(hops: Iterable[Hop], links: Mapping[int, tuple[End, End]]) -> Frames:
@@ -139,6 +140,8 @@ def sort_frames(hops: Iterable[Hop], links: Mapping[int, tuple[End, End]]) -> Fr
             frames.unmapped.add(hop.link)
             continue
         frames.outbound[ends[hop.side]].append(hop)
+        if hop.lost:
+            frames.first_lost.setdefault(hop.link, hop.time)
         if hop.kind != "error" and not hop.lost:  # a corrupted frame fails the receiver's CRC
             frames.inbound[ends[1 - hop.side]].append(hop)
     return frames
@@ -182,6 +185,7 @@ class Rebuild:
         self.fired: list[str] = []
         self.program = watched(program, self.fired)
         self.profile = program.profile
+        self.marks = marks
         links = {m.link: m.ends for m in marks if isinstance(m, LinkMark)}
         #: connectors a link was ever attached at: a send through any other fails, as the
         #: runtime's does through a connector with no link end (and is not sent)

@@ -348,3 +348,52 @@ def test_ctrl_c_at_the_prompt_exits_130_without_a_traceback(run: tuple[Path, lis
     finally:
         child.close()
     assert child.exitstatus == 130 and "interrupted" in said and "Traceback" not in said, said
+
+
+# ----------------------------------------------------------------------------- the model
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Record]]:
+    """The caterpillar on 8 modules over serial links, nothing cut: its capture and trace."""
+    folder = tmp_path_factory.mktemp("replay-clean")
+    capture, trace = folder / "clean.pcapng", folder / "clean.jsonl"
+    code = PACE.call(
+        launcher.main,
+        ["--transport", "serial", "--module-count", "8", "--cycles", "60", "--stand-in", "none",
+         "--capture", str(capture), "--trace", str(trace)],
+    )  # fmt: skip
+    assert code == 0
+    return capture, [json.loads(line) for line in trace.read_text().splitlines()]
+
+
+def test_a_clean_run_agrees_with_the_in_process_model(
+    clean_run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    out, _ = replay(capsys, clean_run[0], "--model")
+    assert out.startswith("no divergence between clean.pcapng.replayed.jsonl and model.jsonl\ncompared 8 modules")
+    assert "the model cannot know" not in out
+
+
+def test_a_planted_divergence_is_the_first_the_model_comparison_finds(
+    clean_run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    capture = clean_run[0]
+    hops = [h for h in open_capture(capture).hops() if h.medium == "serial"]
+    sent = [i for i, h in enumerate(hops) if (h.link, h.side, h.kind) == (4, 0, "hormone") and not h.lost]
+    planted = rewrite(capture, tmp_path / "planted.pcapng", lambda i: i != sent[1])
+    out, _ = replay(capsys, planted, "--model", "--json", code=1)
+    first = json.loads(out)["model"]["divergence"]
+    assert first["owner"] == "m5 (module 5)" and first["stream"].startswith("arrivals at front from back")
+    assert first["index"] == 2  # m5's second hormone at its front is the one planted away
+
+
+def test_the_model_says_what_it_cannot_know_of_a_cut(
+    run: tuple[Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    out, _ = replay(capsys, run[0], "--model", "--json", code=1)
+    model = json.loads(out)["model"]
+    assert [u.split(" lost frames")[0] for u in model["unknown"]] == ["link 3"]  # m3's back to m4's front
+    # the first divergence is behind the cut (m4 becomes a head and starts a wave of its own),
+    # none in front of it, where the model and the run had the same inputs
+    assert model["divergence"]["owner"] in {f"m{m} (module {m})" for m in range(4, 8)}
