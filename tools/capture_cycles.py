@@ -13,8 +13,9 @@ keeps a small part of it beside the frames:
   (the count only: *which* hormones is the wire's: the next ones delivered to that
   connector, every link being first in, first out), the hormones injected over its control
   channel (not on any link) and the sensors as the cycle read them;
-* a **link mark** per emulated infrared link: its id and the (module, connector) at each
-  side, so that a link end of the capture is a module's connector.
+* a **link mark** per link: its id and the (module, connector) at each side, so that a link
+  end of the capture is a module's connector (an emulated infrared link as the world made it;
+  a bus link as both its modules logged they negotiated it).
 
 What a cycle mark does not hold is what replay recomputes and compares: the type (it follows
 from the status, as the engine's table gives it), the actuators, the variables, the receptor

@@ -3,7 +3,7 @@ loop run, and print each module's trace records as ``dh2rt run --trace`` writes 
 stop at breakpoints.
 
 The capture must have the modules' cycle marks beside it (:mod:`tools.capture_cycles`: the
-launcher's ``--capture`` writes them; replay reads those of serial links); how each cycle is
+launcher's ``--capture`` writes them, on serial links and on a bus); how each cycle is
 rebuilt, and what replay says where the capture lacks something, is :mod:`tools.replay_rebuild`.
 
 Breakpoints (``--break``, repeatable), checked after each rebuilt cycle, in the capture's

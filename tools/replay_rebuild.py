@@ -32,7 +32,8 @@ What the capture lacks is said, with where, and replay carries on (:class:`Note`
   divergence between the rebuilt engine and the robot (or a frame missing from the capture).
 
 A send through a connector no link was ever attached at fails, as the runtime's does (and
-sets its status to 0): it is not in the record's ``sent``.
+sets its status to 0): it is not in the record's ``sent``; so does one through a connector
+the module reported unlinked that the capture does not have (a bus link released at a cut).
 """
 
 from __future__ import annotations
@@ -253,7 +254,7 @@ class Rebuild:
         before = mod.type_name
         out = []
         for em in engine.step(arrivals):
-            if (mark.module, em.through) in self.attached:
+            if self._went_out(mark, em):
                 out.append(em)
             else:
                 engine.send_failed(em.through)
@@ -265,6 +266,18 @@ class Rebuild:
         mod.cycle = mark.cycle
         mod.type_name = record["type"]
         return Step(mark, record, tuple(self.fired), tuple(arrivals), tuple(out), engine, mod.uncertain, before)
+
+    def _went_out(self, mark: CycleMark, em: Emission) -> bool:
+        """Whether the runtime could send ``em``: not through a connector no link was ever
+        attached at; and through one the module reported unlinked (status 0) only if the
+        capture has it there (an emulated serial link takes a frame into an undocked link, and
+        it is lost; a bus link released at a cut refuses it, and it is not on the wire)."""
+        if (mark.module, em.through) not in self.attached:
+            return False
+        if mark.status.get(self.profile.connector_name(em.through), "0") != "0":
+            return True
+        queue = self.frames.outbound.get((mark.module, em.through), deque())
+        return any(hop.time >= mark.time - CLOCKS and same(hop.hormone, em.hormone) for hop in list(queue)[:2])
 
     def _drop_ignored(self, mark: CycleMark) -> None:
         """Let go of the hormones delivered to the module that it never took in: stamped
