@@ -24,7 +24,10 @@ What the capture lacks is said, with where, and replay carries on (:class:`Note`
   are not: the marks give them again each cycle);
 * cycles with no mark (a gap in the module's cycle numbers): the state is carried over and
   the timer taken from the next mark, the next certainty;
-* a timer that does not follow from the previous cycle (a pause, a gap): taken from the mark;
+* a cycle whose timer is the previous cycle's: the module was paused (the console's
+  ``pause``): the engine does not step, and what came is held for the cycle it resumes in,
+  as the runtime holds it;
+* any other timer that does not follow from the previous cycle (a gap): taken from the mark;
 * a hormone delivered to the module that it never took in (stamped before its cycle before
   last began, and none of the cycles since counted it): the module ignored it (its link was
   down, or not verified again yet, as the runtime's liveness machine does); let go;
@@ -71,7 +74,7 @@ End = tuple[int, int]
 @dataclass(frozen=True, slots=True)
 class Note:
     """Something replay cannot know or found wrong, and where: ``kind`` is ``missing``
-    (a frame), ``gap`` (cycles without marks), ``timer``, ``diverged`` (a send the capture
+    (a frame), ``gap`` (cycles without marks), ``timer``, ``paused``, ``diverged`` (a send the capture
     does not have there), ``ignored`` (a frame the module did not take in: a fact of the run,
     not a gap) or ``unmapped`` (frames on a link no mark names)."""
 
@@ -115,6 +118,7 @@ class _Module:
     cycle: int
     uncertain: str = ""
     type_name: str | None = None
+    paused_at: int | None = None  # the last cycle it was paused in (see Rebuild._module)
 
 
 @dataclass
@@ -229,7 +233,12 @@ class Rebuild:
         elif mark.cycle != mod.cycle + 1:
             self._note("gap", mark, f"no marks for cycles {mod.cycle + 1}..{mark.cycle - 1}: state carried over")
             mod.uncertain = mod.uncertain or f"cycles {mod.cycle + 1}..{mark.cycle - 1} not in the capture"
-        if mod.engine.timer != mark.timer:
+        held = mark.cycle == mod.cycle + 1 and mark.timer == (mod.engine.timer - 1) % mod.engine.clock
+        if held:  # the cycle reports the timer the last one did: the engine did not step (paused)
+            if mod.paused_at != mod.cycle:
+                self._note("paused", mark, "LocalTimer stood still: paused, the engine holds until it resumes")
+            mod.paused_at = mark.cycle
+        elif mod.engine.timer != mark.timer:
             if mark.cycle == mod.cycle + 1:
                 self._note("timer", mark, f"LocalTimer {mark.timer}, not {mod.engine.timer}: taken from the mark")
             mod.engine.timer = mark.timer
@@ -248,18 +257,23 @@ class Rebuild:
                 engine.link_up(c, name(remote))
         for sensor, value in mark.sensors.items():
             engine.set_sensor(sensor, value)
-        self._drop_ignored(mark)
-        arrivals = self._arrivals(mark, mod)
         self.fired.clear()
         before = mod.type_name
-        out = []
-        for em in engine.step(arrivals):
-            if self._went_out(mark, em):
-                out.append(em)
-            else:
-                engine.send_failed(em.through)
+        out: list[Emission] = []
+        faults: list[str] = []
+        if mod.paused_at == mark.cycle:  # what comes is held for the cycle it resumes in
+            arrivals: list[Arrival] = []
+        else:
+            if mod.paused_at is None or mark.cycle - mod.paused_at > 2:  # held frames are not ignored ones
+                self._drop_ignored(mark)
+            arrivals = self._arrivals(mark, mod)
+            for em in engine.step(arrivals):
+                if self._went_out(mark, em):
+                    out.append(em)
+                else:
+                    engine.send_failed(em.through)
+            faults = [f"{a[0]}: {a[1]}" for kind, a in engine.effects if kind == "fault"]
         self._check_sent(mark, out)
-        faults = [f"{a[0]}: {a[1]}" for kind, a in engine.effects if kind == "fault"]
         record = cycle_json(engine, mark.cycle, mark.module, mark.name, arrivals, out, faults)
         record["t"] = mark.t
         record["life"] = mark.life

@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -415,3 +416,41 @@ def test_a_run_on_a_can_bus_is_rebuilt_too(capsys: pytest.CaptureFixture[str], t
     out, err = replay(capsys, capture)
     assert {key(r): r for r in map(json.loads, out.splitlines())} == {key(r): r for r in records}
     assert not_run_facts(err) == []
+
+
+def test_an_operators_pause_and_inject_are_rebuilt(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """The console on the launcher's cable pauses every module, resumes them and injects a
+    hormone at the head: the paused cycles (LocalTimer stands still) hold the engine, what
+    came meanwhile is taken in when it resumes, and the injected hormone is the head's."""
+    from tools import console
+
+    exe = Path(sys.executable).with_name("dh2rt")
+    assert subprocess.run([str(exe), "keys", "new", "-o", "robot"], cwd=tmp_path, capture_output=True).returncode == 0
+    argv = ["--transport", "serial", "--module-count", "4", "--cycles", "200", "--cycle-ms", "20", "--key", "robot",
+            "--console", "cable", "--stand-in", "none", "--capture", "pz.pcapng", "--trace", "pz.jsonl"]  # fmt: skip
+    run = subprocess.Popen([str(exe), *argv], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        cable = tmp_path / "cable"
+        deadline = time.monotonic() + 60
+        while not (cable.exists() and cable.read_text().strip()):
+            assert run.poll() is None and time.monotonic() < deadline, "the launcher never plugged the cable in"
+            time.sleep(0.1)
+        time.sleep(0.5)  # the modules' first cycles
+        port = cable.read_text().strip()
+        common = ["--port", port, "--key", str(tmp_path / "robot"), "--program", str(ROOT / "examples/caterpillar.dh2")]
+        for commands in ("pause\n", "resume\ninject X(C)\n"):
+            (tmp_path / "commands").write_text(commands)
+            assert console.main([*common, "--cycle-ms", "20", "--script", str(tmp_path / "commands")]) == 0
+        assert run.wait(timeout=120) in (0, launcher.EXIT_TOO_SLOW)  # late cycles do not matter here
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait()
+    capsys.readouterr()
+    records = [json.loads(line) for line in (tmp_path / "pz.jsonl").read_text().splitlines()]
+    out, err = replay(capsys, tmp_path / "pz.pcapng")
+    assert {key(r): r for r in map(json.loads, out.splitlines())} == {key(r): r for r in records}
+    assert {line.split(" (module")[0] for line in err.splitlines() if line.startswith("replay: paused: ")} == {
+        f"replay: paused: m{m}" for m in range(4)
+    }
+    assert any(a["at"] is None and a["hormone"] == "X(C)" for r in records for a in r["received"])
