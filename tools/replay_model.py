@@ -11,7 +11,8 @@ The model is the in-process :class:`~dh2rt.robot.Robot` on what the capture says
 * as many cycles as the longest-running module ran.
 
 What the model cannot know is said: links docked later (their marks come after the first
-cycle), links that lost frames (on serial links a frame sent into an undocked link is lost:
+cycle: the model, as ``dh2rt run``, docks what the program's effects ask for by its own
+rules, and nothing else), links that lost frames (on serial links a frame sent into an undocked link is lost:
 a cut), a module's later lives (a restart). Divergences from there on are the model's
 ignorance, not the robot's fault.
 """
@@ -51,18 +52,18 @@ def model_records(program: CompiledProgram, marks: Sequence[Mark]) -> tuple[list
     cycles = [m for m in marks if isinstance(m, CycleMark)]
     first_cycle = next(i for i, m in enumerate(marks) if isinstance(m, CycleMark))
     start_links = [m for m in marks[:first_cycle] if isinstance(m, LinkMark)]
+    names = {m.module: m.name for m in reversed(cycles)}
     unknown = [
-        f"link {m.link} (m{m.ends[0][0]} to m{m.ends[1][0]}) came later: not in the model"
+        f"link {m.link} ({names[m.ends[0][0]]} to {names[m.ends[1][0]]}) came later: the model docks only what "
+        "the program's own effects dock, by dh2rt run's rules"
         for m in marks[first_cycle:]
-        if isinstance(m, LinkMark)
+        if isinstance(m, LinkMark) and m.ends[0][0] in names and m.ends[1][0] in names
     ]
-    names: dict[int, str] = {}
     phases: dict[int, int] = {}
     restarted: set[int] = set()
     injected: dict[int, list[tuple[int, str]]] = defaultdict(list)
     last = 0
     for m in cycles:
-        names.setdefault(m.module, m.name)
         if m.life:
             if m.module not in restarted:
                 restarted.add(m.module)
