@@ -9,7 +9,8 @@ keeps a small part of it beside the frames:
 
 * a **cycle mark** per module per cycle: the module (index, name, life), its cycle number,
   ``t`` (its own clock when the cycle began), LocalTimer as the cycle began, the status it
-  reported (connector -> remote connector), how many hormones it took in at each connector
+  reported for the cycle (connector -> remote connector, as the record has it: at the
+  cycle's end), how many hormones it took in at each connector
   (the count only: *which* hormones is the wire's: the next ones delivered to that
   connector, every link being first in, first out), the hormones injected over its control
   channel (not on any link) and the sensors as the cycle read them;

@@ -6,8 +6,10 @@ where it comes from):
 * the **link marks** make each link end of the capture a module's connector;
 * the **frames**: per connector, the hormones delivered to it (not lost on the link, not
   corrupted) in the order they were sent, and the hormones sent through it;
-* each module's **cycle marks**, in its order: LocalTimer and the status as the cycle began,
-  how many hormones it took in at each connector, what was injected, the sensors.
+* each module's **cycle marks**, in its order: LocalTimer as the cycle began, the status it
+  reported for the cycle (a send that failed in it is not told apart: its connector reads 0
+  from the cycle's start), how many hormones it took in at each connector, what was
+  injected, the sensors.
 
 For each mark the module's engine (one per life, started at the mark's timer phase) is given
 that status and those sensors, the next hormones delivered at each connector (as many as the
@@ -18,7 +20,7 @@ What it sent is checked against the frames the module sent, in order, per connec
 What the capture lacks is said, with where, and replay carries on (:class:`Note`):
 
 * a hormone the mark says was taken in with no frame in the capture that could have been it
-  (sent before the cycle began, within :data:`LATE_FRACTION` of a period): the frame is
+  (sent no later than :data:`LATE_FRACTION` of a period after the cycle began): the frame is
   missing (removed from the file, or never captured); the engine steps without it, and its
   variables, actuators and receptor statuses are uncertain from there (its timer and status
   are not: the marks give them again each cycle);
