@@ -15,7 +15,7 @@ this layer does not import: :func:`open_capture_sink` finds it through the entry
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Protocol
@@ -40,6 +40,10 @@ class CaptureSink(Protocol):
     def write_message(self, msg: Any) -> None: ...
 
     def serial_frame(self, timestamp: float, link: int, side: int, wire: bytes, *, lost: bool = False) -> None: ...
+
+    def cycle_mark(
+        self, record: Mapping[str, Any], links: Mapping[int, tuple[tuple[int, int], tuple[int, int]]]
+    ) -> None: ...
 
     def close(self) -> None: ...
 

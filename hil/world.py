@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import shutil
 import tempfile
 import time
@@ -100,6 +101,9 @@ from hil.link_map import LinkMap
 from hil.status import ModuleView
 from hil.status import rows as status_rows
 from hil.supervisor import ModuleHandle, ProcessModule, Reports, deferred_interrupts, start_module
+
+#: The connector of a negotiated link in a module's log line (firmware.negotiated_links).
+_NEGOTIATED_AT = re.compile(r"link negotiated: connector (\d+) is link \d+ side [01]")
 
 #: Transports whose modules run as threads of the world's process (their bus is in-process).
 THREAD_TRANSPORTS = ("inproc", "virtual")
@@ -171,7 +175,8 @@ class World:
         self.phases = [self.phase_draw.next(program.clock_cycle) for _ in topology.names]
         self.cycle_period = cycle_period
         self.cycles = cycles
-        self.trace = trace
+        #: modules report their cycles for --trace, and for --capture's cycle marks
+        self.trace = trace or capture is not None
         self.silence_cycles = silence_cycles
         self.status_every = status_every
         self.handshake = handshake
@@ -295,6 +300,8 @@ class World:
         self.witness: BusWitness | None = None
         self._bus_spans: list[list[tuple[Span, bool]]] = [[] for _ in range(topology.size)]
         self._negotiated: list[set[EndId]] = [set() for _ in range(topology.size)]
+        #: link id -> side -> (module, connector), as the modules logged their negotiated links
+        self._bus_links: dict[int, dict[int, tuple[int, int]]] = {}
         self._life_wall: list[tuple[float, float | None]] = [(0.0, None)] * topology.size
         self._cable_spans: list[Span] = []
         #: how many times each module was started (a restart starts a new life)
@@ -523,6 +530,12 @@ class World:
                     v.failed = True
         elif isinstance(rep, TraceRecord):
             self.records.append(dict(rep.record))
+            if self.capture is not None:  # the cycle marks replay needs (tools.capture_cycles)
+                links = {k: ((w.a, w.a_conn), (w.b, w.b_conn)) for k, w in self.link_map.links.items()}
+                for link, ends in self._bus_links.items():  # negotiated on a bus: both sides logged
+                    if len(ends) == 2:
+                        links.setdefault(link, (ends[0], ends[1]))
+                self.capture.cycle_mark(rep.record, links)
         elif isinstance(rep, Effect):
             self.effects.append((module, rep))
             self.log.append(f"{v.name}: effect {rep.kind} {rep.args}")
@@ -532,6 +545,9 @@ class World:
             end = negotiated_end(rep.message)
             if end is not None:
                 self._negotiated[module].add(end)
+                found = _NEGOTIATED_AT.search(rep.message)
+                if found is not None:  # which connector: for the capture's link marks
+                    self._bus_links.setdefault(end[0], {})[end[1]] = (module, int(found.group(1)))
         elif isinstance(rep, Failure):
             v.errors.append(rep.message)
             v.failed = True

@@ -9,6 +9,9 @@
 Formats other than pcapng get the program images in a sidecar file beside the capture
 (:func:`tools.capture_reader.write_sidecar`), so every capture decodes with nothing else.
 
+A loop run's capture also keeps the modules' cycle marks beside it (:meth:`FileSink.cycle_mark`,
+:mod:`tools.capture_cycles`): what ``dh2rt replay`` needs that the wire does not say.
+
 :func:`open_sink` is what the launcher's ``--capture`` finds through the entry-point group
 ``dh2rt.capture_sinks``: the launcher lives in ``hil/`` and does not import ``tools/``. The
 sink is thread-safe: the launcher's bus tap and its serial link tap write from their own
@@ -19,13 +22,14 @@ from __future__ import annotations
 
 import copy
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from dh2rt.errors import DecodeError, OptionError
 from dh2rt.wire.serial_framing import decode_serial
-from tools import serial_records
+from tools import capture_cycles, serial_records
 from tools.capture_reader import PYTHON_CAN_SUFFIXES, write_sidecar
 from tools.pcap import CapturedFrame, PcapWriter, socketcan_packet
 from tools.pcapng import CAN_INTERFACE, SERIAL_INTERFACE, PcapngWriter
@@ -52,6 +56,8 @@ class FileSink:
         self._logger: Any = None
         #: BLF and ASC number their channels; other formats keep python-can's channel as it is
         self._numbered_channels = suffix in (".blf", ".asc")
+        self._links_marked: set[int] = set()
+        self._marks: IO[str] | None = None  # opened at the first mark (see cycle_mark)
         if suffix == ".pcapng":
             self._pcapng = PcapngWriter(path, programs)
         elif suffix == ".pcap":
@@ -62,6 +68,8 @@ class FileSink:
             self._logger = can.Logger(str(path))
         if programs and self._pcapng is None:
             write_sidecar(path, programs)
+        # the marks of a capture this one replaces must not pass for this one's
+        capture_cycles.marks_path(path).unlink(missing_ok=True)
 
     def write_message(self, msg: Any) -> None:
         """One CAN frame as python-can received it (a ``can.Message``)."""
@@ -88,6 +96,25 @@ class FileSink:
             self._pcapng.write(SERIAL_INTERFACE, timestamp, packet)
             self.count += 1
 
+    def cycle_mark(
+        self, record: Mapping[str, Any], links: Mapping[int, tuple[tuple[int, int], tuple[int, int]]]
+    ) -> None:
+        """A module's report of one cycle (its trace record), kept as a cycle mark beside
+        the capture (:mod:`tools.capture_cycles`), after a link mark for each of ``links``
+        (link id -> (module, connector) at side 0 and side 1) not marked yet. Marks are not
+        frames: :attr:`count` does not count them."""
+        now = time.time()
+        with self._lock:
+            if self._marks is None:
+                self._marks = capture_cycles.marks_path(self.path).open("w", encoding="utf-8")
+                self._marks.write(capture_cycles.header())
+            for link, ends in sorted(links.items()):
+                if link not in self._links_marked:
+                    self._links_marked.add(link)
+                    self._marks.write(capture_cycles.line(capture_cycles.link_mark_json(link, ends), now))
+            started = capture_cycles.wall_time(float(record["t"]))
+            self._marks.write(capture_cycles.line(capture_cycles.cycle_mark_json(record), started))
+
     def flush(self) -> None:
         with self._lock:
             if self._pcapng is not None:
@@ -101,6 +128,8 @@ class FileSink:
                 self._pcap.close()
             if self._logger is not None:
                 self._logger.stop()
+            if self._marks is not None:
+                self._marks.close()
 
 
 def open_sink(path: Path, programs: Sequence[bytes] = ()) -> FileSink:
