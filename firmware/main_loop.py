@@ -69,13 +69,15 @@ from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import FrameFamily, Inbound, PortEnd
 from dh2rt.transport.registry import open_transport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from dh2rt.wire.frame import FrameCodec
+from dh2rt.wire.motion import is_motion
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
+from firmware.motion.member import Member
 from firmware.operator import OperatorChannel
 from firmware.sensors import attach_sensors
 
@@ -210,6 +212,10 @@ class ModuleHost:
         #: the operator's commands (dh2rt console): trusted keys as the flash's, the last
         #: counter accepted kept in the flash directory (docs/console.md)
         self.operator = OperatorChannel(self.runtime, config.trust, Path(config.flash) if config.flash else None)
+        #: the docking chains this module is a member of (dh2rt.wire.motion): it answers for its
+        #: joints, holds the targets it is sent and passes frames on along their route
+        self.member = Member(log=self._log_line)
+        self._split_control()
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -407,11 +413,63 @@ class ModuleHost:
         if program is not None:
             status["program"] = program
         status["operator"] = self.operator.core.counters
+        if self.member.counts:
+            status["motion"] = dict(self.member.counts)
         return status
+
+    def _split_control(self) -> None:
+        """The control family has one handler a transport: the operator channel's, which
+        registered first, keeps the operator's frames; motion frames (types 64..127) go to
+        this module's motion member."""
+        listening = self.operator.listening
+        operator_frame = listening.handler
+        listening.close()
+
+        def on_control(frame: Inbound) -> None:
+            if is_motion(frame.payload):
+                self._on_motion(frame)
+            else:
+                operator_frame(frame)
+
+        self.operator.listening = self.runtime.transport.listen(FrameFamily.CONTROL, on_control)
+
+    def _on_motion(self, frame: Inbound) -> None:
+        """A motion frame: send what the member answers or passes on; the targets it holds
+        are written to the servos at this cycle's end (or the joints are the program's)."""
+        rt, member = self.runtime, self.member
+        before = member.held
+        for out in member.received(frame.connector, frame.payload, rt.cycle, self._joint_angles):
+            rt.transport.send_raw(out.connector, out.frame)
+        if member.held is not before:
+            try:
+                rt.hold(member.held)
+            except DH2Error as exc:  # a joint this body does not have
+                self._log_line(f"motion: targets refused: {exc}")
+                member.held, member.holding = {}, None
+
+    def _joint_angles(self) -> tuple[float, ...]:
+        """DOF1 and DOF2 as the servos measure them (a motion frame's ASK), or as last
+        commanded when the servos cannot be read."""
+        rt = self.runtime
+        if self.driver is not None:
+            try:
+                return self.driver.read_positions()
+            except DH2Error as exc:
+                rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({exc}); commanded angles sent")
+        return rt.commanded
+
+    def _log_line(self, line: str) -> None:
+        self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
 
     def _take_commands(self, rt: ModuleRuntime) -> None:
         """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
-        or pushed readings count in this very cycle)."""
+        or pushed readings count in this very cycle); a motion gone silent gives the joints
+        back (firmware.motion.member)."""
+        member = self.member
+        if member.holding is not None:
+            member.cycle(rt.cycle)
+            if member.holding is None:
+                rt.hold({})
         while True:
             try:
                 cmd = self.commands.get_nowait()
