@@ -214,7 +214,7 @@ class ModuleHost:
         self.operator = OperatorChannel(self.runtime, config.trust, Path(config.flash) if config.flash else None)
         #: the docking chains this module is a member of (dh2rt.wire.motion): it answers for its
         #: joints, holds the targets it is sent and passes frames on along their route
-        self.member = Member(log=self._log_line)
+        self.member = Member(config.module, _ServoBody(self), log=self._log_line)
         self._split_control()
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
@@ -438,7 +438,7 @@ class ModuleHost:
         are written to the servos at this cycle's end (or the joints are the program's)."""
         rt, member = self.runtime, self.member
         before = member.held
-        for out in member.received(frame.connector, frame.payload, rt.cycle, self._joint_angles):
+        for out in member.received(frame.connector, frame.payload, rt.cycle):
             rt.transport.send_raw(out.connector, out.frame)
         if member.held is not before:
             try:
@@ -446,17 +446,6 @@ class ModuleHost:
             except DH2Error as exc:  # a joint this body does not have
                 self._log_line(f"motion: targets refused: {exc}")
                 member.held, member.holding = {}, None
-
-    def _joint_angles(self) -> tuple[float, ...]:
-        """DOF1 and DOF2 as the servos measure them (a motion frame's ASK), or as last
-        commanded when the servos cannot be read."""
-        rt = self.runtime
-        if self.driver is not None:
-            try:
-                return self.driver.read_positions()
-            except DH2Error as exc:
-                rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({exc}); commanded angles sent")
-        return rt.commanded
 
     def _log_line(self, line: str) -> None:
         self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
@@ -548,6 +537,29 @@ class ModuleHost:
                 self.report(Status(self._status(rt)))
         except DH2Error as exc:
             self.report(Log(f"command {cmd!r} refused: {exc}"))
+
+
+class _ServoBody:
+    """What a module reports of itself to a motion's ASK (firmware.motion.member.Body)."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+
+    def links(self) -> tuple[int, ...]:
+        """For each connector, the peer's connector linked there, 0 for none."""
+        return tuple(self.host.runtime.engine.status)
+
+    def angles(self) -> tuple[float, ...]:
+        """DOF1 and DOF2 as the servos measure them, or as last commanded when the servos
+        cannot be read."""
+        host = self.host
+        rt = host.runtime
+        if host.driver is not None:
+            try:
+                return host.driver.read_positions()
+            except DH2Error as exc:
+                rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({exc}); commanded angles sent")
+        return rt.commanded
 
 
 class TrialWatch:

@@ -62,7 +62,9 @@ def motion_text(message: mw.MotionMessage, name: Callable[[int], str]) -> str:
     route = path_text(message.route, name)
     if isinstance(message, mw.Angles):
         angles = ", ".join(f"DOF{i + 1} {a:g}" for i, a in enumerate(message.angles))
-        return f"{kind} motion {message.motion} #{message.seq} from {route}, left {message.left}: {angles}"
+        links = ",".join(map(str, message.links)) or "none"
+        head = f"{kind} motion {message.motion} #{message.seq} from {route}, left {message.left}"
+        return f"{head}: module {message.module}, {angles}, links {links}"
     head = f"{kind} motion {message.motion} #{message.seq} to {route}, hops {message.hops}"
     if isinstance(message, mw.Targets):
         return head + ": " + ", ".join(f"DOF{d + 1} {t:g}" for d, t in message.targets)

@@ -19,9 +19,13 @@ Laid out as every control frame::
 Message types::
 
     ASK 64       tell me your joint angles: nothing more
-    ANGLES 65    the member's report of its joints, answering the ASK of the same seq:
-                 n u8 (1..8), then n i16, the angles it measures of DOF1, DOF2, ...
-                 in hundredths of a degree
+    ANGLES 65    the member's report, answering the ASK of the same seq: its module
+                 index u16 (as its config names it: the tracker's marker of it); n u8
+                 (1..8), then n i16, the angles it measures of DOF1, DOF2, ... in
+                 hundredths of a degree; its links: n u8 (0..15), then n bytes, for each
+                 of its connectors the peer's connector linked there (its
+                 ConnectorStatus, 0: none), so that the asker can route to the next
+                 module of the chain
     TARGETS 66   hold these: n u8 (1..8), then n times (DOF index u8, target i16 in
                  hundredths of a degree), DOF indices strictly ascending
     END 67       the motion is over: the joints are your program's again
@@ -97,13 +101,16 @@ class Ask:
 
 @dataclass(frozen=True, slots=True)
 class Angles:
-    """The member at ``route`` measures its joints at ``angles`` (degrees, DOF1 first),
+    """The member at ``route``, module ``module``, measures its joints at ``angles``
+    (degrees, DOF1 first) and has its connectors linked to the peers' ``links`` (0: none),
     answering the ASK numbered ``seq``; ``left`` hops of the way back remain."""
 
     motion: int
     seq: int
     route: Path
+    module: int
     angles: tuple[float, ...]
+    links: tuple[int, ...] = ()
     left: int = 0
 
 
@@ -202,10 +209,16 @@ def encode(sender: int, message: MotionMessage) -> bytes:
     out = bytearray((CONTROL_FAMILY << 6 | MOTION_CLASS << 4 | sender, kind))
     out += struct.pack(">HHB", message.motion, message.seq, at) + encode_path(message.route)
     if isinstance(message, Angles):
+        check_range("module", message.module, 0, _U16)
         check_range("number of angles", len(message.angles), 1, MAX_JOINTS)
-        out.append(len(message.angles))
+        out += struct.pack(">HB", message.module, len(message.angles))
         for i, a in enumerate(message.angles):
             out += struct.pack(">h", to_centi(f"angle of DOF{i + 1}", a))
+        check_range("number of links", len(message.links), 0, MAX_CONNECTOR)
+        out.append(len(message.links))
+        for c in message.links:
+            check_range("a link's connector", c, 0, MAX_CONNECTOR)
+            out.append(c)
     elif isinstance(message, Targets):
         check_range("number of targets", len(message.targets), 1, MAX_JOINTS)
         dofs = [dof for dof, _ in message.targets]
@@ -244,10 +257,16 @@ def decode(data: bytes) -> MotionFrame:
         raise DecodeError(f"{what}: hops {at} beyond a {len(route)}-hop route")
     message: MotionMessage
     if kind is MotionType.ANGLES:
-        (n,) = r.take(1, "number of angles")
+        module, n = r.unpack(">HB", "module and number of angles")
         _check_count(what, "angles", n)
         angles = r.unpack(f">{n}h", "angles")
-        message = Angles(motion, seq, route, tuple(a / CENTI for a in angles), at)
+        (count,) = r.take(1, "number of links")
+        if count > MAX_CONNECTOR:
+            raise DecodeError(f"{what}: {count} links; a module has at most {MAX_CONNECTOR} connectors")
+        links = tuple(r.take(count, "links"))
+        if any(c > MAX_CONNECTOR for c in links):
+            raise DecodeError(f"{what}: a link names connector {max(links)}, beyond {MAX_CONNECTOR}")
+        message = Angles(motion, seq, route, module, tuple(a / CENTI for a in angles), links, at)
     elif kind is MotionType.TARGETS:
         (n,) = r.take(1, "number of targets")
         _check_count(what, "targets", n)

@@ -7,8 +7,10 @@ frames (:mod:`dh2rt.wire.motion`) that reach it, whoever asks.
 * Taken frames of a motion must be newer than the newest taken of that motion (its ``seq``,
   compared as 16-bit serial numbers); others are dropped (``stale``): a late TARGETS never
   undoes a later one, and a late one of a motion that ended never takes the joints again.
-* ASK: the module answers with ANGLES, the angles it measures of its own joints
-  (``read_angles``, its servos' present positions), back along the route.
+* ASK: the module answers with ANGLES, back along the route: its index, the angles it
+  measures of its own joints (its :class:`Body`: the servos' present positions) and its
+  links (for each connector, the peer's connector linked there), so that the asker can
+  route on to the next module.
 * TARGETS: the module holds them on its servos from its next cycle, in place of its
   program's DOF1/DOF2 (as the loop's ``Hold`` did: :attr:`held`).
 * END, or no frame of the motion it holds for :data:`IDLE_CYCLES` of its own cycles: the
@@ -27,6 +29,7 @@ from __future__ import annotations
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.wire import motion as mw
@@ -50,10 +53,26 @@ class Out:
     frame: bytes
 
 
+class Body(Protocol):
+    """What a member reports of itself when asked."""
+
+    def angles(self) -> tuple[float, ...]:
+        """Its joints' angles as it measures them (degrees, DOF1 first)."""
+        ...
+
+    def links(self) -> tuple[int, ...]:
+        """For each of its connectors, the peer's connector linked there (0: none)."""
+        ...
+
+
 class Member:
     """One module's side of the motions of the chains it is part of."""
 
-    def __init__(self, log: Callable[[str], None] = lambda line: None, idle_cycles: int = IDLE_CYCLES) -> None:
+    def __init__(
+        self, module: int, body: Body, log: Callable[[str], None] = lambda line: None, idle_cycles: int = IDLE_CYCLES
+    ) -> None:
+        self.module = module
+        self.body = body
         self.log = log
         self.idle_cycles = idle_cycles
         #: Joint targets (degrees by DOF index) its servos hold in place of the program's;
@@ -67,11 +86,9 @@ class Member:
         self._seen: OrderedDict[int, int] = OrderedDict()
         self.counts: Counter[str] = Counter()
 
-    def received(
-        self, connector: int, payload: bytes, cycle: int, read_angles: Callable[[], tuple[float, ...]]
-    ) -> list[Out]:
+    def received(self, connector: int, payload: bytes, cycle: int) -> list[Out]:
         """A motion frame came in at ``connector`` in this module's cycle ``cycle``: what to
-        send on or in answer (``read_angles`` is called only to answer an ASK)."""
+        send on or in answer."""
         try:
             sender, message = mw.decode(payload)
         except DecodeError as exc:
@@ -106,7 +123,10 @@ class Member:
         if self.holding == message.motion:
             self.heard = cycle
         try:
-            answer = mw.Angles(message.motion, message.seq, route, read_angles(), len(route) - 1)
+            body = self.body
+            answer = mw.Angles(
+                message.motion, message.seq, route, self.module, body.angles(), body.links(), len(route) - 1
+            )
             return [Out(connector, mw.encode(connector, answer))]
         except EncodeError as exc:
             self.log(f"motion: cannot answer motion {message.motion}: {exc}")

@@ -91,7 +91,9 @@ def test_the_member_answers_holds_and_gives_back(robot: Robot) -> None:
     robot.send(mw.Ask(9, 0, ROUTE_2))
     robot.cycles()
     (report,) = [mw.decode(f).message for f in robot.got]
-    assert report == mw.Angles(9, 0, ROUTE_2, tuple(round(a, 2) for a in robot.driver(1).targets), 0)
+    angles = tuple(round(a, 2) for a in robot.driver(1).targets)
+    assert report == mw.Angles(9, 0, ROUTE_2, 2, angles, tuple(m2.engine.status), 0)
+    assert report.links[FRONT - 1] == BACK  # m1's back is linked at m2's front
 
     robot.send(mw.Targets(9, 1, ROUTE_2, ((0, 40.0), (1, -25.0))))
     robot.cycles()

@@ -5,7 +5,7 @@ motion goes silent."""
 
 from __future__ import annotations
 
-from functools import partial
+from dataclasses import dataclass
 
 from dh2rt.wire import motion as mw
 from firmware.motion.member import IDLE_CYCLES, Member
@@ -16,14 +16,30 @@ ROUTE_1 = ((BACK, FRONT),)
 ROUTE_2 = ((BACK, FRONT), (BACK, FRONT))
 
 
+@dataclass
+class Body:
+    joints: tuple[float, ...]
+    status: tuple[int, ...]
+
+    def angles(self) -> tuple[float, ...]:
+        return self.joints
+
+    def links(self) -> tuple[int, ...]:
+        return self.status
+
+
 class Chain:
     """Members m1, m2 (m0 is the asker, also a Member for the reports it gets); a frame sent
     through ``back`` reaches the next one's ``front`` and the other way round."""
 
     def __init__(self) -> None:
         self.logs: list[str] = []
-        self.modules = [Member(log=self.logs.append) for _ in range(3)]
-        self.angles = [(0.0, 0.0), (10.0, -20.0), (33.33, 44.5)]
+        self.bodies = [
+            Body((0.0, 0.0), (0, 1, 0, 0)),
+            Body((10.0, -20.0), (2, 1, 0, 0)),
+            Body((33.33, 44.5), (2, 0, 0, 0)),
+        ]
+        self.modules = [Member(10 + i, self.bodies[i], log=self.logs.append) for i in range(3)]
         self.cycle = 0
         self.sent = 0
 
@@ -37,7 +53,7 @@ class Chain:
             if not 0 <= to < len(self.modules):
                 continue
             member = self.modules[to]
-            outs = member.received(arrives, frame, self.cycle, partial(self.angles.__getitem__, to))
+            outs = member.received(arrives, frame, self.cycle)
             queue.extend((to, out.connector, out.frame) for out in outs)
 
     def ask(self, message: mw.Outward) -> None:
@@ -47,7 +63,7 @@ class Chain:
 def test_angles_are_asked_and_answered_along_the_route() -> None:
     chain = Chain()
     chain.ask(mw.Ask(5, 1, ROUTE_2))
-    assert chain.modules[0].reports == [mw.Angles(5, 1, ROUTE_2, (33.33, 44.5), 0)]
+    assert chain.modules[0].reports == [mw.Angles(5, 1, ROUTE_2, 12, (33.33, 44.5), (2, 0, 0, 0), 0)]
     assert chain.modules[1].counts["relayed"] == 2  # the ASK out, the ANGLES back
     assert chain.modules[2].counts["ask"] == 1
     assert chain.sent == 4
@@ -103,10 +119,10 @@ def test_off_route_and_malformed_frames_are_dropped_and_counted() -> None:
     m1 = chain.modules[1]
     # says it came in at m1's back, but it arrives at its front
     wrong = mw.encode(BACK, mw.Targets(1, 0, ((FRONT, BACK),), ((0, 1.0),), 1))
-    assert m1.received(FRONT, wrong, 0, lambda: (0.0, 0.0)) == []
+    assert m1.received(FRONT, wrong, 0) == []
     # a report whose hop back does not match where it came in
-    report = mw.encode(BACK, mw.Angles(1, 0, ROUTE_2, (1.0, 2.0), 1))
-    assert m1.received(FRONT, report, 0, lambda: (0.0, 0.0)) == []
-    assert m1.received(FRONT, bytes((0x22, 0x42, 0)), 0, lambda: (0.0, 0.0)) == []
+    report = mw.encode(BACK, mw.Angles(1, 0, ROUTE_2, 12, (1.0, 2.0), (), 1))
+    assert m1.received(FRONT, report, 0) == []
+    assert m1.received(FRONT, bytes((0x22, 0x42, 0)), 0) == []
     assert m1.counts == {"off_route": 2, "malformed": 1}
     assert m1.held == {}

@@ -76,7 +76,10 @@ def test_motion_frames_read_in_docking_terms(medium: str, caterpillar: CompiledP
     way = "back>front back>front"
     messages: list[tuple[mw.MotionMessage, str]] = [
         (mw.Ask(3, 10, route, 1), f"ASK motion 3 #10 to {way}, hops 1"),
-        (mw.Angles(3, 10, route, (12.5, -40.0), 2), f"ANGLES motion 3 #10 from {way}, left 2: DOF1 12.5, DOF2 -40"),
+        (
+            mw.Angles(3, 10, route, 5, (12.5, -40.0), (2, 0, 0, 0), 2),
+            f"ANGLES motion 3 #10 from {way}, left 2: module 5, DOF1 12.5, DOF2 -40, links 2,0,0,0",
+        ),
         (
             mw.Targets(3, 11, route, ((0, 30.0), (1, -7.25)), 2),
             f"TARGETS motion 3 #11 to {way}, hops 2: DOF1 30, DOF2 -7.25",

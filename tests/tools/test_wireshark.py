@@ -755,8 +755,8 @@ def test_control_frames_show_as_dump_does(
 MOTION_ROUTE = ((BACK, FRONT), (LEFT, FRONT))
 MOTION_MESSAGES: list[motion.MotionMessage] = [
     motion.Ask(7, 0, MOTION_ROUTE, 1),
-    motion.Angles(7, 0, MOTION_ROUTE, (12.5, -40.0), 2),
-    motion.Angles(7, 1, MOTION_ROUTE[:1], (327.67, -327.68, 0.01, -0.07), 0),
+    motion.Angles(7, 0, MOTION_ROUTE, 3, (12.5, -40.0), (2, 0, 1, 0), 2),
+    motion.Angles(7, 1, MOTION_ROUTE[:1], 65535, (327.67, -327.68, 0.01, -0.07), (), 0),
     motion.Targets(7, 65535, MOTION_ROUTE, ((0, 30.0), (1, -7.25)), 0),
     motion.Targets(7, 3, MOTION_ROUTE, ((1, 0.0), (7, 1.5)), 2),
     motion.End(65535, 4, MOTION_ROUTE, 2),
@@ -778,8 +778,11 @@ def broken_motion_frames() -> list[bytes]:
         targets[:10] + b"\x00",  # no targets
         targets[:11] + targets[14:] + targets[11:14],  # DOFs not ascending
         targets[:-1],  # cut short in the targets
-        angles[:10] + b"\x09",  # too many angles
-        angles[:-1],  # cut short in the angles
+        angles[:12] + b"\x09",  # too many angles
+        angles[:-7],  # cut short in the angles
+        angles[:-5] + b"\x10" + bytes(16),  # too many links
+        angles[:-1] + b"\x10",  # a link beyond connector 15
+        angles[:-1],  # cut short in the links
         angles + b"\x00",  # a trailing byte
     ]
 
@@ -793,4 +796,7 @@ def test_motion_frames_show_as_dump_does(
     rows, shown = control_family_as_dump(tshark, programs, tmp_path, frames, broken_motion_frames())
     assert len({hop.error for hop in shown if hop.error}) == len(broken_motion_frames())
     lines = [row[5] for row in rows if row[4] == "control"]
-    assert "ANGLES motion 7 #1 from back>front, left 0: DOF1 327.67, DOF2 -327.68, DOF3 0.01, DOF4 -0.07" in lines
+    assert (
+        "ANGLES motion 7 #1 from back>front, left 0: module 65535, DOF1 327.67, DOF2 -327.68, DOF3 0.01, DOF4 -0.07, links none"
+        in lines
+    )

@@ -28,7 +28,9 @@ def messages(draw: st.DrawFn) -> mw.MotionMessage:
     if kind == 0:
         return mw.Ask(motion, seq, route, at)
     if kind == 1:
-        return mw.Angles(motion, seq, route, tuple(draw(st.lists(centi, min_size=1, max_size=8))), at)
+        angles = tuple(draw(st.lists(centi, min_size=1, max_size=8)))
+        links = tuple(draw(st.lists(st.integers(0, 15), max_size=15)))
+        return mw.Angles(motion, seq, route, draw(u16), angles, links, at)
     if kind == 2:
         dofs = sorted(draw(st.sets(st.integers(0, 7), min_size=1)))
         return mw.Targets(motion, seq, route, tuple((d, draw(centi)) for d in dofs), at)
@@ -48,8 +50,8 @@ def test_the_layout_byte_by_byte() -> None:
     frame = mw.encode(2, mw.Targets(0x1234, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 1))
     assert frame.hex(" ") == "22 42 12 34 00 07 01 02 21 21 02 00 11 c6 01 f4 48"
     assert mw.encode(1, mw.Ask(1, 2, ((2, 1),))).hex(" ") == "21 40 00 01 00 02 00 01 21"
-    angles = mw.encode(1, mw.Angles(1, 2, ((2, 1),), (0.0, 90.0), 1))
-    assert angles.hex(" ") == "21 41 00 01 00 02 01 01 21 02 00 00 23 28"
+    angles = mw.encode(1, mw.Angles(1, 2, ((2, 1),), 3, (0.0, 90.0), (2, 0, 0, 0), 1))
+    assert angles.hex(" ") == "21 41 00 01 00 02 01 01 21 00 03 02 00 00 23 28 04 02 00 00 00"
     assert mw.encode(1, mw.End(1, 3, ((2, 1),))).hex(" ") == "21 43 00 01 00 03 00 01 21"
 
 
@@ -64,7 +66,7 @@ def test_the_operator_codec_and_the_motion_codec_split_the_family() -> None:
         mw.decode(pause)
 
 
-ANGLES = mw.encode(1, mw.Angles(1, 2, ((2, 1),), (1.0,)))
+ANGLES = mw.encode(1, mw.Angles(1, 2, ((2, 1),), 7, (1.0,), (2, 0, 0, 0)))
 NOT_ASCENDING = "motion frame TARGETS: target DOF indices {} are not strictly ascending below 8"
 RESERVED = "control frame: message type 68 is reserved (docking motion, not yet defined)"
 GOOD = mw.encode(2, mw.Targets(5, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 1))
@@ -93,8 +95,13 @@ GOOD = mw.encode(2, mw.Targets(5, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 
         (GOOD[:11] + b"\x00\x00\x00" + GOOD[11:14], NOT_ASCENDING.format("[0, 0]")),
         (GOOD[:10] + b"\x01\x08\x00\x00", NOT_ASCENDING.format("[8]")),
         (GOOD + b"\x00", "motion frame TARGETS: 1 trailing byte(s)"),
-        (ANGLES[:-1], "motion frame ANGLES: cut short in the angles at byte 10"),
-        (ANGLES[:9] + b"\x00", "motion frame ANGLES: 0 angles; a frame carries 1..8"),
+        (ANGLES[:10], "motion frame ANGLES: cut short in the module and number of angles at byte 9"),
+        (ANGLES[:13], "motion frame ANGLES: cut short in the angles at byte 12"),
+        (ANGLES[:11] + b"\x00", "motion frame ANGLES: 0 angles; a frame carries 1..8"),
+        (ANGLES[:14], "motion frame ANGLES: cut short in the number of links at byte 14"),
+        (ANGLES[:14] + b"\x10", "motion frame ANGLES: 16 links; a module has at most 15 connectors"),
+        (ANGLES[:-1] + b"\x10", "motion frame ANGLES: a link names connector 16, beyond 15"),
+        (ANGLES[:-1], "motion frame ANGLES: cut short in the links at byte 15"),
         (mw.encode(1, mw.Ask(1, 2, ((2, 1),))) + b"\x05", "motion frame ASK: 1 trailing byte(s)"),
         (mw.encode(1, mw.End(1, 2, ((2, 1),))) + b"\x05", "motion frame END: 1 trailing byte(s)"),
     ],
@@ -113,10 +120,13 @@ def test_every_malformed_frame_is_a_decode_error_naming_the_field(data: bytes, e
         (1, mw.Ask(1, -1, ((2, 1),)), "seq -1 is outside 0..65535"),
         (1, mw.Ask(1, 2, ()), "route length 0 is outside 1..255"),
         (1, mw.Ask(1, 2, ((2, 1),), 2), "hops 2 is outside 0..1"),
-        (1, mw.Angles(1, 2, ((2, 1),), (1.0,), 2), "hops left 2 is outside 0..1"),
+        (1, mw.Angles(1, 2, ((2, 1),), 0, (1.0,), (), 2), "hops left 2 is outside 0..1"),
         (1, mw.Ask(1, 2, ((16, 1),)), "path connector 16 is outside 1..15"),
-        (1, mw.Angles(1, 2, ((2, 1),), ()), "number of angles 0 is outside 1..8"),
-        (1, mw.Angles(1, 2, ((2, 1),), (400.0,)), "angle of DOF1 400.0 degrees is outside +-327.67"),
+        (1, mw.Angles(1, 2, ((2, 1),), 1 << 16, (1.0,)), "module 65536 is outside 0..65535"),
+        (1, mw.Angles(1, 2, ((2, 1),), 0, (1.0,), (0,) * 16), "number of links 16 is outside 0..15"),
+        (1, mw.Angles(1, 2, ((2, 1),), 0, (1.0,), (16,)), "a link's connector 16 is outside 0..15"),
+        (1, mw.Angles(1, 2, ((2, 1),), 0, ()), "number of angles 0 is outside 1..8"),
+        (1, mw.Angles(1, 2, ((2, 1),), 0, (400.0,)), "angle of DOF1 400.0 degrees is outside +-327.67"),
         (1, mw.Targets(1, 2, ((2, 1),), ((1, 0.0), (0, 0.0))), "target DOF indices [1, 0] are not strictly ascending"),
         (1, mw.Targets(1, 2, ((2, 1),), ((8, 0.0),)), "target DOF index 8 is outside 0..7"),
         (1, mw.Targets(1, 2, ((2, 1),), ((0, -400.0),)), "target of DOF1 -400.0 degrees is outside +-327.67"),
@@ -138,7 +148,7 @@ def test_sequence_numbers_compare_across_the_wrap() -> None:
 def test_relaying_moves_one_hop() -> None:
     ask = mw.Ask(1, 2, ((2, 1), (2, 1)))
     assert mw.onward(ask).hops == 1
-    assert mw.back(mw.Angles(1, 2, ask.route, (0.0, 0.0), 2)).left == 1
+    assert mw.back(mw.Angles(1, 2, ask.route, 0, (0.0, 0.0), (), 2)).left == 1
 
 
 @given(messages())

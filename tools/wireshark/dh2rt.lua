@@ -1227,10 +1227,10 @@ function Decode:motion_degrees(pos)
     return string.format("%g", raw / 100)
 end
 
-function Decode:motion_count(what, pos, name)
-    local n = self:take(what, pos, 1, "number of " .. name):byte()
+function Decode:motion_count(what, pos)
+    local n = self:take(what, pos, 1, "number of targets"):byte()
     if n < 1 or n > MOTION_MAX_JOINTS then
-        decode_error(string.format("%s: %d %s; a frame carries 1..%d", what, n, name, MOTION_MAX_JOINTS))
+        decode_error(string.format("%s: %d targets; a frame carries 1..%d", what, n, MOTION_MAX_JOINTS))
     end
     return n
 end
@@ -1262,18 +1262,37 @@ function Decode:motion()
     local where = table.concat(route, " ")
     local text
     if name == "ANGLES" then
-        local n = self:motion_count(what, pos, "angles")
-        self:take(what, pos + 1, 2 * n, "angles")
+        local head = self:take(what, pos, 3, "module and number of angles")
+        local module, n = head:byte(1) * 256 + head:byte(2), head:byte(3)
+        if n < 1 or n > MOTION_MAX_JOINTS then
+            decode_error(string.format("%s: %d angles; a frame carries 1..%d", what, n, MOTION_MAX_JOINTS))
+        end
+        self:take(what, pos + 3, 2 * n, "angles")
         local angles = {}
         for i = 1, n do
-            angles[i] = string.format("DOF%d %s", i, self:motion_degrees(pos + 2 * i - 1))
+            angles[i] = string.format("DOF%d %s", i, self:motion_degrees(pos + 1 + 2 * i))
         end
-        pos = pos + 1 + 2 * n
-        text = string.format("ANGLES motion %d #%d from %s, left %d: %s", motion, seq, where, at, table.concat(angles, ", "))
+        pos = pos + 3 + 2 * n
+        local count = self:take(what, pos, 1, "number of links"):byte()
+        if count > 15 then
+            decode_error(string.format("%s: %d links; a module has at most 15 connectors", what, count))
+        end
+        local raw = self:take(what, pos + 1, count, "links")
+        local links, highest = {}, 0
+        for i = 1, count do
+            links[i] = tostring(raw:byte(i))
+            highest = math.max(highest, raw:byte(i))
+        end
+        if highest > 15 then
+            decode_error(string.format("%s: a link names connector %d, beyond 15", what, highest))
+        end
+        pos = pos + 1 + count
+        text = string.format("ANGLES motion %d #%d from %s, left %d: module %d, %s, links %s", motion, seq, where, at,
+            module, table.concat(angles, ", "), count > 0 and table.concat(links, ",") or "none")
     else
         text = string.format("%s motion %d #%d to %s, hops %d", name, motion, seq, where, at)
         if name == "TARGETS" then
-            local n = self:motion_count(what, pos, "targets")
+            local n = self:motion_count(what, pos)
             pos = pos + 1
             local dofs, targets, ascending = {}, {}, true
             for i = 1, n do
