@@ -3,7 +3,8 @@ reports out, as JSON lines (one object a line) over a module process's stdin and
 as the same objects through queues for modules that run as threads.
 
 Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
-:class:`Sense`, :class:`Readings`, :class:`Hold`, :class:`StatusRequest`, :class:`Stop`.
+:class:`Sense`, :class:`Readings`, :class:`Hold`, :class:`LatchAnswer`, :class:`StatusRequest`,
+:class:`Stop`.
 Reports (``{"event": ...}``): :class:`Ready`,
 :class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
 :class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
@@ -76,6 +77,17 @@ class Hold:
 
 
 @dataclass(frozen=True)
+class LatchAnswer:
+    """The world's answer to a module's ``latch`` effect (a reach it runs itself asked for the
+    latch of its ``connector``: firmware.motion.asking): ``closed``, the faces latched in
+    physics and the link made; else refused (not aligned). The latch is the world's until the
+    module has a latch driver (issue 28)."""
+
+    connector: int
+    closed: bool
+
+
+@dataclass(frozen=True)
 class StatusRequest:
     pass
 
@@ -85,7 +97,7 @@ class Stop:
     pass
 
 
-Command = Go | Attach | Detach | Inject | Sense | Readings | Hold | StatusRequest | Stop
+Command = Go | Attach | Detach | Inject | Sense | Readings | Hold | LatchAnswer | StatusRequest | Stop
 
 
 def command_to_json(cmd: Command) -> dict[str, Any]:
@@ -106,6 +118,8 @@ def command_to_json(cmd: Command) -> dict[str, Any]:
         return {"cmd": "readings", "values": dict(cmd.values)}
     if isinstance(cmd, Hold):
         return {"cmd": "hold", "targets": {str(dof): v for dof, v in cmd.targets.items()}}
+    if isinstance(cmd, LatchAnswer):
+        return {"cmd": "latch", "connector": cmd.connector, "closed": cmd.closed}
     if isinstance(cmd, StatusRequest):
         return {"cmd": "status"}
     return {"cmd": "stop"}
@@ -152,6 +166,11 @@ def command_from_json(obj: object) -> Command:
         return Readings(dict(values))
     if kind == "hold":
         return Hold(_targets(obj.get("targets")))
+    if kind == "latch":
+        closed = obj.get("closed")
+        if not isinstance(closed, bool):
+            raise ControlProtocolError(f"latch command: field 'closed' {closed!r} is not true or false")
+        return LatchAnswer(_int(obj, "connector", "latch command"), closed)
     if kind == "status":
         return StatusRequest()
     if kind == "stop":

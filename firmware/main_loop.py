@@ -77,6 +77,7 @@ from dh2rt.wire.motion import is_motion
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
+from firmware.motion.asker import Asker
 from firmware.motion.member import Member
 from firmware.operator import OperatorChannel
 from firmware.sensors import attach_sensors
@@ -86,6 +87,8 @@ if TYPE_CHECKING:
 
     from firmware.flash.door import RolloutDoor
     from firmware.flash.slots import Boot, Flash
+    from firmware.motion.asking import SelfReach
+    from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
 from firmware.control import (
     Attach,
@@ -96,6 +99,7 @@ from firmware.control import (
     Go,
     Hold,
     Inject,
+    LatchAnswer,
     Log,
     Readings,
     Ready,
@@ -157,6 +161,7 @@ class ModuleHost:
         commands: queue.Queue[Command],
         report: Reporter,
         on_cycle: Callable[[ModuleRuntime], None] | None = None,
+        self_motion: bool | None = None,
     ) -> None:
         self.config = config
         self.commands = commands
@@ -216,6 +221,17 @@ class ModuleHost:
         #: joints, holds the targets it is sent and passes frames on along their route
         self.member = Member(config.module, _ServoBody(self), log=self._log_line)
         self._split_control()
+        #: whether this module carries out its program's ``reach_dock`` itself
+        #: (firmware.motion.asking); under the HIL world (control on stdio) the world still
+        #: does (hil.reach_loop) unless told otherwise
+        self.self_motion = config.control != "stdio" if self_motion is None else self_motion
+        #: the reach this module runs (the last one, done or not), and how many it started
+        self.reach: SelfReach | None = None
+        self._reaches = 0
+        #: the last value of every reading the world pushed (the motion reads its infrared)
+        self.own_readings: dict[str, float] = {}
+        self.latch = _WorldLatch(self)
+        self._own_held: dict[int, float] = {}
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -447,6 +463,51 @@ class ModuleHost:
                 self._log_line(f"motion: targets refused: {exc}")
                 member.held, member.holding = {}, None
 
+    def _start_reaches(self, rt: ModuleRuntime) -> None:
+        """The program asked ``reach_dock`` this cycle: this module carries it out
+        (firmware.motion.asking), one at a time."""
+        for kind, args in rt.effects:
+            if kind != "reach_dock":
+                continue
+            if self.reach is not None and not self.reach.done:
+                self._log_line("reach_dock: a reach of this module is under way; this one refused")
+                continue
+            try:
+                connector, route, target = int(args[0]), tuple(int(c) for c in args[1]), int(args[2])
+                # the module's index in the id: two askers' motions never share one at a member
+                motion = (self.module & 0xFF) << 8 | (self._reaches & 0xFF)
+                asker = Asker(motion, self.module, tuple(rt.engine.status), route, rt.cycle, log=self._log_line)
+            except (IndexError, TypeError, ValueError) as exc:
+                self._log_line(f"reach_dock {list(args)!r} refused: {exc}")
+                continue
+            # the planner (numpy) is loaded by the first reach, not by every module at boot
+            from firmware.motion.asking import SelfReach
+            from firmware.motion.body import DEFAULT_MODEL
+
+            self._reaches += 1
+            profile = self.program.profile
+            self.reach = SelfReach(
+                asker, connector, target, _OwnSenses(self), self.latch, DEFAULT_MODEL, profile, self._log_line
+            )
+            self._log_line(f"reach_dock: motion {motion} from {profile.connector_name(connector)}, learning the chain")
+
+    def _step_reach(self, rt: ModuleRuntime) -> None:
+        """Before each cycle: the reach this module runs takes the answers that came, makes
+        its step and sends its frames; its own joints are held as it says."""
+        reports, self.member.reports = self.member.reports, []
+        reach = self.reach
+        if reach is None or reach.done:
+            return
+        for report in reports:
+            reach.asker.received(report, rt.cycle)
+        for out in reach.step(rt.cycle):
+            rt.transport.send_raw(out.connector, out.frame)
+        if reach.own_targets != self._own_held:
+            self._own_held = dict(reach.own_targets)
+            rt.hold(self._own_held)
+        if reach.done:
+            self.report(Effect("reach_ended", [reach.connector, reach.verdict]))
+
     def _log_line(self, line: str) -> None:
         self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
 
@@ -459,6 +520,7 @@ class ModuleHost:
             member.cycle(rt.cycle)
             if member.holding is None:
                 rt.hold({})
+        self._step_reach(rt)
         while True:
             try:
                 cmd = self.commands.get_nowait()
@@ -477,6 +539,8 @@ class ModuleHost:
         ``status_every`` cycles (and what a native asked of the body at once)."""
         if self.links is not None:
             self.links.step(rt.clock())
+        if self.self_motion and rt.effects:
+            self._start_reaches(rt)
         self._check_trial(rt)
         if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
@@ -528,6 +592,9 @@ class ModuleHost:
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
+                self.own_readings.update(cmd.values)
+            elif isinstance(cmd, LatchAnswer):
+                self.latch.answered(cmd)
             elif isinstance(cmd, Hold):
                 rt.hold(cmd.targets)
             elif isinstance(cmd, Sense):
@@ -560,6 +627,62 @@ class _ServoBody:
             except DH2Error as exc:
                 rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({exc}); commanded angles sent")
         return rt.commanded
+
+
+class _OwnSenses:
+    """What the asking module senses of itself for its reach (firmware.motion.asking.OwnSenses)."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+
+    def angles(self) -> tuple[float, ...]:
+        return _ServoBody(self.host).angles()
+
+    def infrared(self) -> dict[str, float]:
+        """Each connector's pair as last measured; one never measured sees nothing (0 mm,
+        180 degrees off square), as a pair with nothing in view reads."""
+        readings = self.host.own_readings
+        out = {}
+        for c in self.host.program.profile.connectors:
+            out[f"ir_{c}"] = readings.get(f"ir_{c}", 0.0)
+            out[f"ir_{c}_align"] = readings.get(f"ir_{c}_align", 180.0)
+        return out
+
+    def floor(self) -> FloorPoses:
+        """No overhead tracker reaches a module's firmware yet: the reach closes on its
+        joints and infrared alone."""
+        from firmware.motion.readings import FloorPoses
+
+        return FloorPoses()
+
+
+class _WorldLatch:
+    """The latch of a reach this module runs, asked of the world (firmware.motion.asking.LatchAsk):
+    an ``latch`` effect asks it to close now, a :class:`firmware.control.LatchAnswer` says
+    whether it did (in physics, with the link made); one question at a time a connector."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+        self.asked: set[int] = set()
+        self.closed: set[int] = set()
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn in self.closed:
+            return True
+        if a_conn not in self.asked:
+            self.asked.add(a_conn)
+            self.host.report(Effect("latch", [a_conn, b, b_conn]))
+        return False
+
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        closed = a_conn in self.closed
+        self.closed.discard(a_conn)
+        return closed
+
+    def answered(self, answer: LatchAnswer) -> None:
+        self.asked.discard(answer.connector)
+        if answer.closed:
+            self.closed.add(answer.connector)
 
 
 class TrialWatch:

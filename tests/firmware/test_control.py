@@ -23,6 +23,7 @@ from firmware.control import (
     Go,
     Hold,
     Inject,
+    LatchAnswer,
     Log,
     Ready,
     Report,
@@ -50,6 +51,8 @@ COMMANDS: list[Command] = [
     Hold({0: 12.5, 1: -30.0}),
     Hold({1: 4.0}),
     Hold(),
+    LatchAnswer(1, True),
+    LatchAnswer(3, False),
     StatusRequest(),
     Stop(),
 ]
@@ -88,6 +91,8 @@ def test_every_report_round_trips_through_json(rep: Report) -> None:
         ({"cmd": "hold", "targets": [1, 2]}, "'targets'"),
         ({"cmd": "hold", "targets": {"2": 10.0}}, "joint '2'"),
         ({"cmd": "hold", "targets": {"0": "ten"}}, "not a number"),
+        ({"cmd": "latch", "connector": 1, "closed": 1}, "'closed'"),
+        ({"cmd": "latch", "closed": True}, "'connector'"),
         ([1, 2], "expected an object"),
     ],
 )

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from dh2rt.compiler import compile_file
+from dh2rt.hormone import Hormone
 from dh2rt.transport.base import BusEnd, FrameFamily, Inbound
 from dh2rt.transport.inproc import InprocTransport
 from dh2rt.wire import motion as mw
@@ -21,6 +22,7 @@ from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
+from firmware.control import Command, Effect, LatchAnswer, Readings
 from firmware.main_loop import ModuleHost
 from firmware.motion.member import IDLE_CYCLES
 
@@ -129,3 +131,85 @@ def test_operator_frames_still_reach_the_operator_channel(robot: Robot) -> None:
     robot.cycles()
     answers = [op.decode(f).message for f in robot.got]
     assert answers == [op.Refused(1, 0, (), op.RefusalReason.NO_CONTROL)]
+
+
+#: The head, called by the tail, asks for its front to be docked to the tail's right.
+REACHING = """program reaching
+const ClockCycle = 10
+hormone GO
+hormone CALL
+native reach_dock(path, mine, theirs)
+receptor called when T == T1 and H == CALL as p { reach_dock(p, 1, 4) }
+receptor go when T == T2 and H == GO { emit CALL via front }
+"""
+
+
+def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path) -> None:
+    """snake:2 of module firmware on the recording stand-in: the tail's CALL reaches the
+    head, whose program asks reach_dock(p, Front, Right). The head runs the motion itself:
+    it learns its chain (the tail) from the tail's ANGLES, moves the tail's joints by
+    TARGETS and its own by its servos, asks its world for the latch once its front's
+    infrared sees the face (pushed as the world pushes readings), and on the world's answer
+    ends the motion: the tail's joints are its program's again. The test plays the world:
+    readings in, the latch's answer."""
+    source = tmp_path / "reaching.dh2"
+    source.write_text(REACHING)
+    program = compile_file(str(source))
+    channel = f"reach-{uuid.uuid4().hex}"
+    reports: list[list[object]] = [[], []]
+    commands: list[queue.Queue[Command]] = [queue.Queue(), queue.Queue()]
+    hosts = []
+    for module in (0, 1):
+        config = {"module": module, "image": program.image.hex(), "transport": f"inproc:{channel}"}
+        # as a module booted by `dh2rt module` from its module.toml (no [hil] control): it
+        # carries out its reach itself; under the HIL world (control on stdio) the world does
+        host = ModuleHost(
+            ModuleConfig.from_json({**config, "control": "none"}), commands[module], reports[module].append
+        )
+        hosts.append(host)
+    head, tail = hosts
+    try:
+        head.runtime.attach(BACK, BusEnd(0, 0))
+        tail.runtime.attach(FRONT, BusEnd(0, 1))
+        assert head.self_motion and tail.self_motion
+
+        def cycles(n: int) -> None:
+            for _ in range(n):
+                for host in hosts:
+                    host._take_commands(host.runtime)
+                    host.runtime.step()
+                    host.end_cycle(host.runtime)
+                for _ in range(3):
+                    for host in hosts:
+                        host.runtime.take_in()
+
+        cycles(3)
+        tail.runtime.inject(Hormone("GO", ()))
+        cycles(4)
+        assert head.reach is not None, head.runtime.log
+        reach = head.reach
+        cycles(3)
+        assert reach.asker.known and reach.docking is not None and reach.docking.busy, head.runtime.log
+        assert tail.member.holding == reach.asker.motion and set(tail.member.held) == {0, 1}
+        assert isinstance(tail.driver, RecordingDriver) and tail.driver.targets == tuple(
+            tail.member.held[d] for d in (0, 1)
+        )
+        assert not any(isinstance(r, Effect) and r.kind == "latch" for r in reports[0])
+
+        commands[0].put(Readings({"ir_front": 12, "ir_front_align": 4}))  # the face in view
+        cycles(2)
+        latch = [r for r in reports[0] if isinstance(r, Effect) and r.kind == "latch"]
+        assert [r.args for r in latch] == [[FRONT, 1, 4]]
+        assert not reach.done
+        commands[0].put(LatchAnswer(FRONT, True))  # it closed in physics, the link is made
+        cycles(2)
+        assert reach.verdict == "linked", head.runtime.log
+        ended = [r for r in reports[0] if isinstance(r, Effect) and r.kind == "reach_ended"]
+        assert [r.args for r in ended] == [[FRONT, "linked"]]
+        cycles(1)
+        assert tail.member.holding is None and tail.member.counts["end"] == 1
+        assert tail.driver.targets == tuple(tail.runtime.engine.dof[:2])
+        assert reach.asker.counts["stale"] == 0 and reach.asker.counts["unanswered"] == 0
+    finally:
+        for host in hosts:
+            host.runtime.close()
