@@ -96,11 +96,13 @@ from firmware.control import (
     Detach,
     Effect,
     Failure,
+    Floor,
     Go,
     Hold,
     Inject,
     LatchAnswer,
     Log,
+    OwnMotions,
     Readings,
     Ready,
     Report,
@@ -230,6 +232,12 @@ class ModuleHost:
         self._reaches = 0
         #: the last value of every reading the world pushed (the motion reads its infrared)
         self.own_readings: dict[str, float] = {}
+        #: the overhead tracker's last report for this module's reach (the world fills it)
+        self.floor_report: Floor | None = None
+        #: the joints as last read for a motion's ASK (a read that fails sends these), and
+        #: how many reads failed
+        self.last_angles: tuple[float, float] | None = None
+        self.unread_angles = 0
         self.latch = _WorldLatch(self)
         self._own_held: dict[int, float] = {}
         if driver_fault is not None:
@@ -595,6 +603,10 @@ class ModuleHost:
                 self.own_readings.update(cmd.values)
             elif isinstance(cmd, LatchAnswer):
                 self.latch.answered(cmd)
+            elif isinstance(cmd, OwnMotions):
+                self.self_motion = True
+            elif isinstance(cmd, Floor):
+                self.floor_report = cmd
             elif isinstance(cmd, Hold):
                 rt.hold(cmd.targets)
             elif isinstance(cmd, Sense):
@@ -617,16 +629,19 @@ class _ServoBody:
         return tuple(self.host.runtime.engine.status)
 
     def angles(self) -> tuple[float, ...]:
-        """DOF1 and DOF2 as the servos measure them, or as last commanded when the servos
-        cannot be read."""
+        """DOF1 and DOF2 as the servos measure them; when a read fails (the emulated servo
+        bus is busy with the runtime's own traffic), as last read, or as last commanded."""
         host = self.host
         rt = host.runtime
         if host.driver is not None:
             try:
-                return host.driver.read_positions()
+                host.last_angles = host.driver.read_positions()
+                return host.last_angles
             except DH2Error as exc:
-                rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({exc}); commanded angles sent")
-        return rt.commanded
+                host.unread_angles += 1
+                if host.unread_angles == 1 or host.unread_angles % 100 == 0:
+                    rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({host.unread_angles}: {exc})")
+        return host.last_angles or rt.commanded
 
 
 class _OwnSenses:
@@ -649,11 +664,22 @@ class _OwnSenses:
         return out
 
     def floor(self) -> FloorPoses:
-        """No overhead tracker reaches a module's firmware yet: the reach closes on its
-        joints and infrared alone."""
-        from firmware.motion.readings import FloorPoses
+        """The tracker's last report (firmware.control.Floor); none yet: empty, and the
+        reach closes on its joints and infrared alone."""
+        from firmware.motion.readings import FloorPoses, ModulePose, PartPose
 
-        return FloorPoses()
+        report = self.host.floor_report
+        if report is None:
+            return FloorPoses()
+        modules = {}
+        for m, parts in report.parts.items():
+            centre, front, back = (PartPose(*p) for p in parts)
+            modules[m] = ModulePose(centre, front, back)
+        return FloorPoses(modules)
+
+    def attitude(self) -> dict[int, tuple[float, float]]:
+        report = self.host.floor_report
+        return {} if report is None else {m: (a[0], a[1]) for m, a in report.attitude.items()}
 
 
 class _WorldLatch:

@@ -34,8 +34,10 @@ from firmware.motion.member import Out
 from firmware.motion.readings import FloorPoses, Readings
 from firmware.motion.underway import Motion, Needs
 
-#: Cycles the chain may take to answer before the reach starts without it (and is refused).
-LEARN_CYCLES = 40
+#: Cycles the chain may take to answer before the reach is given up: a hop a round trip, each
+#: round trip up to two cycles a hop when a module reads its links once a cycle; a chain of 6
+#: takes 2 * (1 + 2 + ... + 6) = 42 cycles at worst.
+LEARN_CYCLES = 80
 
 
 class OwnSenses(Protocol):
@@ -51,6 +53,10 @@ class OwnSenses(Protocol):
 
     def floor(self) -> FloorPoses:
         """The overhead tracker's last report (empty: no tracker)."""
+        ...
+
+    def attitude(self) -> Mapping[int, tuple[float, float]]:
+        """IMU readings (roll, pitch, degrees) by module: its own, and what it was told."""
         ...
 
 
@@ -167,7 +173,9 @@ class SelfReach:
             joints[m] = (angles[0], angles[1])
         infrared = {self.me: dict(self.senses.infrared())} if self.me in needs.infrared else {}
         floor = self.senses.floor() if needs.floor else FloorPoses()
-        return Readings(joints, infrared, floor)
+        tilts = self.senses.attitude()
+        attitude = {m: tilts[m] for m in needs.attitude if m in tilts}
+        return Readings(joints, infrared, floor, attitude)
 
     def _member_angles(self, module: int) -> Sequence[float]:
         known = self.asker.member(module)

@@ -80,6 +80,9 @@ class Robot:
     def floor(self) -> FloorPoses:
         return FloorPoses()
 
+    def attitude(self) -> dict[int, tuple[float, float]]:
+        return {}
+
     # the latch, asked of the world
     def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
         return True
