@@ -38,6 +38,12 @@ held the same way); a dock that gives up sends the foot round again, up to
 reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
 declares the sensor; firmware.control.Readings), and 0 once it ended.
 
+With ``World.modules_move`` the modules carry a ``reach_dock`` out themselves
+(firmware.motion.asking, over motion frames on their links): this computes nothing for it
+and sends no hold; it pushes the asking module its infrared pairs and the tracker's report
+each world cycle (:meth:`LoopReaches.own_started`) and answers its latch
+(:meth:`LoopReaches.own_latch`). docs/hil.md, "The motion in the module".
+
 Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.motion_readings.Contact`: both
 faces' world poses, distance, attitude error and the infrared reading at that moment) and
 logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches.failed`.

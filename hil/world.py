@@ -39,7 +39,9 @@ and a ``reach_and_dock`` as the physics runner does it
 (:meth:`firmware.motion.docking.Docking.assimilate`, the sequence both drive): the foot lets go
 of the body, comes to the asking face by its own gaits (:class:`firmware.motion.crawl.Trip`, held on its
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
-sensor reads 1 meanwhile (pushed by the world).
+sensor reads 1 meanwhile (pushed by the world). With :attr:`World.modules_move` a
+``reach_dock`` is the asking module's own (firmware.motion.asking): the world sends no
+``Hold``, only the sensors it fills and the latch's answer.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
