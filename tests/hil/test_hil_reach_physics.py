@@ -176,8 +176,9 @@ OWN_T_CYCLES = 1000
 
 
 @LONG  # a whole reconfiguration in the loop
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_snake_to_t_forms_with_the_motion_in_the_modules(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    seed: int, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """World.modules_move: m0's own firmware runs the reach (firmware.motion.asking), its
     chain's members move by the motion frames it sends them; the world pushes m0 its
@@ -198,7 +199,7 @@ def test_snake_to_t_forms_with_the_motion_in_the_modules(
         cli.main,
         ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8",
          "--cycles", str(OWN_T_CYCLES), "--cycle-ms", "50", "--silence-cycles", "6", "--event", "50:inject:m4:STT",
-         "--seed", "0", "--json", "--stand-in", "pybullet", "--capture", str(capture)]
+         "--seed", str(seed), "--json", "--stand-in", "pybullet", "--capture", str(capture)]
     )  # fmt: skip
     out = capsys.readouterr().out
     assert code == 0, out
