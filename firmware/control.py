@@ -3,7 +3,8 @@ reports out, as JSON lines (one object a line) over a module process's stdin and
 as the same objects through queues for modules that run as threads.
 
 Commands (``{"cmd": ...}``): :class:`Go`, :class:`Attach`, :class:`Detach`, :class:`Inject`,
-:class:`Sense`, :class:`Readings`, :class:`Hold`, :class:`StatusRequest`, :class:`Stop`.
+:class:`Sense`, :class:`Readings`, :class:`Hold`, :class:`OwnMotions`, :class:`LatchAnswer`,
+:class:`StatusRequest`, :class:`Stop`.
 Reports (``{"event": ...}``): :class:`Ready`,
 :class:`Status` (also the ``final`` one, at exit), :class:`TraceRecord`, :class:`Effect`,
 :class:`Log`, :class:`Failure` and :class:`Exited`. Decoding something else raises
@@ -76,6 +77,35 @@ class Hold:
 
 
 @dataclass(frozen=True)
+class Floor:
+    """The overhead tracker's last report, for the reach a module runs itself (the world fills
+    it as it fills the other sensors; on a robot it is ``dh2rt tracker`` over UDP,
+    firmware.tracker_feed): the three parts of each module the motion reads, on the floor
+    (x, y in metres, heading in radians: centre, front, back), and those modules' IMU
+    (roll, pitch in degrees)."""
+
+    parts: Mapping[int, tuple[tuple[float, ...], ...]] = field(default_factory=dict)
+    attitude: Mapping[int, tuple[float, ...]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class OwnMotions:
+    """From now on the module carries out its program's ``reach_dock`` itself
+    (firmware.motion.asking) instead of leaving it to the world (hil.reach_loop)."""
+
+
+@dataclass(frozen=True)
+class LatchAnswer:
+    """The world's answer to a module's ``latch`` effect (a reach it runs itself asked for the
+    latch of its ``connector``: firmware.motion.asking): ``closed``, the faces latched in
+    physics and the link made; else refused (not aligned). The latch is the world's until the
+    module has a latch driver (issue 28)."""
+
+    connector: int
+    closed: bool
+
+
+@dataclass(frozen=True)
 class StatusRequest:
     pass
 
@@ -85,7 +115,9 @@ class Stop:
     pass
 
 
-Command = Go | Attach | Detach | Inject | Sense | Readings | Hold | StatusRequest | Stop
+Command = (
+    Go | Attach | Detach | Inject | Sense | Readings | Hold | Floor | OwnMotions | LatchAnswer | StatusRequest | Stop
+)
 
 
 def command_to_json(cmd: Command) -> dict[str, Any]:
@@ -106,6 +138,13 @@ def command_to_json(cmd: Command) -> dict[str, Any]:
         return {"cmd": "readings", "values": dict(cmd.values)}
     if isinstance(cmd, Hold):
         return {"cmd": "hold", "targets": {str(dof): v for dof, v in cmd.targets.items()}}
+    if isinstance(cmd, Floor):
+        parts = {str(m): [list(p) for p in ps] for m, ps in cmd.parts.items()}
+        return {"cmd": "floor", "parts": parts, "attitude": {str(m): list(a) for m, a in cmd.attitude.items()}}
+    if isinstance(cmd, OwnMotions):
+        return {"cmd": "own_motions"}
+    if isinstance(cmd, LatchAnswer):
+        return {"cmd": "latch", "connector": cmd.connector, "closed": cmd.closed}
     if isinstance(cmd, StatusRequest):
         return {"cmd": "status"}
     return {"cmd": "stop"}
@@ -152,11 +191,48 @@ def command_from_json(obj: object) -> Command:
         return Readings(dict(values))
     if kind == "hold":
         return Hold(_targets(obj.get("targets")))
+    if kind == "own_motions":
+        return OwnMotions()
+    if kind == "floor":
+        return Floor(
+            {m: tuple(_numbers(p, 3, "floor command: a part") for p in ps) for m, ps in _by_module(obj, "parts", 3)},
+            {m: _numbers(a, 2, "floor command: an attitude") for m, a in _by_module(obj, "attitude", None)},
+        )
+    if kind == "latch":
+        closed = obj.get("closed")
+        if not isinstance(closed, bool):
+            raise ControlProtocolError(f"latch command: field 'closed' {closed!r} is not true or false")
+        return LatchAnswer(_int(obj, "connector", "latch command"), closed)
     if kind == "status":
         return StatusRequest()
     if kind == "stop":
         return Stop()
     raise ControlProtocolError(f"command: unknown 'cmd' {kind!r}")
+
+
+def _by_module(obj: Mapping[str, Any], name: str, parts: int | None) -> list[tuple[int, Any]]:
+    """A floor command's object of module -> value; each value a list of ``parts`` items."""
+    values = obj.get(name)
+    if not isinstance(values, Mapping):
+        raise ControlProtocolError(f"floor command: field {name!r} {values!r} is not an object")
+    out = []
+    for key, value in values.items():
+        if not str(key).isdigit():
+            raise ControlProtocolError(f"floor command: field {name!r}: module {key!r} is not an index")
+        if parts is not None and (not isinstance(value, list) or len(value) != parts):
+            raise ControlProtocolError(f"floor command: module {key} has not {parts} parts: {value!r}")
+        out.append((int(key), value))
+    return out
+
+
+def _numbers(value: object, n: int, what: str) -> tuple[float, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        raise ControlProtocolError(f"{what} {value!r} is not {n} numbers")
+    return tuple(float(v) for v in value)
 
 
 # ---------------------------------------------------------------- reports

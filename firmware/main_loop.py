@@ -69,13 +69,16 @@ from dh2rt.errors import ControlProtocolError, DH2Error, ModuleConfigError
 from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.runtime import HEALTH_EVERY, ModuleRuntime
-from dh2rt.transport.base import PortEnd
+from dh2rt.transport.base import FrameFamily, Inbound, PortEnd
 from dh2rt.transport.registry import open_transport
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
 from dh2rt.wire.frame import FrameCodec
+from dh2rt.wire.motion import is_motion
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
+from firmware.motion.asker import Asker
+from firmware.motion.member import Member
 from firmware.operator import OperatorChannel
 from firmware.sensors import attach_sensors
 
@@ -84,6 +87,8 @@ if TYPE_CHECKING:
 
     from firmware.flash.door import RolloutDoor
     from firmware.flash.slots import Boot, Flash
+    from firmware.motion.asking import SelfReach
+    from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
 from firmware.control import (
     Attach,
@@ -91,10 +96,13 @@ from firmware.control import (
     Detach,
     Effect,
     Failure,
+    Floor,
     Go,
     Hold,
     Inject,
+    LatchAnswer,
     Log,
+    OwnMotions,
     Readings,
     Ready,
     Report,
@@ -155,6 +163,7 @@ class ModuleHost:
         commands: queue.Queue[Command],
         report: Reporter,
         on_cycle: Callable[[ModuleRuntime], None] | None = None,
+        self_motion: bool | None = None,
     ) -> None:
         self.config = config
         self.commands = commands
@@ -210,6 +219,27 @@ class ModuleHost:
         #: the operator's commands (dh2rt console): trusted keys as the flash's, the last
         #: counter accepted kept in the flash directory (docs/console.md)
         self.operator = OperatorChannel(self.runtime, config.trust, Path(config.flash) if config.flash else None)
+        #: the docking chains this module is a member of (dh2rt.wire.motion): it answers for its
+        #: joints, holds the targets it is sent and passes frames on along their route
+        self.member = Member(config.module, _ServoBody(self), log=self._log_line)
+        self._split_control()
+        #: whether this module carries out its program's ``reach_dock`` itself
+        #: (firmware.motion.asking); under the HIL world (control on stdio) the world still
+        #: does (hil.reach_loop) unless told otherwise
+        self.self_motion = config.control != "stdio" if self_motion is None else self_motion
+        #: the reach this module runs (the last one, done or not), and how many it started
+        self.reach: SelfReach | None = None
+        self._reaches = 0
+        #: the last value of every reading the world pushed (the motion reads its infrared)
+        self.own_readings: dict[str, float] = {}
+        #: the overhead tracker's last report for this module's reach (the world fills it)
+        self.floor_report: Floor | None = None
+        #: the joints as last read for a motion's ASK (a read that fails sends these), and
+        #: how many reads failed
+        self.last_angles: tuple[float, float] | None = None
+        self.unread_angles = 0
+        self.latch = _WorldLatch(self)
+        self._own_held: dict[int, float] = {}
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
             self.runtime.stats.actuator_faults += 1
@@ -407,11 +437,98 @@ class ModuleHost:
         if program is not None:
             status["program"] = program
         status["operator"] = self.operator.core.counters
+        if self.member.counts:
+            status["motion"] = dict(self.member.counts)
         return status
+
+    def _split_control(self) -> None:
+        """The control family has one handler a transport: the operator channel's, which
+        registered first, keeps the operator's frames; motion frames (types 64..127) go to
+        this module's motion member."""
+        listening = self.operator.listening
+        operator_frame = listening.handler
+        listening.close()
+
+        def on_control(frame: Inbound) -> None:
+            if is_motion(frame.payload):
+                self._on_motion(frame)
+            else:
+                operator_frame(frame)
+
+        self.operator.listening = self.runtime.transport.listen(FrameFamily.CONTROL, on_control)
+
+    def _on_motion(self, frame: Inbound) -> None:
+        """A motion frame: send what the member answers or passes on; the targets it holds
+        are written to the servos at this cycle's end (or the joints are the program's)."""
+        rt, member = self.runtime, self.member
+        before = member.held
+        for out in member.received(frame.connector, frame.payload, rt.cycle):
+            rt.transport.send_raw(out.connector, out.frame)
+        if member.held is not before:
+            try:
+                rt.hold(member.held)
+            except DH2Error as exc:  # a joint this body does not have
+                self._log_line(f"motion: targets refused: {exc}")
+                member.held, member.holding = {}, None
+
+    def _start_reaches(self, rt: ModuleRuntime) -> None:
+        """The program asked ``reach_dock`` this cycle: this module carries it out
+        (firmware.motion.asking), one at a time."""
+        for kind, args in rt.effects:
+            if kind != "reach_dock":
+                continue
+            if self.reach is not None and not self.reach.done:
+                self._log_line("reach_dock: a reach of this module is under way; this one refused")
+                continue
+            try:
+                connector, route, target = int(args[0]), tuple(int(c) for c in args[1]), int(args[2])
+                # the module's index in the id: two askers' motions never share one at a member
+                motion = (self.module & 0xFF) << 8 | (self._reaches & 0xFF)
+                asker = Asker(motion, self.module, tuple(rt.engine.status), route, rt.cycle, log=self._log_line)
+            except (IndexError, TypeError, ValueError) as exc:
+                self._log_line(f"reach_dock {list(args)!r} refused: {exc}")
+                continue
+            # the planner (numpy) is loaded by the first reach, not by every module at boot
+            from firmware.motion.asking import SelfReach
+            from firmware.motion.body import DEFAULT_MODEL
+
+            self._reaches += 1
+            profile = self.program.profile
+            self.reach = SelfReach(
+                asker, connector, target, _OwnSenses(self), self.latch, DEFAULT_MODEL, profile, self._log_line
+            )
+            self._log_line(f"reach_dock: motion {motion} from {profile.connector_name(connector)}, learning the chain")
+
+    def _step_reach(self, rt: ModuleRuntime) -> None:
+        """Before each cycle: the reach this module runs takes the answers that came, makes
+        its step and sends its frames; its own joints are held as it says."""
+        reports, self.member.reports = self.member.reports, []
+        reach = self.reach
+        if reach is None or reach.done:
+            return
+        for report in reports:
+            reach.asker.received(report, rt.cycle)
+        for out in reach.step(rt.cycle):
+            rt.transport.send_raw(out.connector, out.frame)
+        if reach.own_targets != self._own_held:
+            self._own_held = dict(reach.own_targets)
+            rt.hold(self._own_held)
+        if reach.done:
+            self.report(Effect("reach_ended", [reach.connector, reach.verdict]))
+
+    def _log_line(self, line: str) -> None:
+        self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
 
     def _take_commands(self, rt: ModuleRuntime) -> None:
         """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
-        or pushed readings count in this very cycle)."""
+        or pushed readings count in this very cycle); a motion gone silent gives the joints
+        back (firmware.motion.member)."""
+        member = self.member
+        if member.holding is not None:
+            member.cycle(rt.cycle)
+            if member.holding is None:
+                rt.hold({})
+        self._step_reach(rt)
         while True:
             try:
                 cmd = self.commands.get_nowait()
@@ -430,6 +547,8 @@ class ModuleHost:
         ``status_every`` cycles (and what a native asked of the body at once)."""
         if self.links is not None:
             self.links.step(rt.clock())
+        if self.self_motion and rt.effects:
+            self._start_reaches(rt)
         self._check_trial(rt)
         if self.driver is None and self.config.servo_port and rt.cycle % HEALTH_EVERY == rt.health_offset:
             self._reopen_servos(rt)
@@ -481,6 +600,13 @@ class ModuleHost:
                 rt.inject(parse_hormone(cmd.hormone, self.program.vocabulary, "inject command"))
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
+                self.own_readings.update(cmd.values)
+            elif isinstance(cmd, LatchAnswer):
+                self.latch.answered(cmd)
+            elif isinstance(cmd, OwnMotions):
+                self.self_motion = True
+            elif isinstance(cmd, Floor):
+                self.floor_report = cmd
             elif isinstance(cmd, Hold):
                 rt.hold(cmd.targets)
             elif isinstance(cmd, Sense):
@@ -490,6 +616,99 @@ class ModuleHost:
                 self.report(Status(self._status(rt)))
         except DH2Error as exc:
             self.report(Log(f"command {cmd!r} refused: {exc}"))
+
+
+class _ServoBody:
+    """What a module reports of itself to a motion's ASK (firmware.motion.member.Body)."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+
+    def links(self) -> tuple[int, ...]:
+        """For each connector, the peer's connector linked there, 0 for none."""
+        return tuple(self.host.runtime.engine.status)
+
+    def angles(self) -> tuple[float, ...]:
+        """DOF1 and DOF2 as the servos measure them; when a read fails (the emulated servo
+        bus is busy with the runtime's own traffic), as last read, or as last commanded."""
+        host = self.host
+        rt = host.runtime
+        if host.driver is not None:
+            try:
+                host.last_angles = host.driver.read_positions()
+                return host.last_angles
+            except DH2Error as exc:
+                host.unread_angles += 1
+                if host.unread_angles == 1 or host.unread_angles % 100 == 0:
+                    rt.log.append(f"cycle {rt.cycle}: motion: servos unreadable ({host.unread_angles}: {exc})")
+        return host.last_angles or rt.commanded
+
+
+class _OwnSenses:
+    """What the asking module senses of itself for its reach (firmware.motion.asking.OwnSenses)."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+
+    def angles(self) -> tuple[float, ...]:
+        return _ServoBody(self.host).angles()
+
+    def infrared(self) -> dict[str, float]:
+        """Each connector's pair as last measured; one never measured sees nothing (0 mm,
+        180 degrees off square), as a pair with nothing in view reads."""
+        readings = self.host.own_readings
+        out = {}
+        for c in self.host.program.profile.connectors:
+            out[f"ir_{c}"] = readings.get(f"ir_{c}", 0.0)
+            out[f"ir_{c}_align"] = readings.get(f"ir_{c}_align", 180.0)
+        return out
+
+    def floor(self) -> FloorPoses:
+        """The tracker's last report (firmware.control.Floor); none yet: empty, and the
+        reach closes on its joints and infrared alone."""
+        from firmware.motion.readings import FloorPoses, ModulePose, PartPose
+
+        report = self.host.floor_report
+        if report is None:
+            return FloorPoses()
+        modules = {}
+        for m, parts in report.parts.items():
+            centre, front, back = (PartPose(*p) for p in parts)
+            modules[m] = ModulePose(centre, front, back)
+        return FloorPoses(modules)
+
+    def attitude(self) -> dict[int, tuple[float, float]]:
+        report = self.host.floor_report
+        return {} if report is None else {m: (a[0], a[1]) for m, a in report.attitude.items()}
+
+
+class _WorldLatch:
+    """The latch of a reach this module runs, asked of the world (firmware.motion.asking.LatchAsk):
+    an ``latch`` effect asks it to close now, a :class:`firmware.control.LatchAnswer` says
+    whether it did (in physics, with the link made); one question at a time a connector."""
+
+    def __init__(self, host: ModuleHost) -> None:
+        self.host = host
+        self.asked: set[int] = set()
+        self.closed: set[int] = set()
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn in self.closed:
+            return True
+        if a_conn not in self.asked:
+            self.asked.add(a_conn)
+            self.host.report(Effect("latch", [a_conn, b, b_conn]))
+        return False
+
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        closed = a_conn in self.closed
+        self.closed.discard(a_conn)
+        return closed
+
+    def answered(self, answer: LatchAnswer) -> None:
+        self.asked.discard(answer.connector)
+        if answer.closed:
+            self.closed.add(answer.connector)
 
 
 class TrialWatch:

@@ -38,6 +38,12 @@ held the same way); a dock that gives up sends the foot round again, up to
 reach it asked for) is under way, the world pushes it ``docking`` = 1 (if its program
 declares the sensor; firmware.control.Readings), and 0 once it ended.
 
+With ``World.modules_move`` the modules carry a ``reach_dock`` out themselves
+(firmware.motion.asking, over motion frames on their links): this computes nothing for it
+and sends no hold; it pushes the asking module its infrared pairs and the tracker's report
+each world cycle (:meth:`LoopReaches.own_started`) and answers its latch
+(:meth:`LoopReaches.own_latch`). docs/hil.md, "The motion in the module".
+
 Every latch is recorded in :attr:`LoopReaches.contacts` (a :class:`sim.motion_readings.Contact`: both
 faces' world poses, distance, attitude error and the infrared reading at that moment) and
 logged with the cycles it took; every motion that gave up, in :attr:`LoopReaches.failed`.
@@ -49,16 +55,16 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Protocol
 
-from dh2rt.docking import DockingWorld, End
+from dh2rt.docking import DockingWorld, End, route_end
 from dh2rt.profile import Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.topology import Topology
-from firmware.control import Readings
+from firmware.control import Floor, Readings
 from firmware.motion.docking import Docking
 from firmware.motion.readings import Readings as MotionReadings
 from firmware.motion.underway import Motion, Needs
 from hil.physics_stand_in import PhysicsStandIn
-from sim.motion_readings import Contact, MotionSensors, Verdicts
+from sim.motion_readings import Contact, MotionSensors, Verdicts, contact
 from sim.tracker import OverheadTracker
 
 
@@ -79,7 +85,7 @@ class LoopWorld(DockingWorld, Protocol):
 
     def hold(self, module: int, targets: Mapping[int, float]) -> None: ...
 
-    def send_readings(self, module: int, readings: Readings) -> None: ...
+    def send_readings(self, module: int, readings: Readings | Floor) -> None: ...
 
 
 class LoopReaches:
@@ -110,6 +116,10 @@ class LoopReaches:
         program, profile = world.program, world.profile
         self.docking_declared = "docking" in program.sensor_names and "docking" in profile.sensor_names
         self.docking_sent: dict[int, int] = {}
+        #: reaches the modules carry out themselves (World.modules_move): asking module ->
+        #: (its connector, the world cycle it asked at, the target module)
+        self.own: dict[int, tuple[int, int, int | None]] = {}
+        self._pushed_own = -1
 
     # ------------------------------------------------------------ what the sequence asks of the world
 
@@ -156,7 +166,7 @@ class LoopReaches:
         w = self.world
         if not self.docking_declared:
             return
-        busy = self.docking.docking_modules()
+        busy = self.docking.docking_modules() | set(self.own)
         for m in range(w.topology.size) if modules is None else modules:
             value = int(m in busy)
             if not w.running(m) or "docking" in w.sensed.get(m, {}) or self.docking_sent.get(m) == value:
@@ -181,6 +191,9 @@ class LoopReaches:
         moves the targets to hold, and push the ``docking`` readings."""
         if self.docking.busy:
             self._send_holds(self.docking.step(cycle, due))
+        if self.own and cycle != self._pushed_own:
+            self._pushed_own = cycle
+            self._push_own(cycle)
         self.sync_docking()
 
     def _send_holds(self, holds: dict[int, dict[int, float]]) -> None:
@@ -195,3 +208,66 @@ class LoopReaches:
             if self.holding.get(m) != rounded:
                 self.holding[m] = rounded
                 self.world.hold(m, rounded)
+
+    # ------------------------------------------------------------ reaches the modules run
+
+    def own_started(self, module: int, connector: int, route: Sequence[int], target_conn: int) -> None:
+        """``module`` carries out its ``reach_dock`` itself (firmware.motion.asking): the world
+        computes nothing for it; it pushes the module its infrared pairs each world cycle and
+        answers its latch (:meth:`own_latch`) until it reports the end (:meth:`own_ended`)."""
+        w = self.world
+        end = route_end(w.peer_of, module, route)
+        self.own[module] = (connector, w.cycle, None if end is None else end[0])
+        w.note(f"reach_dock {w.where(module, connector)} along {list(route)}: carried out by the module")
+        self.sync_docking([module])
+
+    def _push_own(self, cycle: int) -> None:
+        """The asking modules' infrared pairs as physics has them, whole millimetres and
+        degrees (what the module's pair reads; its program may not declare them)."""
+        for m, (_, _, target) in list(self.own.items()):
+            if not self.world.running(m):
+                del self.own[m]
+                continue
+            both = (m,) if target is None else (m, target)
+            with self.physics.lock:
+                readings = self.sensors.read(cycle, frozenset(), (m,), floor=True, attitude=both)
+            pairs = readings.infrared.get(m, {})
+            self.world.send_readings(m, Readings({name: round(v) for name, v in pairs.items()}))
+            parts = {
+                k: tuple((p.x, p.y, p.heading) for p in (pose.centre, pose.front, pose.back))
+                for k, pose in readings.floor.modules.items()
+                if k in both
+            }
+            self.world.send_readings(m, Floor(parts, {k: readings.attitude[k] for k in both if k in readings.attitude}))
+
+    def own_latch(self, module: int, connector: int, target: int, target_conn: int) -> bool:
+        """The module asks its latch to close: closed in physics and linked, or refused
+        (:meth:`hil.world.World.latch`); a latch is recorded as :attr:`contacts` are."""
+        w = self.world
+        faces = range(1, w.profile.connector_count + 1)
+        if not (0 <= target < w.topology.size and connector in faces and target_conn in faces):
+            w.note(f"{w.topology.names[module]}: a latch to module {target} connector {target_conn}: no such face")
+            return False
+        with self.physics.lock:
+            ir = self.sensors.read(w.cycle, frozenset(), (module,), floor=False, attitude=()).infrared.get(module, {})
+        name = w.profile.connector_name(connector)
+        pair = (ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0))
+        closed = w.latch(module, connector, target, target_conn)
+        if closed:
+            with self.physics.lock:
+                record = contact(self.physics.world, w.cycle, (module, connector), (target, target_conn), pair)
+            self.contacts.append(record)
+            asked = self.own[module][1] if module in self.own else w.cycle
+            w.note(
+                f"{w.where(module, connector)} docked to {w.where(target, target_conn)} by motion, the module's own "
+                f"(asked at world cycle {asked}; {record.distance_m * 1000:.1f} mm, {record.attitude_deg:.1f} deg "
+                f"apart; infrared {pair[0]:.1f} mm, {pair[1]:.1f} deg)"
+            )
+        return closed
+
+    def own_ended(self, module: int, connector: int, verdict: str) -> None:
+        """The module's reach ended (its ``reach_ended`` effect)."""
+        w = self.world
+        self.own.pop(module, None)
+        w.note(f"reach_dock {w.where(module, connector)}: {verdict} (the module's own)")
+        self.sync_docking([module])

@@ -39,7 +39,9 @@ and a ``reach_and_dock`` as the physics runner does it
 (:meth:`firmware.motion.docking.Docking.assimilate`, the sequence both drive): the foot lets go
 of the body, comes to the asking face by its own gaits (:class:`firmware.motion.crawl.Trip`, held on its
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
-sensor reads 1 meanwhile (pushed by the world).
+sensor reads 1 meanwhile (pushed by the world). With :attr:`World.modules_move` a
+``reach_dock`` is the asking module's own (firmware.motion.asking): the world sends no
+``Hold``, only the sensors it fills and the latch's answer.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -80,10 +82,13 @@ from firmware.control import (
     Effect,
     Exited,
     Failure,
+    Floor,
     Go,
     Hold,
     Inject,
+    LatchAnswer,
     Log,
+    OwnMotions,
     Readings,
     Ready,
     Report,
@@ -134,6 +139,14 @@ LINE_BAUD = 115_200
 
 class World:
     """Modules of ``topology`` running ``program`` over ``transport`` (see module docs)."""
+
+    #: With the PyBullet stand-in: the modules carry out their ``reach_dock`` themselves
+    #: (firmware.motion.asking; told by :class:`firmware.control.OwnMotions`), the world only
+    #: pushes the asking module its infrared pairs and answers its latch
+    #: (:meth:`hil.reach_loop.LoopReaches.own_started`); off: the world runs the motion and
+    #: sends ``Hold`` s. Off by default until the launcher has its option (docs/hil.md,
+    #: "The motion in the module").
+    modules_move: bool = False
 
     def __init__(
         self,
@@ -432,6 +445,9 @@ class World:
         # modules exchange Hellos until then and start cycling together, like modules powered
         # up at once; afterwards each keeps its own clock
         self.push_readings()  # cycle 0 reads the body as it stands
+        if self.modules_move and self.reaches is not None:
+            for m in range(self.topology.size):
+                self._send(m, OwnMotions())
         self._go_at = time.monotonic() + self.start_delay
         for h in self.handles:
             if h is not None:
@@ -563,14 +579,23 @@ class World:
 
     def _effect(self, module: int, kind: str, args: list[Any]) -> None:
         """Carry out what a native asked of the physical world (as the Robot does)."""
-        if kind not in ("reach_and_dock", "reach_dock", "release"):
+        if kind not in ("reach_and_dock", "reach_dock", "release", "latch", "reach_ended"):
             return  # "assist" and the like only move joints, which the module did itself
         try:
-            if kind == "release":
+            if kind in ("latch", "reach_ended"):  # of a reach the module carries out itself
+                if self.reaches is not None:
+                    if kind == "latch":
+                        closed = self.reaches.own_latch(module, int(args[0]), int(args[1]), int(args[2]))
+                        self._send(module, LatchAnswer(int(args[0]), closed))
+                    else:
+                        self.reaches.own_ended(module, int(args[0]), str(args[1]))
+            elif kind == "release":
                 docking.release(self, module, int(args[0]))
             elif kind == "reach_dock":
                 connector, route, target = int(args[0]), [int(c) for c in args[1]], int(args[2])
-                if self.reaches is not None:  # by motion, on the stand-in's physics
+                if self.reaches is not None and self.modules_move:  # the module moves its chain itself
+                    self.reaches.own_started(module, connector, route, target)
+                elif self.reaches is not None:  # by motion, on the stand-in's physics
                     self.reaches.start(module, connector, route, target)
                 else:
                     docking.reach_and_dock_to(self, module, connector, route, target)
@@ -712,7 +737,7 @@ class World:
                 self._send(m, Attach(c, self.link_map.end(link, m, c)))
         return True
 
-    def send_readings(self, module: int, readings: Readings) -> None:
+    def send_readings(self, module: int, readings: Readings | Floor) -> None:
         """Send ``module`` sensor readings measured or known outside it (a running module only)."""
         self._send(module, readings)
 
@@ -804,6 +829,8 @@ class World:
         for name, value in self.sensed.get(module, {}).items():  # its surroundings did not restart
             self._send(module, Sense(name, value))
         self.push_readings([module])
+        if self.modules_move and self.reaches is not None:
+            self._send(module, OwnMotions())
         # it starts on a world cycle boundary a little ahead (Hellos first) and runs the
         # cycles left from there, so it stops with the others
         base = self._go_at if self._go_at is not None else time.monotonic()

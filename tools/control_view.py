@@ -1,5 +1,6 @@
-"""How the operator's control frames read in ``dh2rt dump`` (:mod:`dh2rt.wire.operator`): one
-short line a message, connectors named by the profile, an INJECT's hormone by the program
+"""How the control family's frames read in ``dh2rt dump``: the operator's
+(:mod:`dh2rt.wire.operator`) and the docking chain's motion frames (:mod:`dh2rt.wire.motion`),
+one short line a message, connectors named by the profile, an INJECT's hormone by the program
 its digest names when the capture carries it."""
 
 from __future__ import annotations
@@ -8,6 +9,7 @@ from collections.abc import Callable, Mapping
 
 from dh2rt.errors import DecodeError
 from dh2rt.hormone import Vocabulary
+from dh2rt.wire import motion as mw
 from dh2rt.wire import operator as op
 
 
@@ -51,3 +53,19 @@ def _hormone(command: op.Inject, vocabularies: Mapping[bytes, Vocabulary]) -> st
         except DecodeError:
             pass
     return f"hormone {command.content.hex()} of program {command.digest.hex()}"
+
+
+def motion_text(message: mw.MotionMessage, name: Callable[[int], str]) -> str:
+    """A motion frame in one line: its type, motion and seq, where it is on its route, and
+    the angles or targets in degrees."""
+    kind = mw.message_type(message).name
+    route = path_text(message.route, name)
+    if isinstance(message, mw.Angles):
+        angles = ", ".join(f"DOF{i + 1} {a:g}" for i, a in enumerate(message.angles))
+        links = ",".join(map(str, message.links)) or "none"
+        head = f"{kind} motion {message.motion} #{message.seq} from {route}, left {message.left}"
+        return f"{head}: module {message.module}, {angles}, links {links}"
+    head = f"{kind} motion {message.motion} #{message.seq} to {route}, hops {message.hops}"
+    if isinstance(message, mw.Targets):
+        return head + ": " + ", ".join(f"DOF{d + 1} {t:g}" for d, t in message.targets)
+    return head

@@ -7,7 +7,8 @@ are kept, marked with the reason, so that a capture shows the robot's errors too
 Flashing's transfer frames (:mod:`dh2rt.wire.transfer`, the second frame family) show as kind
 ``transfer``, one line per message in DH2 flash terms (:func:`tools.transfer_view.transfer_text`);
 the operator's control frames (:mod:`dh2rt.wire.operator`, the third) as kind ``control``
-(:func:`tools.control_view.control_text`).
+(:func:`tools.control_view.control_text`), the docking chain's motion frames among them
+(:mod:`dh2rt.wire.motion`, types 64..127: :func:`tools.control_view.motion_text`).
 
 Each link end is decoded with the program its sender announced in its last Hello (matched by
 digest among the capture's programs); before any Hello, with the first program."""
@@ -23,6 +24,8 @@ from dh2rt.profile import CONRO, Profile
 from dh2rt.program import CompiledProgram
 from dh2rt.wire.can_frames import MAX_LINK_ID, SINGLE, Reassembler, parse_arbitration_id
 from dh2rt.wire.frame import FrameCodec, Hello, KeepAlive, program_digest
+from dh2rt.wire.motion import decode as decode_motion
+from dh2rt.wire.motion import is_motion
 from dh2rt.wire.negotiation import MANAGEMENT_ID, decode_bus
 from dh2rt.wire.operator import decode as decode_control
 from dh2rt.wire.operator import is_control
@@ -30,7 +33,7 @@ from dh2rt.wire.serial_framing import decode_serial
 from dh2rt.wire.transfer import decode as decode_transfer
 from dh2rt.wire.transfer import is_transfer
 from tools.capture_reader import CanRecord, Record
-from tools.control_view import control_text
+from tools.control_view import control_text, motion_text
 from tools.serial_records import SerialRecord
 from tools.transfer_view import transfer_text
 
@@ -230,6 +233,9 @@ class Decoder:
             if kind == "transfer":
                 sender, transfer = decode_transfer(payload)
                 text = transfer_text(transfer, name)
+            elif is_motion(payload):
+                sender, motion = decode_motion(payload)
+                text = motion_text(motion, name)
             else:
                 sender, control = decode_control(payload)
                 text = control_text(control, name, {d: codec.vocabulary for d, codec in self._codecs.items()})

@@ -23,11 +23,13 @@ from dh2rt.runtime import ModuleRuntime
 from dh2rt.testing import runtime_chain, step_all
 from dh2rt.topology import parse_spec
 from drivers.recording import RecordingDriver
+from firmware.control import Command, Hold
 from firmware.motion.reach import DEFAULT_TIMEOUT
 from hil.pace import PACE
 from hil.world import World
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from tests.marks import LONG
+from tools.reading import open_capture
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, LEFT = 1, 3
@@ -167,3 +169,54 @@ def test_a_reach_that_cannot_latch_gives_up_and_links_nothing(
     assert not any("docked to" in line for line in log), log
     rows = {m["name"]: m for m in summary["modules"]}
     assert (rows["m0"]["type"], rows["m0"]["T"]) == ("head", 1) and (rows["m1"]["type"], rows["m1"]["T"]) == ("tail", 2)
+
+
+#: World cycles for snake_to_t with the motion in the modules: it learns its 5-hop chain first.
+OWN_T_CYCLES = 1000
+
+
+@LONG  # a whole reconfiguration in the loop
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_snake_to_t_forms_with_the_motion_in_the_modules(
+    seed: int, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """World.modules_move: m0's own firmware runs the reach (firmware.motion.asking), its
+    chain's members move by the motion frames it sends them; the world pushes m0 its
+    infrared pairs and answers its latch, and sends no Hold. The T forms as when the world
+    ran the motion; the motion frames are in the capture and read in dh2rt dump."""
+    monkeypatch.setattr(World, "modules_move", True)
+    holds: list[tuple[int, Command]] = []
+    send = World._send
+
+    def counting(self: World, module: int, cmd: Command) -> None:
+        if isinstance(cmd, Hold):
+            holds.append((module, cmd))
+        send(self, module, cmd)
+
+    monkeypatch.setattr(World, "_send", counting)
+    capture = tmp_path / "t.pcapng"
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8",
+         "--cycles", str(OWN_T_CYCLES), "--cycle-ms", "50", "--silence-cycles", "6", "--event", "50:inject:m4:STT",
+         "--seed", str(seed), "--json", "--stand-in", "pybullet", "--capture", str(capture)]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0, out
+    summary = _summary(out)
+    log = summary["log"]
+    assert holds == []  # the world moved no joint
+    assert any("m0.front along" in line and "carried out by the module" in line for line in log), log
+    types = {m["name"]: m["type"] for m in summary["modules"]}
+    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, log)
+    docked = [line for line in log if "m0.front docked to m5.left" in line]
+    assert len(docked) == 1 and "by motion, the module's own" in docked[0], log
+    assert any("m0.front: linked (the module's own)" in line for line in log), log
+    (contact,) = summary["reaches"]["contacts"]
+    assert contact["distance_mm"] <= DOCK_TOLERANCE_M * 1000 and contact["attitude_deg"] <= DOCK_TOLERANCE_DEG
+    order = [i for i, line in enumerate(log) if "docked to m5.left" in line or "m2.back released" in line]
+    assert len(order) == 2 and "docked" in log[order[0]]
+    hops = list(open_capture(capture).hops())
+    motion = [h.text for h in hops if h.kind == "control" and " motion " in h.text]
+    assert any(t.startswith("TARGETS motion") for t in motion) and any(t.startswith("ANGLES motion") for t in motion)
+    assert not [h.error for h in hops if h.kind == "error" and "motion frame" in (h.error or "")]

@@ -9,6 +9,7 @@ import pytest
 
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
+from dh2rt.wire import motion as mw
 from dh2rt.wire import operator as op
 from dh2rt.wire.can_frames import segment
 from dh2rt.wire.frame import program_digest
@@ -67,3 +68,28 @@ def test_a_broken_control_frame_is_an_error_naming_the_reason(medium: str, cater
         "control frame: message type 70 is reserved (docking motion, not yet defined)",
         "control frame PAUSE: 1 trailing byte(s)",
     ]
+
+
+@pytest.mark.parametrize("medium", ["can", "serial"])
+def test_motion_frames_read_in_docking_terms(medium: str, caterpillar: CompiledProgram) -> None:
+    route = ((BACK, FRONT), (BACK, FRONT))
+    way = "back>front back>front"
+    messages: list[tuple[mw.MotionMessage, str]] = [
+        (mw.Ask(3, 10, route, 1), f"ASK motion 3 #10 to {way}, hops 1"),
+        (
+            mw.Angles(3, 10, route, 5, (12.5, -40.0), (2, 0, 0, 0), 2),
+            f"ANGLES motion 3 #10 from {way}, left 2: module 5, DOF1 12.5, DOF2 -40, links 2,0,0,0",
+        ),
+        (
+            mw.Targets(3, 11, route, ((0, 30.0), (1, -7.25)), 2),
+            f"TARGETS motion 3 #11 to {way}, hops 2: DOF1 30, DOF2 -7.25",
+        ),
+        (mw.End(3, 12, route[:1], 0), "END motion 3 #12 to back>front, hops 0"),
+    ]
+    payloads = [mw.encode(BACK, m) for m, _ in messages] + [bytes((0x22, 0x40, 0, 3))]
+    hops = [h for h in Decoder([caterpillar]).hops(records(payloads, medium)) if h.kind != "segment"]
+    texts = [h.text.removesuffix(" (reassembled)") for h in hops[:-1]]
+    assert [(h.kind, h.sender) for h in hops[:-1]] == [("control", "back")] * len(messages)
+    assert texts == [text for _, text in messages]
+    assert hops[-1].kind == "error"
+    assert hops[-1].error == "motion frame ASK: cut short in the motion, seq and hops at byte 2"

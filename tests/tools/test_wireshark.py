@@ -26,7 +26,7 @@ import pytest
 from dh2rt.compiler import compile_file, compile_source
 from dh2rt.hormone import Hormone
 from dh2rt.program import CompiledProgram
-from dh2rt.wire import can_frames, operator, transfer
+from dh2rt.wire import can_frames, motion, operator, transfer
 from dh2rt.wire.can_frames import FIRST, LAST, Segmenter, make_arbitration_id, parse_arbitration_id, segment
 from dh2rt.wire.frame import WIRE_VERSION, FrameCodec, FrameKind, Hello, KeepAlive, program_digest
 from dh2rt.wire.negotiation import MANAGEMENT_ID, BusMessage, BusOp, encode_bus
@@ -705,15 +705,19 @@ def broken_control_frames() -> list[bytes]:
     ]
 
 
-def test_control_frames_show_as_dump_does(
-    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
-) -> None:
-    """Every control message and frames broken as the codec refuses them, on CAN (signed
-    commands are segment trains) and on a serial link: the dissector shows each as dump does."""
+def control_family_as_dump(
+    tshark: str,
+    programs: tuple[CompiledProgram, CompiledProgram],
+    tmp_path: Path,
+    good: list[bytes],
+    broken: list[bytes],
+) -> tuple[list[list[str]], list[Hop]]:
+    """Control-family frames, each on CAN (segment trains) and on a serial link, through the
+    dissector and through dump: every row as dump shows it; the rows and dump's hops."""
     path = tmp_path / "control.pcapng"
     rec = Recorder(path, programs)
     try:
-        for frame in [operator.encode(BACK, m) for m in CONTROL_MESSAGES] + broken_control_frames():
+        for frame in good + broken:
             rec.can(frame, 5, 0)
             rec.serial(encode_serial(frame), 3, 1)
     finally:
@@ -722,15 +726,75 @@ def test_control_frames_show_as_dump_does(
     hops = dump_hops(path)
     assert len(rows) == len(hops)
     shown = [hop for hop in hops if hop.kind != "segment"]
-    assert [hop.kind for hop in shown].count("control") == 2 * len(CONTROL_MESSAGES)
-    assert [hop.kind for hop in shown].count("error") == 2 * len(broken_control_frames())
+    assert [hop.kind for hop in shown].count("control") == 2 * len(good)
+    assert [hop.kind for hop in shown].count("error") == 2 * len(broken)
     for row, hop in zip(rows, hops, strict=True):
         number, medium, link, side, kind, text, info, expert = row
         assert (medium, int(link), int(side), kind, text) == (hop.medium, hop.link, hop.side, hop.kind, hop.text)
         assert info == dump_line(hop, path), number
         assert expert == (hop.error if hop.kind == "error" else ""), number
+    return rows, shown
+
+
+def test_control_frames_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Every control message and frames broken as the codec refuses them, on CAN (signed
+    commands are segment trains) and on a serial link: the dissector shows each as dump does."""
+    frames = [operator.encode(BACK, m) for m in CONTROL_MESSAGES]
+    rows, _shown = control_family_as_dump(tshark, programs, tmp_path, frames, broken_control_frames())
     lines = [row[6] for row in rows if row[4] == "control"]
     assert lines[1] == (
         "ir      3 side 1  control   INJECT #1 key 0011223344556677 hops 0, hormone 0205 of program abcdef012345"
         " at back>front left>front via back"
     )
+
+
+# -- motion frames (the docking chain's) -----------------------------------------------------
+
+MOTION_ROUTE = ((BACK, FRONT), (LEFT, FRONT))
+MOTION_MESSAGES: list[motion.MotionMessage] = [
+    motion.Ask(7, 0, MOTION_ROUTE, 1),
+    motion.Angles(7, 0, MOTION_ROUTE, 3, (12.5, -40.0), (2, 0, 1, 0), 2),
+    motion.Angles(7, 1, MOTION_ROUTE[:1], 65535, (327.67, -327.68, 0.01, -0.07), (), 0),
+    motion.Targets(7, 65535, MOTION_ROUTE, ((0, 30.0), (1, -7.25)), 0),
+    motion.Targets(7, 3, MOTION_ROUTE, ((1, 0.0), (7, 1.5)), 2),
+    motion.End(65535, 4, MOTION_ROUTE, 2),
+]
+
+
+def broken_motion_frames() -> list[bytes]:
+    """Motion frames the codec refuses, each for another reason."""
+    targets = motion.encode(BACK, MOTION_MESSAGES[3])
+    angles = motion.encode(BACK, MOTION_MESSAGES[1])
+    return [
+        bytes((0x22, 100)),  # a type of the range not yet defined
+        bytes((0x20, 64)) + targets[2:],  # sender connector 0
+        bytes((targets[0] ^ 0x30,)) + targets[1:],  # another class
+        targets[:6],  # cut short in the head
+        targets[:7] + b"\x00",  # an empty route
+        targets[:6] + b"\x03" + targets[7:],  # hops beyond the route
+        targets[:7] + b"\x01\x10",  # a route hop names connector 0
+        targets[:10] + b"\x00",  # no targets
+        targets[:11] + targets[14:] + targets[11:14],  # DOFs not ascending
+        targets[:-1],  # cut short in the targets
+        angles[:12] + b"\x09",  # too many angles
+        angles[:-7],  # cut short in the angles
+        angles[:-5] + b"\x10" + bytes(16),  # too many links
+        angles[:-1] + b"\x10",  # a link beyond connector 15
+        angles[:-1],  # cut short in the links
+        angles + b"\x00",  # a trailing byte
+    ]
+
+
+def test_motion_frames_show_as_dump_does(
+    tshark: str, programs: tuple[CompiledProgram, CompiledProgram], tmp_path: Path
+) -> None:
+    """Every motion message and frames broken as the codec refuses them, on CAN (segment
+    trains) and on a serial link: the dissector shows each as dump does."""
+    frames = [motion.encode(BACK, m) for m in MOTION_MESSAGES]
+    rows, shown = control_family_as_dump(tshark, programs, tmp_path, frames, broken_motion_frames())
+    assert len({hop.error for hop in shown if hop.error}) == len(broken_motion_frames())
+    lines = [row[5] for row in rows if row[4] == "control"]
+    angles = "DOF1 327.67, DOF2 -327.68, DOF3 0.01, DOF4 -0.07"
+    assert f"ANGLES motion 7 #1 from back>front, left 0: module 65535, {angles}, links none" in lines

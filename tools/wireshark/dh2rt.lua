@@ -12,7 +12,8 @@
 --   * on both, flashing's transfer frames (the second frame family: OFFER, REQUEST, SEGMENT,
 --     ACK, COMMIT, REPORT ...), each field as `dh2rt dump` names it (dh2rt.transfer.*), and the
 --     operator's control frames (the third: INJECT, PAUSE, RESUME, STATE, STATE_REPLY,
---     REFUSED; dh2rt.control.*), as `dh2rt dump` shows them.
+--     REFUSED; dh2rt.control.*) and the docking chain's motion frames in it (ASK, ANGLES,
+--     TARGETS, END), as `dh2rt dump` shows them.
 -- The Info column is the line `dh2rt dump` prints for the frame, without its time.
 --
 -- Frames carry hormone indices, not names. This file, as committed, knows no program: it
@@ -1085,11 +1086,11 @@ end
 
 function Decode:control()
     local data = self.data
+    if #data >= 2 and data:byte(2) >= 64 and data:byte(2) < 128 then
+        return self:motion()
+    end
     local sender = self:family_header("control frame")
     local kind = data:byte(2)
-    if kind >= 64 and kind < 128 then
-        decode_error(string.format("control frame: message type %d is reserved (docking motion, not yet defined)", kind))
-    end
     local message = CONTROL_TYPES[kind]
     if message == nil then
         decode_error(string.format("control frame: unknown message type %d", kind))
@@ -1205,6 +1206,111 @@ function Decode:control()
         if pos ~= #data then
             decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
         end
+    end
+    return { kind = "control", text = text, sender = connector_name(sender) }
+end
+
+-- ------------------------------------------------------------------------------------------
+-- Motion frames (dh2rt.wire.motion.decode): what a docking chain says to itself, control
+-- types 64..127, shown with the line dump prints (tools.control_view.motion_text).
+
+local MOTION_TYPES = { [64] = "ASK", [65] = "ANGLES", [66] = "TARGETS", [67] = "END" }
+local MOTION_CLASS = 2
+local MOTION_MAX_JOINTS = 8
+
+-- An i16 of hundredths of a degree at ``pos``, in degrees as Python's ``:g`` shows it.
+function Decode:motion_degrees(pos)
+    local raw = self.data:byte(pos + 1) * 256 + self.data:byte(pos + 2)
+    if raw >= 32768 then
+        raw = raw - 65536
+    end
+    return string.format("%g", raw / 100)
+end
+
+function Decode:motion_count(what, pos)
+    local n = self:take(what, pos, 1, "number of targets"):byte()
+    if n < 1 or n > MOTION_MAX_JOINTS then
+        decode_error(string.format("%s: %d targets; a frame carries 1..%d", what, n, MOTION_MAX_JOINTS))
+    end
+    return n
+end
+
+function Decode:motion()
+    local data = self.data
+    local sender = self:family_header("motion frame")
+    local kind = data:byte(2)
+    local name = MOTION_TYPES[kind]
+    if name == nil then
+        decode_error(string.format("control frame: message type %d is reserved (docking motion, not yet defined)", kind))
+    end
+    self.tree:add(F.control_message, self:range(1, 1), name)
+    local what = "motion frame " .. name
+    local class = bits(data:byte(1), LAYOUT.header.kind)
+    if class ~= MOTION_CLASS then
+        decode_error(string.format("%s: class %d, expected %d", what, class, MOTION_CLASS))
+    end
+    local head = self:take(what, 2, 5, "motion, seq and hops")
+    local motion, seq, at = head:byte(1) * 256 + head:byte(2), head:byte(3) * 256 + head:byte(4), head:byte(5)
+    self.tree:add(F.control_counter, self:range(4, 2), tostring(seq))
+    local route, pos = self:control_path(what, 7, "route")
+    if #route == 0 then
+        decode_error(what .. ": an empty route (the asker is no member of its motion)")
+    end
+    if at > #route then
+        decode_error(string.format("%s: hops %d beyond a %d-hop route", what, at, #route))
+    end
+    local where = table.concat(route, " ")
+    local text
+    if name == "ANGLES" then
+        local head = self:take(what, pos, 3, "module and number of angles")
+        local module, n = head:byte(1) * 256 + head:byte(2), head:byte(3)
+        if n < 1 or n > MOTION_MAX_JOINTS then
+            decode_error(string.format("%s: %d angles; a frame carries 1..%d", what, n, MOTION_MAX_JOINTS))
+        end
+        self:take(what, pos + 3, 2 * n, "angles")
+        local angles = {}
+        for i = 1, n do
+            angles[i] = string.format("DOF%d %s", i, self:motion_degrees(pos + 1 + 2 * i))
+        end
+        pos = pos + 3 + 2 * n
+        local count = self:take(what, pos, 1, "number of links"):byte()
+        if count > 15 then
+            decode_error(string.format("%s: %d links; a module has at most 15 connectors", what, count))
+        end
+        local raw = self:take(what, pos + 1, count, "links")
+        local links, highest = {}, 0
+        for i = 1, count do
+            links[i] = tostring(raw:byte(i))
+            highest = math.max(highest, raw:byte(i))
+        end
+        if highest > 15 then
+            decode_error(string.format("%s: a link names connector %d, beyond 15", what, highest))
+        end
+        pos = pos + 1 + count
+        text = string.format("ANGLES motion %d #%d from %s, left %d: module %d, %s, links %s", motion, seq, where, at,
+            module, table.concat(angles, ", "), count > 0 and table.concat(links, ",") or "none")
+    else
+        text = string.format("%s motion %d #%d to %s, hops %d", name, motion, seq, where, at)
+        if name == "TARGETS" then
+            local n = self:motion_count(what, pos)
+            pos = pos + 1
+            local dofs, targets, ascending = {}, {}, true
+            for i = 1, n do
+                local pair = self:take(what, pos, 3, "targets")
+                dofs[i] = pair:byte(1)
+                ascending = ascending and (i == 1 or dofs[i] > dofs[i - 1])
+                targets[i] = string.format("DOF%d %s", dofs[i] + 1, self:motion_degrees(pos + 1))
+                pos = pos + 3
+            end
+            if not ascending or dofs[n] >= MOTION_MAX_JOINTS then
+                decode_error(string.format("%s: target DOF indices [%s] are not strictly ascending below %d", what,
+                    table.concat(dofs, ", "), MOTION_MAX_JOINTS))
+            end
+            text = text .. ": " .. table.concat(targets, ", ")
+        end
+    end
+    if pos ~= #data then
+        decode_error(string.format("%s: %d trailing byte(s)", what, #data - pos))
     end
     return { kind = "control", text = text, sender = connector_name(sender) }
 end
