@@ -134,6 +134,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     view = p.add_argument_group("with --stand-in pybullet, as dh2rt run --sim pybullet")
     view.add_argument(
+        "--motions-in-modules",
+        action="store_true",
+        help="each module carries out its program's reach_dock itself (firmware.motion.asking: the chain's "
+        "angles and targets as motion frames on its links); the world sends no joint target for it, only "
+        "physics, infrared, the tracker and the latch (reach_and_dock stays the world's)",
+    )
+    view.add_argument(
         "--sensor-every",
         type=int_in(1, MAX_CYCLES),
         default=1,
@@ -446,6 +453,8 @@ def check_hardware(hardware: HardwareMap | None, kind: str, events: list[Event])
 
 def check_views(ns: argparse.Namespace) -> None:
     wanted = [o for o, v in (("--record", ns.record), ("--plot", ns.plot), ("--gui", ns.gui or None)) if v is not None]
+    if ns.motions_in_modules and ns.stand_in != "pybullet":
+        raise OptionError("--motions-in-modules: the modules move bodies in physics; it needs --stand-in pybullet")
     if wanted and ns.stand_in != "pybullet":
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
     PYBULLET.check(ns)
@@ -487,6 +496,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             gui=ns.gui,
             signer=ns.signer,
             sensor_every=ns.sensor_every,
+            modules_move=ns.motions_in_modules,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:

@@ -144,8 +144,8 @@ class World:
     #: (firmware.motion.asking; told by :class:`firmware.control.OwnMotions`), the world only
     #: pushes the asking module its infrared pairs and answers its latch
     #: (:meth:`hil.reach_loop.LoopReaches.own_started`); off: the world runs the motion and
-    #: sends ``Hold`` s. Off by default until the launcher has its option (docs/hil.md,
-    #: "The motion in the module").
+    #: sends ``Hold`` s. Off by default (``reach_and_dock`` is still the world's); the launcher's
+    #: ``--motions-in-modules`` turns it on (docs/hil.md, "The motion in the module").
     modules_move: bool = False
 
     def __init__(
@@ -174,11 +174,14 @@ class World:
         trial_cycles: int = DEFAULTS.trial_cycles,
         line_baud: int = LINE_BAUD,
         sensor_every: int = 1,
+        modules_move: bool | None = None,
     ) -> None:
         if sensor_every < 1:
             raise HilWorldError(f"sensor readings pushed every {sensor_every} cycles: must be 1 or more")
         self.program = program
         self.topology = topology
+        if modules_move is not None:
+            self.modules_move = modules_move
         self.profile = topology.profile
         self.spec = transport
         self.kind, options = parse_transport_spec(transport)

@@ -180,11 +180,10 @@ OWN_T_CYCLES = 1000
 def test_snake_to_t_forms_with_the_motion_in_the_modules(
     seed: int, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """World.modules_move: m0's own firmware runs the reach (firmware.motion.asking), its
+    """--motions-in-modules (World.modules_move): m0's own firmware runs the reach (firmware.motion.asking), its
     chain's members move by the motion frames it sends them; the world pushes m0 its
     infrared pairs and answers its latch, and sends no Hold. The T forms as when the world
     ran the motion; the motion frames are in the capture and read in dh2rt dump."""
-    monkeypatch.setattr(World, "modules_move", True)
     holds: list[tuple[int, Command]] = []
     send = World._send
 
@@ -199,7 +198,7 @@ def test_snake_to_t_forms_with_the_motion_in_the_modules(
         cli.main,
         ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8",
          "--cycles", str(OWN_T_CYCLES), "--cycle-ms", "50", "--silence-cycles", "6", "--event", "50:inject:m4:STT",
-         "--seed", str(seed), "--json", "--stand-in", "pybullet", "--capture", str(capture)]
+         "--seed", str(seed), "--json", "--stand-in", "pybullet", "--motions-in-modules", "--capture", str(capture)]
     )  # fmt: skip
     out = capsys.readouterr().out
     assert code == 0, out
