@@ -20,8 +20,9 @@ Message types (byte 1)::
 
     1..15     operator commands, signed (below)
     16..31    modules' answers, unsigned
-    64..127   reserved: issue 28's docking-motion frames (joint angles, targets, progress);
-              decoded as a DecodeError naming the range until they are defined
+    64..127   a docking chain's motion frames (:mod:`dh2rt.wire.motion`: ASK, ANGLES,
+              TARGETS, END); this codec refuses them (DecodeError naming the range), the
+              motion codec reads them
     others    unknown: a DecodeError
 
 A **command** (INJECT 1, PAUSE 2, RESUME 3, STATE 4, WATCH 5)::
