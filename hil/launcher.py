@@ -14,7 +14,9 @@ Exit codes: 0 ok; 1 the run went wrong (a module failed, a receptor faulted, an 
 fault was still in force at the end, a link was lost on a clean link, a module missed its
 cycle period in more than LATE_SHARE of its cycles, or the frames do not add up (see
 World.frame_accounting): each is named on stderr); 3 the same, when some module started more
-than LATE_SHARE of its cycles late (EXIT_TOO_SLOW: hil.pace reads it); 2 bad input or
+than LATE_SHARE of its cycles late, or links were lost while the machine held them as long as
+the liveness bound (the link emulator's relay, or a module's start, after little work of the
+module's own: :func:`machine_held`) (EXIT_TOO_SLOW: hil.pace reads it); 2 bad input or
 transport unavailable; 130 interrupted. The whole log goes to a file the summary names.
 """
 
@@ -571,7 +573,8 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
         for line in wrong:
             _err(line)
         _err(f"the run went wrong in {len(wrong)} way(s); the whole log is in {log_path}")
-        return EXIT_TOO_SLOW if any(_late_share(v.status) > LATE_SHARE for v in world.views) else EXIT_FAIL
+        slow = any(_late_share(v.status) > LATE_SHARE for v in world.views) or links_held_by_machine(world)
+        return EXIT_TOO_SLOW if slow else EXIT_FAIL
     return EXIT_OK
 
 
@@ -579,6 +582,34 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
 LATE_SHARE = 0.10
 #: The exit code of a run that went wrong with modules that could not keep the period.
 EXIT_TOO_SLOW = 3
+
+
+def machine_held(world: World) -> str | None:
+    """What held the links as long as the liveness bound, if it was the machine and not a
+    module's own work (tests/hil/holds.py judges the same way): the link emulator's relay
+    thread (every serial link waits while it is held: the world process's, shared with
+    physics), or a module started that late after little work of its own. None: nothing
+    did, or a module's own work came near the bound (then a lost link is dh2rt's)."""
+    period_ms = s_to_ms(world.cycle_period)
+    bound_ms = world.silence_cycles * period_ms
+    near = bound_ms - period_ms
+    rows = [v.status for v in world.views]
+    if any(float((r.get("work_ms") or {}).get("max", 0.0)) >= bound_ms / 2 for r in rows):
+        return None
+    relay_ms = 0.0 if world.emulator is None else world.emulator.held_s * 1000
+    if relay_ms >= near:
+        return f"this machine held the link emulator's relay {relay_ms:.0f} ms (the liveness bound is {bound_ms:g} ms)"
+    late = {v.name: float((v.status.get("lateness_ms") or {}).get("max", 0.0)) for v in world.views}
+    name, worst = max(late.items(), key=lambda kv: kv[1], default=("", 0.0))
+    if worst >= near:
+        return f"this machine started {name} {worst:.0f} ms late (the liveness bound is {bound_ms:g} ms)"
+    return None
+
+
+def links_held_by_machine(world: World) -> bool:
+    """Whether links were lost while the machine held them (:func:`machine_held`)."""
+    lost = any(int(v.status.get("counters", {}).get("links_lost", 0)) for v in world.views)
+    return lost and machine_held(world) is not None
 
 
 def _late_share(status: Mapping[str, Any]) -> float:
@@ -595,6 +626,7 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
         or world.cables_plugged > 0
     )
     out: list[str] = []
+    held = machine_held(world)
     for v in world.views:
         s = v.status
         c = s.get("counters", {})
@@ -605,7 +637,11 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
         if s.get("actuator_fault"):
             out.append(f"module {v.name}: actuator fault at the end: {s['actuator_fault']}")
         if clean_links and not changes_links and int(c.get("links_lost", 0)):
-            out.append(f"module {v.name} lost {c['links_lost']} link(s) on clean links (no loss injected, no surgery)")
+            lost = f"module {v.name} lost {c['links_lost']} link(s) on clean links"
+            if held is None:
+                out.append(f"{lost} (no loss injected, no surgery)")
+            else:
+                out.append(f"{lost} while {held}: {_suggest_period(world)}")
         cycles = max(1, int(c.get("cycles", 0)))
         late = int(c.get("late_cycles", 0))
         if late > LATE_SHARE * cycles:

@@ -50,6 +50,7 @@ arrive on one queue and are read by :meth:`World.poll`.
 
 from __future__ import annotations
 
+import gc
 import os
 import queue
 import re
@@ -193,6 +194,11 @@ class World:
         self.cycles = cycles
         #: modules report their cycles for --trace, and for --capture's cycle marks
         self.trace = trace or capture is not None
+        #: the records kept for --trace (sorted_records); with --capture alone they go to the
+        #: capture's cycle marks as they come and are not kept: 8 modules' records held for
+        #: a whole run weigh on the world process's garbage collector, whose pauses hold
+        #: the link emulator's relay (every link fell silent at once in a CI run)
+        self.keep_records = trace
         self.silence_cycles = silence_cycles
         self.status_every = status_every
         self.handshake = handshake
@@ -451,6 +457,11 @@ class World:
         if self.modules_move and self.reaches is not None:
             for m in range(self.topology.size):
                 self._send(m, OwnMotions())
+        # what start-up built (the PyBullet model, the program, the emulators) lives as long
+        # as the run: out of the collector's sight, so that its full collections, which hold
+        # the link emulator's relay with the rest of this process, stay short (gc.freeze)
+        gc.collect()
+        gc.freeze()
         self._go_at = time.monotonic() + self.start_delay
         for h in self.handles:
             if h is not None:
@@ -548,7 +559,8 @@ class World:
                 if rep.failed:
                     v.failed = True
         elif isinstance(rep, TraceRecord):
-            self.records.append(dict(rep.record))
+            if self.keep_records:
+                self.records.append(dict(rep.record))
             if self.capture is not None:  # the cycle marks replay needs (tools.capture_cycles)
                 links = {k: ((w.a, w.a_conn), (w.b, w.b_conn)) for k, w in self.link_map.links.items()}
                 for link, ends in self._bus_links.items():  # negotiated on a bus: both sides logged
@@ -1054,6 +1066,7 @@ class World:
         # Ctrl-C can be called again and finishes the job (every step below is idempotent)
         if self._closed:
             return
+        gc.unfreeze()  # a process that runs worlds one after another (tests) collects them again
         for m, h in enumerate(self.handles):
             if h is not None and h.running():
                 self._send(m, Stop())
