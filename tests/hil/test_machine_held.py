@@ -16,8 +16,10 @@ from hil.world import World
 def world(relay_ms: float | None, late_ms: float = 1.0, work_ms: float = 2.0, lost: int = 1) -> World:
     status = {"counters": {"links_lost": lost}, "lateness_ms": {"max": late_ms}, "work_ms": {"max": work_ms}}
     views = [SimpleNamespace(name="m0", status=status), SimpleNamespace(name="m1", status={"counters": {}})]
-    emulator = None if relay_ms is None else SimpleNamespace(held_s=relay_ms / 1000)
-    w: Any = SimpleNamespace(cycle_period=0.02, silence_cycles=3, views=views, emulator=emulator)
+    # a long hold before the modules started cycling (at 100 s) counts for nothing
+    holds = [(99.0, 0.09)] + ([] if relay_ms is None else [(101.0, relay_ms / 1000)])
+    emulator = SimpleNamespace(holds=lambda: holds)
+    w: Any = SimpleNamespace(cycle_period=0.02, silence_cycles=3, views=views, emulator=emulator, go_at=100.0)
     return cast(World, w)
 
 
