@@ -562,11 +562,7 @@ class World:
             if self.keep_records:
                 self.records.append(dict(rep.record))
             if self.capture is not None:  # the cycle marks replay needs (tools.capture_cycles)
-                links = {k: ((w.a, w.a_conn), (w.b, w.b_conn)) for k, w in self.link_map.links.items()}
-                for link, ends in self._bus_links.items():  # negotiated on a bus: both sides logged
-                    if len(ends) == 2:
-                        links.setdefault(link, (ends[0], ends[1]))
-                self.capture.cycle_mark(rep.record, links)
+                self.capture.cycle_mark(rep.record, self._docked_links())
         elif isinstance(rep, Effect):
             self.effects.append((module, rep))
             self.log.append(f"{v.name}: effect {rep.kind} {rep.args}")
@@ -714,6 +710,11 @@ class World:
         docking.check_cut(self.link_map.peer_of((module, connector)), self.where(module, connector))
         link = self.link_map.peer[(module, connector)]
         self.link_map.remove(link)
+        gone = {(link.a, link.a_conn), (link.b, link.b_conn)}  # for the capture's marks: no longer docked
+        for bus_link in [k for k, ends in self._bus_links.items() if gone & set(ends.values())]:
+            del self._bus_links[bus_link]
+        if self.capture is not None:
+            self.capture.links_now(self._docked_links())
         if self.physics is not None:
             self.physics.undock(module, connector)
         if self.contacts is not None:  # the modules sense it and release their link
@@ -721,6 +722,15 @@ class World:
         elif self.emulator is None:
             for m, c in ((link.a, link.a_conn), (link.b, link.b_conn)):
                 self._send(m, Detach(c))
+
+    def _docked_links(self) -> dict[int, tuple[tuple[int, int], tuple[int, int]]]:
+        """The links docked now, for the capture's link marks: link id -> (module, connector)
+        at side 0 and side 1: the world's links, or on a bus whose modules negotiate their
+        links over contacts, the ids they negotiated (the frames carry those), as both
+        modules logged them."""
+        if self.contacts is None:
+            return {w.link_id: ((w.a, w.a_conn), (w.b, w.b_conn)) for w in self.link_map.peer.values()}
+        return {link: (ends[0], ends[1]) for link, ends in self._bus_links.items() if len(ends) == 2}
 
     def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
         docking.check_dock(self.profile, self.link_map.peer.__contains__, self.where, a, a_conn, b, b_conn)

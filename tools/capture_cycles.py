@@ -16,7 +16,10 @@ keeps a small part of it beside the frames:
   channel (not on any link) and the sensors as the cycle read them;
 * a **link mark** per link: its id and the (module, connector) at each side, so that a link
   end of the capture is a module's connector (an emulated infrared link as the world made it;
-  a bus link as both its modules logged they negotiated it).
+  a bus link as both its modules logged they negotiated it);
+* an **unlink mark** when a link marked before is undocked (a ``release``, a cut): its id and
+  ends again. Frames only stop on the wire there; the mark says why and when (version 2; a
+  version 1 file has none).
 
 What a cycle mark does not hold is what replay recomputes and compares: the type (it follows
 from the status, as the engine's table gives it), the actuators, the variables, the receptor
@@ -26,7 +29,7 @@ A capture on a real robot has only the wire: no marks. Replay then says what it 
 (which cycle took what in, the timer phases) instead of guessing.
 
 The marks are a file of their own beside the capture, ``CAPTURE.cycles.jsonl`` (JSON Lines:
-a header ``{"format": "dh2rt-cycle-marks", "version": 1}``, then one mark a line, each with
+a header ``{"format": "dh2rt-cycle-marks", "version": 2}``, then one mark a line, each with
 ``time``: the cycle's start on the capture's clock, the module's monotonic ``t`` moved to
 the wall clock the link emulator stamps frames with, or when a link mark was written). The
 capture file itself stays what was on the wire, as every reader of it (dump, Wireshark)
@@ -47,7 +50,9 @@ from dh2rt.output_paths import shown_path
 
 SUFFIX = ".cycles.jsonl"
 FORMAT = "dh2rt-cycle-marks"
-VERSION = 1
+VERSION = 2
+#: The versions this dh2rt reads: version 1 had no unlink marks.
+READS = (1, 2)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,7 +82,16 @@ class CycleMark:
     sensors: Mapping[str, int]
 
 
-Mark = LinkMark | CycleMark
+@dataclass(frozen=True, slots=True)
+class UnlinkMark:
+    """A link marked before undocked (released or cut) at ``time``; ``ends`` as its link mark's."""
+
+    time: float
+    link: int
+    ends: tuple[tuple[int, int], tuple[int, int]]
+
+
+Mark = LinkMark | UnlinkMark | CycleMark
 
 
 def cycle_mark_json(record: Mapping[str, Any]) -> dict[str, Any]:
@@ -107,8 +121,9 @@ def cycle_mark_json(record: Mapping[str, Any]) -> dict[str, Any]:
     return mark
 
 
-def link_mark_json(link: int, ends: tuple[tuple[int, int], tuple[int, int]]) -> dict[str, Any]:
-    return {"kind": "link", "link": link, "ends": [list(ends[0]), list(ends[1])]}
+def link_mark_json(link: int, ends: tuple[tuple[int, int], tuple[int, int]], *, docked: bool = True) -> dict[str, Any]:
+    """A link mark (``docked``) or an unlink mark (not)."""
+    return {"kind": "link" if docked else "unlink", "link": link, "ends": [list(ends[0]), list(ends[1])]}
 
 
 def marks_path(capture: Path) -> Path:
@@ -135,9 +150,10 @@ def unpack(obj: Any, where: str) -> Mark:
     """One mark of the file; CaptureError naming ``where`` when it is not one."""
     try:
         when = float(obj["time"])
-        if obj["kind"] == "link":
+        if obj["kind"] in ("link", "unlink"):
             (m0, c0), (m1, c1) = obj["ends"]
-            return LinkMark(when, int(obj["link"]), ((int(m0), int(c0)), (int(m1), int(c1))))
+            kind = LinkMark if obj["kind"] == "link" else UnlinkMark
+            return kind(when, int(obj["link"]), ((int(m0), int(c0)), (int(m1), int(c1))))
         if obj["kind"] != "cycle":
             raise ValueError(f"kind {obj['kind']!r}")
         return CycleMark(
@@ -171,8 +187,8 @@ def read_marks(capture: Path) -> Iterator[Mark]:
             first = json.loads(fh.readline() or "null")
             if not isinstance(first, dict) or first.get("format") != FORMAT:
                 raise ValueError(f"no {FORMAT} header")
-            if first.get("version") != VERSION:
-                raise ValueError(f"version {first.get('version')}, this dh2rt reads {VERSION}")
+            if first.get("version") not in READS:
+                raise ValueError(f"version {first.get('version')}, this dh2rt reads {', '.join(map(str, READS))}")
         except (ValueError, UnicodeError) as exc:
             raise CaptureError(f"{path}:1: not a cycle marks file ({exc})") from None
         for number, text in enumerate(fh, start=2):

@@ -56,7 +56,7 @@ class FileSink:
         self._logger: Any = None
         #: BLF and ASC number their channels; other formats keep python-can's channel as it is
         self._numbered_channels = suffix in (".blf", ".asc")
-        self._links_marked: set[int] = set()
+        self._links_marked: dict[int, tuple[tuple[int, int], tuple[int, int]]] = {}
         self._marks: IO[str] | None = None  # opened at the first mark (see cycle_mark)
         if suffix == ".pcapng":
             self._pcapng = PcapngWriter(path, programs)
@@ -101,19 +101,33 @@ class FileSink:
     ) -> None:
         """A module's report of one cycle (its trace record), kept as a cycle mark beside
         the capture (:mod:`tools.capture_cycles`), after a link mark for each of ``links``
-        (link id -> (module, connector) at side 0 and side 1) not marked yet. Marks are not
+        (link id -> (module, connector) at side 0 and side 1: the links docked now) not marked
+        yet, and an unlink mark for each marked link no longer among them. Marks are not
         frames: :attr:`count` does not count them."""
-        now = time.time()
         with self._lock:
-            if self._marks is None:
-                self._marks = capture_cycles.marks_path(self.path).open("w", encoding="utf-8")
-                self._marks.write(capture_cycles.header())
-            for link, ends in sorted(links.items()):
-                if link not in self._links_marked:
-                    self._links_marked.add(link)
-                    self._marks.write(capture_cycles.line(capture_cycles.link_mark_json(link, ends), now))
+            marks = self._mark_links(links)
             started = capture_cycles.wall_time(float(record["t"]))
-            self._marks.write(capture_cycles.line(capture_cycles.cycle_mark_json(record), started))
+            marks.write(capture_cycles.line(capture_cycles.cycle_mark_json(record), started))
+
+    def links_now(self, links: Mapping[int, tuple[tuple[int, int], tuple[int, int]]]) -> None:
+        """The links docked now, at once (the world undocked one: its mark's time is the
+        cut's, before the frames lost into it)."""
+        with self._lock:
+            self._mark_links(links)
+
+    def _mark_links(self, links: Mapping[int, tuple[tuple[int, int], tuple[int, int]]]) -> IO[str]:
+        now = time.time()
+        if self._marks is None:
+            self._marks = capture_cycles.marks_path(self.path).open("w", encoding="utf-8")
+            self._marks.write(capture_cycles.header())
+        for link in sorted(set(self._links_marked) - set(links)):  # undocked since
+            gone = capture_cycles.link_mark_json(link, self._links_marked.pop(link), docked=False)
+            self._marks.write(capture_cycles.line(gone, now))
+        for link, ends in sorted(links.items()):
+            if link not in self._links_marked:
+                self._links_marked[link] = ends
+                self._marks.write(capture_cycles.line(capture_cycles.link_mark_json(link, ends), now))
+        return self._marks
 
     def flush(self) -> None:
         with self._lock:

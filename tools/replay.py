@@ -48,7 +48,7 @@ from dh2rt.errors import CaptureError, OptionError
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture
-from tools.replay_model import ModelResult, compare_with_model, lost_links
+from tools.replay_model import ModelResult, compare_with_model
 from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
 from tools.replay_rebuild import Note, Rebuild
 from tools.replay_view import BREAK_FORMS, Breakpoint, parse_break, view, view_text
@@ -153,8 +153,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _model(ns: argparse.Namespace, capture: Capture, rebuild: Rebuild, rebuilt: list[dict[str, Any]]) -> ModelResult:
     with tempfile.TemporaryDirectory(prefix="dh2rt-replay-") as folder:
-        result = compare_with_model(rebuilt, capture.program, rebuild.marks, Path(folder), ns.capture)
-    result.unknown.extend(lost_links(rebuild.frames.first_lost))
+        result = compare_with_model(
+            rebuilt, capture.program, rebuild.marks, Path(folder), ns.capture, rebuild.frames.first_lost
+        )
     if not ns.json:
         print("\n".join(result.lines))
         for line in result.unknown:
@@ -179,7 +180,12 @@ def _summary(
             "notes": [n.to_json() for n in notes],
         }
         if model is not None:
-            doc["model"] = {"divergence": model.first, "lines": model.lines, "unknown": model.unknown}
+            doc["model"] = {
+                "divergence": model.first,
+                "lines": model.lines,
+                "unknown": model.unknown,
+                "after_unknown": model.after_unknown,
+            }
         print(json.dumps(doc, indent=1))
         return
     stream: IO[str] = sys.stderr

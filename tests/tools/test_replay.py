@@ -24,7 +24,7 @@ import pytest
 from hil import launcher
 from hil.pace import PACE
 from tools import dump
-from tools.capture_cycles import CycleMark, LinkMark, marks_path, read_marks
+from tools.capture_cycles import CycleMark, LinkMark, UnlinkMark, marks_path, read_marks
 from tools.capture_reader import read_records
 from tools.pcapng import LINKTYPE_CAN_SOCKETCAN, LINKTYPE_USER0, PcapngReader, PcapngWriter
 from tools.reading import open_capture
@@ -384,9 +384,12 @@ def test_a_planted_divergence_is_the_first_the_model_comparison_finds(
     sent = [i for i, h in enumerate(hops) if (h.link, h.side, h.kind) == (4, 0, "hormone") and not h.lost]
     planted = rewrite(capture, tmp_path / "planted.pcapng", lambda i: i != sent[1])
     out, _ = replay(capsys, planted, "--model", "--json", code=1)
-    first = json.loads(out)["model"]["divergence"]
+    model = json.loads(out)["model"]
+    first = model["divergence"]
     assert first["owner"] == "m5 (module 5)" and first["stream"].startswith("arrivals at front from back")
     assert first["index"] == 2  # m5's second hormone at its front is the one planted away
+    assert model["after_unknown"] is False
+    assert "the divergence is the run's own" in model["lines"][-2]
 
 
 def test_the_model_says_what_it_cannot_know_of_a_cut(
@@ -394,10 +397,16 @@ def test_the_model_says_what_it_cannot_know_of_a_cut(
 ) -> None:
     out, _ = replay(capsys, run[0], "--model", "--json", code=1)
     model = json.loads(out)["model"]
-    assert [u.split(" lost frames")[0] for u in model["unknown"]] == ["link 3"]  # m3's back to m4's front
+    # m3's back to m4's front: undocked (the cut's unlink mark), then frames lost into it
+    undocked, lost = model["unknown"]
+    assert undocked.startswith("link 3 undocked (m3.back in its cycle ") and ", m4.front in its cycle " in undocked
+    assert lost.startswith("link 3 lost frames from t ")
     # the first divergence is behind the cut (m4 becomes a head and starts a wave of its own),
     # none in front of it, where the model and the run had the same inputs
     assert model["divergence"]["owner"] in {f"m{m} (module {m})" for m in range(4, 8)}
+    assert model["after_unknown"] is True
+    judged = "it comes after what the model cannot know (the first: link 3 undocked"
+    assert any(line.startswith(judged) for line in model["lines"])
 
 
 def test_a_run_on_a_can_bus_is_rebuilt_too(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -416,6 +425,9 @@ def test_a_run_on_a_can_bus_is_rebuilt_too(capsys: pytest.CaptureFixture[str], t
     out, err = replay(capsys, capture)
     assert {key(r): r for r in map(json.loads, out.splitlines())} == {key(r): r for r in records}
     assert not_run_facts(err) == []
+    # the cut is marked once, with the ends the modules negotiated the link at
+    unlinked = [m for m in read_marks(capture) if isinstance(m, UnlinkMark)]
+    assert [sorted(m.ends) for m in unlinked] == [[(3, 2), (4, 1)]]
 
 
 def test_an_operators_pause_and_inject_are_rebuilt(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -454,3 +466,25 @@ def test_an_operators_pause_and_inject_are_rebuilt(capsys: pytest.CaptureFixture
         f"replay: paused: m{m}" for m in range(4)
     }
     assert any(a["at"] is None and a["hormone"] == "X(C)" for r in records for a in r["received"])
+
+
+@pytest.mark.long
+def test_legs_to_snake_diverges_from_the_model_only_after_the_foot_is_released(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The loop releases the winning foot and walks it by motion; the model (dh2rt run's
+    rules) docks it at once. The first divergence is said to come after the release, which
+    the unlink mark names with both ends' cycles."""
+    capture = tmp_path / "lts.pcapng"
+    code = PACE.call(
+        launcher.main,
+        ["--transport", "serial", "--program", str(ROOT / "examples" / "legs_to_snake.dh2"), "--topology", "dragon",
+         "--cycles", "100", "--event", "5:inject:tail2:LTS", "--capture", str(capture)],
+    )  # fmt: skip
+    assert code == 0
+    capsys.readouterr()
+    out, _ = replay(capsys, capture, "--model", "--json", code=1)
+    model = json.loads(out)["model"]
+    assert model["after_unknown"] is True
+    assert model["unknown"][0].startswith("link ") and " undocked (spine1." in model["unknown"][0]
+    assert any(" undocked (spine1." in line and line.startswith("it comes after") for line in model["lines"])
