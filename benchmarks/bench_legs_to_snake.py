@@ -14,11 +14,15 @@ formed (median and range), the docks that gave up, and the latches' distances an
 trip steers by (sim.tracker.OverheadTracker) noise, latency and dropouts (exact by default);
 ``--oracle`` makes the docking motions read their faces' relative pose from the world's exact
 state instead of the chain's kinematics and the tracker (PhysicsRun.oracle_poses: to measure
-what the modules' own sensing costs).
+what the modules' own sensing costs). ``--camera EVERY`` replaces the tracker by a rendered
+overhead camera read by ``dh2rt tracker``'s detector (tools.tracker.sim_camera.CameraTracker:
+markers on every part, a frame every EVERY cycles of 50 ms; about half a second of rendering a
+frame, so a run takes 15 to 30 minutes): the trip then steers by detections, not by the
+simulator's state.
 
     python -m benchmarks.bench_legs_to_snake [--seeds 0,1,2,3] [--kills none,dock,trip] [--jobs 2] [--quick]
         [--variants free_distance,standoff,filtered] [--filter-alpha 0.3]
-        [--tracker NOISE_MM,NOISE_DEG,LATENCY,DROPOUT] [--oracle]
+        [--tracker NOISE_MM,NOISE_DEG,LATENCY,DROPOUT] [--oracle] [--camera EVERY]
 
 One run is 30 to 45 s on one core. The last line is one JSON object.
 """
@@ -56,6 +60,7 @@ def one_run(
     variant: tuple[bool, float | None],
     tracker: tuple[float, float, int, float] = (0, 0, 0, 0),
     oracle: bool = False,
+    camera: int = 0,
 ) -> dict[str, Any]:
     """One whole reconfiguration; what happened. ``tracker``: noise (mm, degrees), latency
     (cycles) and dropout probability of the overhead tracker; ``oracle``: PhysicsRun.oracle_poses."""
@@ -68,13 +73,18 @@ def one_run(
         run.docking.options.free_distance = free_distance
         run.motion_sensors.floor_filter = None if alpha is None else FloorFilter(alpha)
         run.oracle_poses = oracle
+        if camera:
+            from tools.tracker.sim_camera import CameraTracker
+
+            run.motion_sensors.tracker = CameraTracker(run.world, every=camera)
+            return
         run.motion_sensors.tracker = OverheadTracker(
             run.world, noise_m=noise_mm / 1000, noise_deg=noise_deg, latency=latency, dropout=dropout, seed=seed
         )
 
     run, formed = reconfigure(program, seed, hook, setup=setup)
     try:
-        return {
+        result: dict[str, Any] = {
             "seed": seed,
             "kill": kill,
             "formed": formed,
@@ -82,8 +92,36 @@ def one_run(
             "latch_mm": [round(c.distance_m * 1000, 1) for c in run.contacts],
             "latch_deg": [round(c.attitude_deg, 1) for c in run.contacts],
         }
+        if camera:
+            result["camera"] = camera_figures(run.motion_sensors.tracker)
+        return result
     finally:
         run.close()
+
+
+def camera_figures(tracker: Any) -> dict[str, Any]:
+    """What the camera tracker did: frames, parts missed, seconds, its errors against the truth."""
+    mm, deg = sorted(tracker.errors_mm), sorted(tracker.errors_deg)
+    return {
+        "frames": tracker.frames,
+        "parts_missed": tracker.dropped,
+        "render_s": round(tracker.render_s, 1),
+        "detect_s": round(tracker.detect_s, 1),
+        "error_mm": {
+            "median": round(statistics.median(mm), 2),
+            "p99": round(mm[int(0.99 * (len(mm) - 1))], 2),
+            "max": round(mm[-1], 2),
+        }
+        if mm
+        else None,
+        "error_deg": {
+            "median": round(statistics.median(deg), 2),
+            "p99": round(deg[int(0.99 * (len(deg) - 1))], 2),
+            "max": round(deg[-1], 2),
+        }
+        if deg
+        else None,
+    }
 
 
 def spread(values: Sequence[float]) -> dict[str, Any]:
@@ -133,8 +171,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--oracle", action="store_true", help="the motions read the faces' exact relative pose from the world"
     )
+    parser.add_argument(
+        "--camera",
+        type=int,
+        default=0,
+        metavar="EVERY",
+        help="the trip steers by a rendered overhead camera and the tracker's detector, a frame every EVERY "
+        "cycles (replaces --tracker; 15 to 30 minutes a run)",
+    )
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
+    if args.camera < 0:
+        parser.error(f"--camera: a frame every EVERY cycles, 1 or more, got {args.camera}")
     if [v for v in variants if v not in VARIANTS]:
         parser.error(f"--variants: each one of {', '.join(VARIANTS)}, got {args.variants!r}")
     try:
@@ -156,7 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.quick:
         seeds, kills = [0], ["none"]
     cases = [
-        (name, one_run, (seed, kill, chosen[name], tracker, args.oracle))
+        (name, one_run, (seed, kill, chosen[name], tracker, args.oracle, args.camera))
         for name in variants
         for seed in seeds
         for kill in kills
@@ -177,7 +225,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "kills": kills,
         "tracker": dict(zip(("noise_mm", "noise_deg", "latency", "dropout"), tracker, strict=True)),
         "oracle": args.oracle,
+        "camera_every": args.camera or None,
     }
+    if args.camera:
+        out["camera"] = [dict(r["camera"], seed=r["seed"], kill=r["kill"]) for rs in results.values() for r in rs]
     for name in variants:
         s = summary(results[name])
         out[name] = s

@@ -24,7 +24,7 @@ from firmware.motion.floor_filter import FloorFilter
 from firmware.motion.readings import FloorPoses, Readings
 from firmware.motion.underway import Motion
 from sim.sensors import PhysicsSensors
-from sim.tracker import OverheadTracker
+from sim.tracker import FloorTracker, OverheadTracker
 from sim.world import World
 
 #: ``name.connector`` of a module's connector, for log lines.
@@ -35,10 +35,10 @@ class MotionSensors:
     """The sensors the docking motions read in ``world``, with ``tracker`` over the arena."""
 
     def __init__(
-        self, world: World, tracker: OverheadTracker | None = None, floor_filter: FloorFilter | None = None
+        self, world: World, tracker: FloorTracker | None = None, floor_filter: FloorFilter | None = None
     ) -> None:
         self.world = world
-        self.tracker = tracker or OverheadTracker(world)
+        self.tracker: FloorTracker = tracker or OverheadTracker(world)
         #: what the modules' firmware smooths the tracker's reports with (None: raw reports)
         self.floor_filter = floor_filter
         model = world.model

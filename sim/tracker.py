@@ -28,10 +28,22 @@ from __future__ import annotations
 import math
 import random
 from collections import deque
+from typing import Protocol
 
 from firmware.motion.body import BACK, CENTRE, FRONT
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
 from sim.world import World
+
+
+class FloorTracker(Protocol):
+    """What the motions' sensors read the floor from: this stand-in, or a rendered camera and
+    ``dh2rt tracker``'s detector (:class:`tools.tracker.sim_camera.CameraTracker`)."""
+
+    #: frames taken so far, and module (or part) reports a frame lacked
+    frames: int
+    dropped: int
+
+    def reading(self, cycle: int) -> FloorPoses: ...
 
 
 class OverheadTracker:

@@ -393,6 +393,11 @@ class World(Closing):
             (float(orn[0]), float(orn[1]), float(orn[2]), float(orn[3])),
         )
 
+    def part_pose(self, module: int, link: int) -> tuple[Vec3, Quat]:
+        """A body part's pose (its centre-of-mass frame): position and quaternion (x, y, z, w)."""
+        self._check_module(module)
+        return self._body_pose(module, link)
+
     def part_transform(self, module: int, link: int) -> Any:
         """A body part's pose (its centre-of-mass frame) as a 4x4 numpy transform."""
         import numpy as np

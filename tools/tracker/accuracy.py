@@ -82,7 +82,8 @@ class Accuracy:
         }
 
 
-def _calibration(camera: OverheadCamera, marker_height_mm: float) -> Calibration:
+def camera_calibration(camera: OverheadCamera, marker_height_mm: float) -> Calibration:
+    """The calibration a rendered ``camera`` implies, read as ``dh2rt tracker`` reads a file."""
     import json
 
     with tempfile.TemporaryDirectory(prefix="dh2rt-calibration-") as folder:
@@ -156,7 +157,7 @@ def measure_free(
     each frame blurred and noised as :func:`degrade` says."""
     camera = camera or OverheadCamera()
     pixels = np.random.default_rng(seed)
-    detector = MarkerDetector(_calibration(camera, height_mm), DEFAULT_MARKER_MM)
+    detector = MarkerDetector(camera_calibration(camera, height_mm), DEFAULT_MARKER_MM)
     rng = random.Random(seed)
     accuracy = Accuracy()
     client = bare_arena()
@@ -182,7 +183,7 @@ def measure_robot(topology: str, frames: int, seed: int = 1, camera: OverheadCam
     accuracy = Accuracy()
     height = module_marker_height_mm()
     for shot in robot_frames(topology, frames, seed, camera or OverheadCamera(), centred=True):
-        detector = MarkerDetector(_calibration(shot.camera, height), DEFAULT_MARKER_MM)
+        detector = MarkerDetector(camera_calibration(shot.camera, height), DEFAULT_MARKER_MM)
         accuracy.frames += 1
         accuracy.render_s += shot.seconds
         seen = [marker for marker in shot.truth if in_view(shot.camera, marker, height)]
