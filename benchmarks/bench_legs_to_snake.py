@@ -101,27 +101,23 @@ def one_run(
 
 def camera_figures(tracker: Any) -> dict[str, Any]:
     """What the camera tracker did: frames, parts missed, seconds, its errors against the truth."""
-    mm, deg = sorted(tracker.errors_mm), sorted(tracker.errors_deg)
     return {
         "frames": tracker.frames,
         "parts_missed": tracker.dropped,
         "render_s": round(tracker.render_s, 1),
         "detect_s": round(tracker.detect_s, 1),
-        "error_mm": {
-            "median": round(statistics.median(mm), 2),
-            "p99": round(mm[int(0.99 * (len(mm) - 1))], 2),
-            "max": round(mm[-1], 2),
-        }
-        if mm
-        else None,
-        "error_deg": {
-            "median": round(statistics.median(deg), 2),
-            "p99": round(deg[int(0.99 * (len(deg) - 1))], 2),
-            "max": round(deg[-1], 2),
-        }
-        if deg
-        else None,
+        "error_mm": quantiles(tracker.errors_mm),
+        "error_deg": quantiles(tracker.errors_deg),
     }
+
+
+def quantiles(values: Sequence[float]) -> dict[str, float] | None:
+    """Median, 99th percentile and maximum (None for no values)."""
+    if not values:
+        return None
+    ordered = sorted(values)
+    picks = (statistics.median(ordered), ordered[int(0.99 * (len(ordered) - 1))], ordered[-1])
+    return {name: round(v, 2) for name, v in zip(("median", "p99", "max"), picks, strict=True)}
 
 
 def spread(values: Sequence[float]) -> dict[str, Any]:
