@@ -39,6 +39,7 @@ test: $(STAMP)
 	$(CPU_TESTS) -m "not realtime and not long"
 	$(REALTIME_TESTS) -m "realtime and not long"
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 	$(BIN)/lint-imports
 

@@ -62,8 +62,6 @@ class Instruction(enum.IntEnum):
     BULK_WRITE = 0x93
 
 
-
-
 def _make_table() -> tuple[int, ...]:
     table = []
     for i in range(256):

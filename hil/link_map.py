@@ -26,9 +26,7 @@ class WorldLink:
 class LinkMap:
     """The docked links, by id and by either end."""
 
-    def __init__(
-        self, emulator: LinkEmulator | None = None, ports: Mapping[End, PortEnd] | None = None
-    ) -> None:
+    def __init__(self, emulator: LinkEmulator | None = None, ports: Mapping[End, PortEnd] | None = None) -> None:
         self.emulator = emulator
         #: real serial ports per (module, connector) (a hardware map): no emulator link then
         self.ports = dict(ports or {})

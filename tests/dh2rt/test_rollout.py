@@ -273,6 +273,8 @@ def test_a_module_that_never_returns_is_named_in_the_report(images: Images) -> N
     failed = [m for m in flasher.report() if not m.committed]
     assert [(m.path, m.outcome) for m in failed] == [(snake_path(4), Outcome.SILENT)]
     assert describe_path(failed[0].path) == "1>1 2>1 2>1 2>1 2>1"
+
+
 #: (seed, victim, fraction of the image it had received when killed): every victim and seed
 #: at the start of its transfer, and the cases a sweep of 288 found stuck after the first fix
 RESTARTS = [(seed, victim, 0.0) for seed in range(3) for victim in (2, 3, 5)] + [(4, 5, 0.2), (4, 5, 0.5)]
@@ -318,8 +320,6 @@ def test_an_offer_named_through_the_link_it_arrives_on_is_declined(images: Image
     # offer leaves by 2: the module before it is not this one) is taken
     node.receive(2, tw.encode(2, offer), PERIOD)
     assert node.role is Role.RECEIVING and node.counters.looped == 1
-
-
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -45,9 +45,7 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_installed_demo_runs_away_from_the_checkout(installed: Path, tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [str(installed / "dh2rt"), "demo"], capture_output=True, text=True, timeout=120, cwd=tmp_path
-    )
+    proc = subprocess.run([str(installed / "dh2rt"), "demo"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-1000:] + proc.stderr[-1000:]
     assert proc.stdout.rstrip().endswith("demo ok")
     assert "site-packages" not in proc.stderr

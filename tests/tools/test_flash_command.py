@@ -195,30 +195,51 @@ def test_ctrl_c_stops_the_flasher_and_exits_130(tmp_path: Path) -> None:
         ("garbage image", ["{junk}", "--port", "{port}"], "{junk}: not a DH2 program image"),
         ("missing image", ["{missing}", "--port", "{port}"], "{missing}: cannot read the image"),
         ("an image cut short", ["{short}", "--port", "{port}"], "{short}: signed image: cut short"),
-        ("--cycle-ms 0", ["{image}", "--port", "{port}", "--cycle-ms", "0"],
-         "--cycle-ms: expected a number more than 0 and at most 60000, got '0'"),
-        ("--cycle-ms inf", ["{image}", "--port", "{port}", "--cycle-ms", "inf"],
-         "--cycle-ms: expected a number more than 0 and at most 60000, got 'inf'"),
+        (
+            "--cycle-ms 0",
+            ["{image}", "--port", "{port}", "--cycle-ms", "0"],
+            "--cycle-ms: expected a number more than 0 and at most 60000, got '0'",
+        ),
+        (
+            "--cycle-ms inf",
+            ["{image}", "--port", "{port}", "--cycle-ms", "inf"],
+            "--cycle-ms: expected a number more than 0 and at most 60000, got 'inf'",
+        ),
         ("--timeout nan", ["{image}", "--port", "{port}", "--timeout", "nan"], "--timeout nan: must be a positive"),
         ("--timeout -1", ["{image}", "--port", "{port}", "--timeout", "-1"], "--timeout -1: must be a positive"),
         ("--baudrate 0", ["{image}", "--port", "{port}", "--baudrate", "0"], "--baudrate 0: must be a positive"),
         ("a slow line", ["{image}", "--port", "{port}", "--baudrate", "9600"], "a 9600-baud serial line gives"),
         ("no such port", ["{image}", "--port", "{nowhere}"], "--port {nowhere}: cannot open the serial port"),
         ("not a port", ["{image}", "--port", "{tmp}"], "--port {tmp}: cannot open the serial port"),
-        ("--cycle-ms abc", ["{image}", "--port", "{port}", "--cycle-ms", "abc"],
-         "--cycle-ms: expected a number more than 0 and at most 60000, got 'abc'"),
+        (
+            "--cycle-ms abc",
+            ["{image}", "--port", "{port}", "--cycle-ms", "abc"],
+            "--cycle-ms: expected a number more than 0 and at most 60000, got 'abc'",
+        ),
         ("no cable", ["{image}"], "give the cable: --port DEV (serial links) or --interface I"),
         ("two cables", ["{image}", "--port", "{port}", "-i", "virtual"], "give the cable: --port DEV"),
         ("no --channel", ["{image}", "-i", "virtual", "--contact", "{port}"], "--channel is missing"),
         ("no --contact", ["{image}", "-i", "virtual", "-c", "x"], "--contact is missing"),
-        ("--bitrate 0", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "0"],
-         "--bitrate: expected a whole number 10000..12000000, got '0'"),
-        ("a slow bus", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "125000"],
-         "a 125000 bit/s CAN bus gives a rollout"),
-        ("no such interface", ["{image}", "-i", "nosuchbus", "-c", "x", "--contact", "{port}"],
-         "--interface nosuchbus --channel x: cannot open the bus"),
-        ("no such contact", ["{image}", "-i", "virtual", "-c", "x", "--contact", "{nowhere}"],
-         "--contact {nowhere}: cannot open the cable's connector-local channel"),
+        (
+            "--bitrate 0",
+            ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "0"],
+            "--bitrate: expected a whole number 10000..12000000, got '0'",
+        ),
+        (
+            "a slow bus",
+            ["{image}", "-i", "virtual", "-c", "x", "--contact", "{port}", "-b", "125000"],
+            "a 125000 bit/s CAN bus gives a rollout",
+        ),
+        (
+            "no such interface",
+            ["{image}", "-i", "nosuchbus", "-c", "x", "--contact", "{port}"],
+            "--interface nosuchbus --channel x: cannot open the bus",
+        ),
+        (
+            "no such contact",
+            ["{image}", "-i", "virtual", "-c", "x", "--contact", "{nowhere}"],
+            "--contact {nowhere}: cannot open the cable's connector-local channel",
+        ),
     ],
 )
 def test_bad_input_exits_2_naming_what_is_wrong(
@@ -255,8 +276,6 @@ def test_help_names_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
     assert "usage: dh2rt flash" in out and "exit codes:" in out and "130  interrupted" in out
-
-
 
 
 @pytest.mark.parametrize("case", ["unsigned", "tampered"])
