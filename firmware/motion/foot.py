@@ -70,6 +70,8 @@ class Foot:
     crept: int = 0
     #: "trip", "creep", then "docked" or "gave up"
     phase: str = "trip"
+    #: whether its front has been seen unlinked (let go): a link there after that is the dock
+    loose: bool = False
     events: list[tuple[str, str]] = field(default_factory=list)
 
     @property
@@ -85,7 +87,11 @@ class Foot:
         tracker's ``floor``, the foot's own ``infrared`` pairs and whether its front is linked."""
         if self.done:
             return {}
-        if front_linked:
+        if not front_linked:
+            self.loose = True
+        elif not self.loose:  # still hanging on the body: the release comes first
+            return {}
+        else:
             self._end("docked", f"front linked after {self.crept} cycles of creeping")
             return {}
         if self.phase == "creep":

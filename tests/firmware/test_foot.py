@@ -93,3 +93,10 @@ def test_trips_out_of_budget_or_a_module_the_tracker_lost_end_in_giving_up_after
     foot.step(floor(), {}, False)
     assert foot.done and foot.phase == "gave up" and foot.events[-1] == ("gave_up", "3 trips")
     assert foot.step(floor(), {}, False) == {}
+
+
+def test_a_foot_still_hanging_on_the_body_waits_for_its_release() -> None:
+    """Its front linked before it ever let go is the body it hangs on, not a dock."""
+    foot = Foot(30, SET_OFF)
+    assert foot.step(floor(), {}, True) == {} and not foot.done and foot.trip is None
+    assert foot.step(floor(), {}, False) != {} and foot.loose
