@@ -20,10 +20,11 @@ What it was told before the release is a :class:`dh2rt.wire.motion.SetOff`. The 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from dh2rt.docking import End
+from dh2rt.wire.fields import Path
 from dh2rt.wire.motion import SetOff
 from firmware.motion.body import DEFAULT_MODEL, ConroModel
 from firmware.motion.crawl import DIAGONAL_M, Creep, Trip
@@ -50,6 +51,19 @@ def trip_to(
 ) -> Trip:
     """The trip of ``foot`` to ``target``'s face along ``body``, clear of ``others``."""
     return Trip(floor, foot, target, model=model, body=body, others=others, diagonal_m=diagonal_m)
+
+
+def hand_over(
+    motion: int, seq: int, route: Path, face: End, body: Sequence[int], floor: FloorPoses, foot: int
+) -> SetOff:
+    """The SET_OFF the asking module sends ``foot`` (at the end of ``route``) before it lets
+    go: come to ``face`` along ``body`` (the markers up the asker's robot, the asker first:
+    what it learnt by following front links, :func:`dh2rt.docking.body_up`) and clear of every
+    other module the tracker reports (:func:`dh2rt.docking.off_path`, read from the tracker
+    instead of the world's link map: the legs still on the robot and any module lying
+    apart)."""
+    others = tuple(sorted(set(floor.modules) - set(body) - {foot}))
+    return SetOff(motion, seq, route, face[0], face[1], tuple(body), others)
 
 
 @dataclass

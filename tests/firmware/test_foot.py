@@ -5,11 +5,14 @@ missing a module) up to its attempts, then gives up."""
 
 from __future__ import annotations
 
+from dh2rt.docking import body_up, off_path
+from dh2rt.profile import CONRO
+from dh2rt.wire import motion as mw
 from dh2rt.wire.motion import SetOff
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.crawl import Trip
 from firmware.motion.docking import BRING_ATTEMPTS
-from firmware.motion.foot import ATTEMPTS, Foot
+from firmware.motion.foot import ATTEMPTS, Foot, hand_over
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
 
 BACK = 2
@@ -100,3 +103,18 @@ def test_a_foot_still_hanging_on_the_body_waits_for_its_release() -> None:
     foot = Foot(30, SET_OFF)
     assert foot.step(floor(), {}, True) == {} and not foot.done and foot.trip is None
     assert foot.step(floor(), {}, False) != {} and foot.loose
+
+
+def test_the_hand_over_names_off_the_path_by_the_tracker_what_the_link_map_would() -> None:
+    """A tail (0) up a spine (1, 2) with a leg (4) on 2 and the foot (3) on 1, a module lying
+    apart (5): the SET_OFF's body is dh2rt.docking.body_up's and its others off_path's, read
+    from the tracker's report instead of the world's link map."""
+    front, back, left, right = (CONRO.connector_index(c) for c in ("front", "back", "left", "right"))
+    links = {(0, front): (1, back), (1, front): (2, back), (4, front): (2, left), (3, front): (1, right)}
+    links |= {b: a for a, b in links.items()}
+    tracked = FloorPoses({m: lying(0.1 * m) for m in range(6)})
+    body = body_up(links.get, CONRO, 0)
+    set_off = hand_over(9, 1, ((left, front),), (0, back), body, tracked, 3)
+    assert set_off.body == (0, 1, 2) and (set_off.target, set_off.connector) == (0, back)
+    assert list(set_off.others) == off_path(links.get, CONRO, 0, 6, 3) == [4, 5]
+    assert mw.decode(mw.encode(left, set_off)).message == set_off
