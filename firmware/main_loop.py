@@ -525,7 +525,9 @@ class ModuleHost:
         effect), then walks and creeps on its own joints by the tracker and its front infrared;
         what becomes of it goes out as ``foot`` effects."""
         set_off, self.member.set_off = self.member.set_off, None
-        if set_off is not None and (self.foot is None or self.foot.done):
+        # the asker sends it each cycle until the foot lets go: a copy of the motion this foot
+        # runs or ran is not a new trip
+        if set_off is not None and (self.foot is None or self.foot.set_off.motion != set_off.motion):
             from firmware.motion.foot import Foot
 
             front = self.program.profile.connector_index("front")

@@ -238,12 +238,16 @@ def test_the_foot_lets_go_and_walks_by_the_tracker_on_its_own_servos(robot: Robo
     foot = robot.hosts[1]
     assert foot.runtime.engine.status[FRONT - 1] == BACK  # it hangs on m1's back
     set_off = mw.SetOff(0x0501, 1, ROUTE_2, 1, BACK, (1,), ())
-    assert robot.asker.send_raw(BACK, mw.encode(BACK, mw.onward(set_off)))
+    robot.send(set_off)
     robot.cycles(2)  # it takes the frame in one cycle and sets off at the next one's start
     assert foot.member.counts["setoff"] == 1, foot.runtime.log
     assert effects(robot, "release") == [[FRONT]]  # it asks its world to open its front
     assert foot.foot is not None and not foot.foot.loose
     program_joints = robot.driver(1).targets
+    running = foot.foot
+    robot.send(mw.SetOff(0x0501, 2, ROUTE_2, 1, BACK, (1,), ()))  # the asker's next copy
+    robot.cycles(2)
+    assert foot.foot is running and effects(robot, "release") == [[FRONT]]  # taken once
 
     robot.commands[1].put(Detach(FRONT))  # the world opens the latch: the link goes
     robot.commands[0].put(Detach(BACK))
