@@ -88,6 +88,7 @@ if TYPE_CHECKING:
     from firmware.flash.door import RolloutDoor
     from firmware.flash.slots import Boot, Flash
     from firmware.motion.asking import SelfReach
+    from firmware.motion.foot import Foot
     from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
 from firmware.control import (
@@ -230,6 +231,8 @@ class ModuleHost:
         #: the reach this module runs (the last one, done or not), and how many it started
         self.reach: SelfReach | None = None
         self._reaches = 0
+        #: this module's own trip and creep once it is the released foot of a reach_and_dock
+        self.foot: Foot | None = None
         #: the last value of every reading the world pushed (the motion reads its infrared)
         self.own_readings: dict[str, float] = {}
         #: the overhead tracker's last report for this module's reach (the world fills it)
@@ -516,6 +519,33 @@ class ModuleHost:
         if reach.done:
             self.report(Effect("reach_ended", [reach.connector, reach.verdict]))
 
+    def _step_foot(self, rt: ModuleRuntime) -> None:
+        """Before each cycle: a SET_OFF this module took makes it the foot of a
+        ``reach_and_dock`` (firmware.motion.foot): it lets go of its front (a ``release``
+        effect), then walks and creeps on its own joints by the tracker and its front infrared;
+        what becomes of it goes out as ``foot`` effects."""
+        set_off, self.member.set_off = self.member.set_off, None
+        # the asker sends it each cycle until the foot lets go: a copy of the motion this foot
+        # runs or ran is not a new trip
+        if set_off is not None and (self.foot is None or self.foot.set_off.motion != set_off.motion):
+            from firmware.motion.foot import Foot
+
+            front = self.program.profile.connector_index("front")
+            self.foot = Foot(self.module, set_off)
+            self.report(Effect("release", [front]))
+            self._log_line(f"foot: motion {set_off.motion}: letting go, to module {set_off.target}")
+        foot = self.foot
+        if foot is None or foot.done:
+            return
+        senses, front = _OwnSenses(self), self.program.profile.connector_index("front")
+        targets = foot.step(senses.floor(), senses.infrared(), rt.engine.status[front - 1] != 0)
+        for kind, detail in foot.events:
+            self.report(Effect("foot", [kind, detail]))
+        foot.events.clear()
+        if targets != self._own_held:
+            self._own_held = targets
+            rt.hold(targets)
+
     def _log_line(self, line: str) -> None:
         self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
 
@@ -529,6 +559,7 @@ class ModuleHost:
             if member.holding is None:
                 rt.hold({})
         self._step_reach(rt)
+        self._step_foot(rt)
         while True:
             try:
                 cmd = self.commands.get_nowait()

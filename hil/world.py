@@ -590,6 +590,9 @@ class World:
 
     def _effect(self, module: int, kind: str, args: list[Any]) -> None:
         """Carry out what a native asked of the physical world (as the Robot does)."""
+        if kind == "foot":  # a released foot's own trip and creep (firmware.motion.foot)
+            self.log.append(f"{self.topology.names[module]}: foot {' '.join(map(str, args))}")
+            return
         if kind not in ("reach_and_dock", "reach_dock", "release", "latch", "reach_ended"):
             return  # "assist" and the like only move joints, which the module did itself
         try:

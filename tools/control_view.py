@@ -68,4 +68,8 @@ def motion_text(message: mw.MotionMessage, name: Callable[[int], str]) -> str:
     head = f"{kind} motion {message.motion} #{message.seq} to {route}, hops {message.hops}"
     if isinstance(message, mw.Targets):
         return head + ": " + ", ".join(f"DOF{d + 1} {t:g}" for d, t in message.targets)
+    if isinstance(message, mw.SetOff):
+        others = ",".join(map(str, message.others)) or "none"
+        body = ",".join(map(str, message.body))
+        return f"{head}: to module {message.target} connector {message.connector}, body {body}, others {others}"
     return head

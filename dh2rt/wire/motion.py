@@ -29,7 +29,13 @@ Message types::
     TARGETS 66   hold these: n u8 (1..8), then n times (DOF index u8, target i16 in
                  hundredths of a degree), DOF indices strictly ascending
     END 67       the motion is over: the joints are your program's again
-    68..127      reserved for later motion frames: a DecodeError
+    SET_OFF 68   for a foot about to be released (``reach_and_dock``): come to this face
+                 on your own, by the overhead tracker. The target's module index u16 (its
+                 tracker marker) and connector u8 (1..15); ``body``: n u8 (1..32), then n
+                 u16, the markers up the target's robot from the target (the trip's
+                 polyline); ``others``: n u8 (0..32), then n u16, the markers off the path
+                 (the trip keeps clear of them). No marker twice in body and others.
+    69..127      reserved for later motion frames: a DecodeError
 
 An outward frame with ``hops`` h < n is passed on by the module it reached through
 ``route[h][0]`` with ``hops`` h + 1; with h = n it is for that module. It must come in where
@@ -87,6 +93,7 @@ class MotionType(IntEnum):
     ANGLES = 65
     TARGETS = 66
     END = 67
+    SET_OFF = 68
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,15 +143,34 @@ class End:
     hops: int = 0
 
 
-Outward = Ask | Targets | End
-MotionMessage = Ask | Angles | Targets | End
+@dataclass(frozen=True, slots=True)
+class SetOff:
+    """Member at ``route`` (a foot about to be released), come to connector ``connector`` of
+    module ``target`` by your own trip, along ``body`` (the markers up the target's robot,
+    the target first) and clear of ``others`` (:mod:`firmware.motion.foot`)."""
+
+    motion: int
+    seq: int
+    route: Path
+    target: int
+    connector: int
+    body: tuple[int, ...]
+    others: tuple[int, ...] = ()
+    hops: int = 0
+
+
+Outward = Ask | Targets | End | SetOff
+MotionMessage = Ask | Angles | Targets | End | SetOff
 
 _TYPES: dict[type, MotionType] = {
     Ask: MotionType.ASK,
     Angles: MotionType.ANGLES,
     Targets: MotionType.TARGETS,
     End: MotionType.END,
+    SetOff: MotionType.SET_OFF,
 }
+#: Most markers a SET_OFF's ``body`` or ``others`` names.
+MAX_MARKERS = 32
 
 
 class MotionFrame(NamedTuple):
@@ -228,7 +254,28 @@ def encode(sender: int, message: MotionMessage) -> bytes:
         for dof, target in message.targets:
             check_range("target DOF index", dof, 0, MAX_JOINTS - 1)
             out += struct.pack(">Bh", dof, to_centi(f"target of DOF{dof + 1}", target))
+    elif isinstance(message, SetOff):
+        check_range("target module", message.target, 0, _U16)
+        check_range("target connector", message.connector, 1, MAX_CONNECTOR)
+        _check_markers(message.body, message.others, EncodeError)
+        out += struct.pack(">HB", message.target, message.connector)
+        for markers in (message.body, message.others):
+            out.append(len(markers))
+            for m in markers:
+                check_range("marker", m, 0, _U16)
+                out += struct.pack(">H", m)
     return bytes(out)
+
+
+def _check_markers(
+    body: tuple[int, ...], others: tuple[int, ...], error: type[Exception], what: str = "SET_OFF"
+) -> None:
+    if not 1 <= len(body) <= MAX_MARKERS:
+        raise error(f"{what}: {len(body)} markers in body; 1..{MAX_MARKERS}")
+    if len(others) > MAX_MARKERS:
+        raise error(f"{what}: {len(others)} markers in others; at most {MAX_MARKERS}")
+    if len(set(body) | set(others)) != len(body) + len(others):
+        raise error(f"{what}: a marker named twice in body {list(body)} and others {list(others)}")
 
 
 # ---------------------------------------------------------------- decoding
@@ -275,12 +322,24 @@ def decode(data: bytes) -> MotionFrame:
         if dofs != sorted(set(dofs)) or dofs[-1] >= MAX_JOINTS:
             raise DecodeError(f"{what}: target DOF indices {dofs} are not strictly ascending below {MAX_JOINTS}")
         message = Targets(motion, seq, route, tuple((dof, t / CENTI) for dof, t in pairs), at)
+    elif kind is MotionType.SET_OFF:
+        target, connector = r.unpack(">HB", "target module and connector")
+        if not 1 <= connector <= MAX_CONNECTOR:
+            raise DecodeError(f"{what}: target connector {connector}, not 1..{MAX_CONNECTOR}")
+        body, others = _read_markers(r, "body"), _read_markers(r, "others")
+        _check_markers(body, others, DecodeError, what)
+        message = SetOff(motion, seq, route, target, connector, body, others, at)
     elif kind is MotionType.ASK:
         message = Ask(motion, seq, route, at)
     else:
         message = End(motion, seq, route, at)
     r.end()
     return MotionFrame(sender, message)
+
+
+def _read_markers(r: FieldReader, name: str) -> tuple[int, ...]:
+    (n,) = r.take(1, f"number of markers in {name}")
+    return tuple(r.unpack(f">{n}H", f"markers in {name}")) if n else ()
 
 
 def _check_count(what: str, name: str, n: int) -> None:

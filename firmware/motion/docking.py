@@ -17,6 +17,12 @@ loop's ``hil.reach_loop.LoopReaches``):
   :data:`BRING_ATTEMPTS` times in all, then gives up;
 - a module that dies under way ends what it was part of (abandoned, logged).
 
+On a robot of modules the sequence splits between two modules (docs/hil.md, *`reach_and_dock`
+in the modules*): the asker runs everything here but the foot's trip and creep, which the
+released foot, having no link, runs itself (:class:`firmware.motion.foot.Foot`, told its trip by
+a SET_OFF frame); both build the trip with :func:`firmware.motion.foot.trip_to` and count
+attempts by one rule. In one process (and in the world's loop) this class steps both parts.
+
 Sans-IO: no simulator, socket, clock or file. What it reads and asks for goes through its
 world (:class:`LatchWorld`: the links and who runs, :class:`dh2rt.docking.DockingWorld`; the
 latch: ``aligned``, does it close now, and :meth:`LatchWorld.latch`, closed and the link
@@ -41,6 +47,7 @@ from dh2rt.profile import Profile
 from firmware.motion.body import ConroModel
 from firmware.motion.clearing import Clearing, spot_taken
 from firmware.motion.crawl import DIAGONAL_M, Creep, Trip
+from firmware.motion.foot import ATTEMPTS, trip_to
 from firmware.motion.kinematics import Chain
 from firmware.motion.reach import DEFAULT_TIMEOUT, Reach
 from firmware.motion.readings import Readings
@@ -52,7 +59,7 @@ from firmware.motion.underway import Arrival, Bringing, CrawlingClear, Motion, N
 #: whose trip gave up was lost and the snake never formed (seed 1, the first winner killed on
 #: its trip: the next foot pressed against the dead one for 1,700 cycles, before the trip
 #: steered round a module lying beside the robot).
-BRING_ATTEMPTS = 3
+BRING_ATTEMPTS = ATTEMPTS
 #: How far apart two connectors may be for the latch to close.
 DOCK_TOLERANCE_M = 0.02
 DOCK_TOLERANCE_DEG = 20.0
@@ -315,7 +322,7 @@ class Docking:
 
     def _set_off(self, foot: int, target: End, route: tuple[int, ...]) -> None:
         b, cycle = target[0], self.owner.now
-        trip = Trip(
+        trip = trip_to(
             self.owner.sense(cycle, Needs(floor=True)).floor,
             foot,
             target,

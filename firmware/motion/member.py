@@ -85,6 +85,9 @@ class Member:
         self.reports: list[mw.Angles] = []
         self._seen: OrderedDict[int, int] = OrderedDict()
         self.counts: Counter[str] = Counter()
+        #: the last SET_OFF this module took (it is the foot of a ``reach_and_dock``), until
+        #: its owner takes it (:mod:`firmware.motion.foot`)
+        self.set_off: mw.SetOff | None = None
 
     def received(self, connector: int, payload: bytes, cycle: int) -> list[Out]:
         """A motion frame came in at ``connector`` in this module's cycle ``cycle``: what to
@@ -113,6 +116,9 @@ class Member:
         if isinstance(message, mw.End):
             if self.holding == message.motion:
                 self._give_back(f"motion {message.motion} ended")
+            return []
+        if isinstance(message, mw.SetOff):
+            self.set_off = message  # the foot's hand-over: firmware.motion.foot runs it
             return []
         if isinstance(message, mw.Targets):
             if self.holding != message.motion:

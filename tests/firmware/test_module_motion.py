@@ -22,8 +22,9 @@ from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
-from firmware.control import Command, Effect, LatchAnswer, Readings
+from firmware.control import Command, Detach, Effect, Floor, LatchAnswer, Readings, Report
 from firmware.main_loop import ModuleHost
+from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.member import IDLE_CYCLES
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -39,9 +40,11 @@ class Robot:
         program = compile_file(str(ROOT / "examples" / "caterpillar.dh2"))
         channel = f"motion-{uuid.uuid4().hex}"
         self.hosts: list[ModuleHost] = []
-        for module in (1, 2):
+        self.commands: list[queue.Queue[Command]] = [queue.Queue(), queue.Queue()]
+        self.reports: list[list[Report]] = [[], []]
+        for i, module in enumerate((1, 2)):
             config = {"module": module, "image": program.image.hex(), "transport": f"inproc:{channel}"}
-            self.hosts.append(ModuleHost(ModuleConfig.from_json(config), queue.Queue(), lambda _r: None))
+            self.hosts.append(ModuleHost(ModuleConfig.from_json(config), self.commands[i], self.reports[i].append))
         codec = FrameCodec(program.vocabulary, program.profile.connector_count)
         self.asker = InprocTransport(codec, channel=channel)
         self.asker.attach(BACK, BusEnd(0, 0))
@@ -213,3 +216,54 @@ def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path
     finally:
         for host in hosts:
             host.runtime.close()
+
+
+def lying(x: float) -> tuple[tuple[float, float, float], ...]:
+    """A module flat on the floor facing +x, centre at x: centre, front and back parts."""
+    half = DEFAULT_MODEL.length / 2 + DEFAULT_MODEL.front.half[0]
+    return (x, 0.0, 0.0), (x + half, 0.0, 0.0), (x - half, 0.0, 0.0)
+
+
+def effects(robot: Robot, kind: str) -> list[list[object]]:
+    """What the foot (m2) reported of ``kind``."""
+    return [r.args for r in robot.reports[1] if isinstance(r, Effect) and r.kind == kind]
+
+
+def test_the_foot_lets_go_and_walks_by_the_tracker_on_its_own_servos(robot: Robot) -> None:
+    """The foot of a reach_and_dock (m2, hanging by its front on m1's back) takes a SET_OFF
+    sent from outside as the asking module would send it; the test plays the world (the
+    release's link cut, the tracker's report pushed). It lets go, waits for the tracker,
+    walks by it on its own servos, and says what became of its trip."""
+    robot.cycles(3)
+    foot = robot.hosts[1]
+    assert foot.runtime.engine.status[FRONT - 1] == BACK  # it hangs on m1's back
+    set_off = mw.SetOff(0x0501, 1, ROUTE_2, 1, BACK, (1,), ())
+    robot.send(set_off)
+    robot.cycles(2)  # it takes the frame in one cycle and sets off at the next one's start
+    assert foot.member.counts["setoff"] == 1, foot.runtime.log
+    assert effects(robot, "release") == [[FRONT]]  # it asks its world to open its front
+    assert foot.foot is not None and not foot.foot.loose
+    program_joints = robot.driver(1).targets
+    running = foot.foot
+    robot.send(mw.SetOff(0x0501, 2, ROUTE_2, 1, BACK, (1,), ()))  # the asker's next copy
+    robot.cycles(2)
+    assert foot.foot is running and effects(robot, "release") == [[FRONT]]  # taken once
+
+    robot.commands[1].put(Detach(FRONT))  # the world opens the latch: the link goes
+    robot.commands[0].put(Detach(BACK))
+    robot.cycles(2)
+    assert foot.foot.loose and foot.foot.trip is None  # no tracker report yet: it waits, still
+    assert robot.driver(1).targets == (0.0, 0.0) != program_joints
+
+    robot.commands[1].put(Floor({1: lying(0.0), 2: lying(-0.5)}))
+    robot.cycles(3)
+    trip = foot.foot.trip
+    # a report pushed is read from the next cycle on, as the asking module's reach reads it
+    assert trip is not None and trip.cycles == 2 and trip.target == (1, BACK)
+    assert robot.driver(1).targets == tuple(foot._own_held[d] for d in (0, 1)) != (0.0, 0.0)
+
+    robot.commands[1].put(Floor({1: lying(0.0)}))  # the tracker lost the foot
+    robot.cycles(2)
+    ((kind, detail),) = effects(robot, "foot")
+    assert kind == "trip_gave_up" and "module 2" in detail
+    assert foot.foot.tries == 1 and not foot.foot.done  # it goes round again

@@ -126,3 +126,19 @@ def test_off_route_and_malformed_frames_are_dropped_and_counted() -> None:
     assert m1.received(FRONT, bytes((0x22, 0x42, 0)), 0) == []
     assert m1.counts == {"off_route": 2, "malformed": 1}
     assert m1.held == {}
+
+
+def test_a_set_off_is_passed_on_and_kept_by_the_foot_at_the_route_s_end() -> None:
+    """The foot (m2, two hops out) keeps its hand-over and answers nothing; the module it
+    passed through keeps none; a stale copy is not taken again."""
+    chain = Chain()
+    set_off = mw.SetOff(5, 1, ROUTE_2, 10, BACK, (10, 11), (12,))
+    chain.ask(set_off)
+    foot, middle = chain.modules[2], chain.modules[1]
+    assert foot.set_off == mw.onward(mw.onward(set_off))
+    assert foot.set_off is not None and (foot.set_off.target, foot.set_off.body) == (10, (10, 11))
+    assert middle.set_off is None and middle.counts["relayed"] == 1
+    assert chain.sent == 2 and not chain.modules[0].reports  # no ANGLES back
+    foot.set_off = None
+    chain.ask(set_off)
+    assert foot.set_off is None and foot.counts["stale"] == 1

@@ -85,6 +85,14 @@ def test_motion_frames_read_in_docking_terms(medium: str, caterpillar: CompiledP
             f"TARGETS motion 3 #11 to {way}, hops 2: DOF1 30, DOF2 -7.25",
         ),
         (mw.End(3, 12, route[:1], 0), "END motion 3 #12 to back>front, hops 0"),
+        (
+            mw.SetOff(3, 13, route, 9, 2, (9, 8, 7), (4, 5), 2),
+            f"SET_OFF motion 3 #13 to {way}, hops 2: to module 9 connector 2, body 9,8,7, others 4,5",
+        ),
+        (
+            mw.SetOff(3, 14, route, 9, 2, (9,), (), 1),
+            f"SET_OFF motion 3 #14 to {way}, hops 1: to module 9 connector 2, body 9, others none",
+        ),
     ]
     payloads = [mw.encode(BACK, m) for m, _ in messages] + [bytes((0x22, 0x40, 0, 3))]
     hops = [h for h in Decoder([caterpillar]).hops(records(payloads, medium)) if h.kind != "segment"]

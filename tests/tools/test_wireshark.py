@@ -760,6 +760,8 @@ MOTION_MESSAGES: list[motion.MotionMessage] = [
     motion.Targets(7, 65535, MOTION_ROUTE, ((0, 30.0), (1, -7.25)), 0),
     motion.Targets(7, 3, MOTION_ROUTE, ((1, 0.0), (7, 1.5)), 2),
     motion.End(65535, 4, MOTION_ROUTE, 2),
+    motion.SetOff(7, 5, MOTION_ROUTE, 300, 2, (300, 12, 65535), (9,), 2),
+    motion.SetOff(7, 6, MOTION_ROUTE[:1], 0, 15, (0,), (), 0),
 ]
 
 
@@ -767,6 +769,7 @@ def broken_motion_frames() -> list[bytes]:
     """Motion frames the codec refuses, each for another reason."""
     targets = motion.encode(BACK, MOTION_MESSAGES[3])
     angles = motion.encode(BACK, MOTION_MESSAGES[1])
+    set_off = motion.encode(BACK, MOTION_MESSAGES[7])  # connector at byte 11, body 12..14, others 15
     return [
         bytes((0x22, 100)),  # a type of the range not yet defined
         bytes((0x20, 64)) + targets[2:],  # sender connector 0
@@ -784,6 +787,12 @@ def broken_motion_frames() -> list[bytes]:
         angles[:-1] + b"\x10",  # a link beyond connector 15
         angles[:-1],  # cut short in the links
         angles + b"\x00",  # a trailing byte
+        set_off[:11] + b"\x00" + set_off[12:],  # target connector 0
+        set_off[:12] + b"\x00\x00",  # no marker in body
+        set_off[:12] + b"\x21" + bytes(66) + b"\x00",  # too many markers in body
+        set_off[:15] + b"\x21" + bytes(66),  # too many markers in others
+        set_off[:15] + b"\x01\x00\x00",  # a marker in body and in others
+        set_off[:-1],  # cut short in the markers
     ]
 
 
@@ -798,3 +807,5 @@ def test_motion_frames_show_as_dump_does(
     lines = [row[5] for row in rows if row[4] == "control"]
     angles = "DOF1 327.67, DOF2 -327.68, DOF3 0.01, DOF4 -0.07"
     assert f"ANGLES motion 7 #1 from back>front, left 0: module 65535, {angles}, links none" in lines
+    set_off = "to module 300 connector 2, body 300,12,65535, others 9"
+    assert f"SET_OFF motion 7 #5 to back>front left>front, hops 2: {set_off}" in lines

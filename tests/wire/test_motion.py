@@ -24,7 +24,7 @@ def messages(draw: st.DrawFn) -> mw.MotionMessage:
     route = draw(routes)
     at = draw(st.integers(0, len(route)))
     motion, seq = draw(u16), draw(u16)
-    kind = draw(st.integers(0, 3))
+    kind = draw(st.integers(0, 4))
     if kind == 0:
         return mw.Ask(motion, seq, route, at)
     if kind == 1:
@@ -34,7 +34,12 @@ def messages(draw: st.DrawFn) -> mw.MotionMessage:
     if kind == 2:
         dofs = sorted(draw(st.sets(st.integers(0, 7), min_size=1)))
         return mw.Targets(motion, seq, route, tuple((d, draw(centi)) for d in dofs), at)
-    return mw.End(motion, seq, route, at)
+    if kind == 3:
+        return mw.End(motion, seq, route, at)
+    markers = draw(st.lists(u16, min_size=1, max_size=2 * mw.MAX_MARKERS, unique=True))
+    split = draw(st.integers(max(1, len(markers) - mw.MAX_MARKERS), min(len(markers), mw.MAX_MARKERS)))
+    body, others = tuple(markers[:split]), tuple(markers[split:])
+    return mw.SetOff(motion, seq, route, draw(u16), draw(connector), body, others, at)
 
 
 @given(connector, messages())
@@ -53,6 +58,8 @@ def test_the_layout_byte_by_byte() -> None:
     angles = mw.encode(1, mw.Angles(1, 2, ((2, 1),), 3, (0.0, 90.0), (2, 0, 0, 0), 1))
     assert angles.hex(" ") == "21 41 00 01 00 02 01 01 21 00 03 02 00 00 23 28 04 02 00 00 00"
     assert mw.encode(1, mw.End(1, 3, ((2, 1),))).hex(" ") == "21 43 00 01 00 03 00 01 21"
+    set_off = mw.encode(1, mw.SetOff(1, 4, ((2, 1),), 0x0102, 4, (0x0102, 7), (9,), 1))
+    assert set_off.hex(" ") == "21 44 00 01 00 04 01 01 21 01 02 04 02 01 02 00 07 01 00 09"
 
 
 def test_the_operator_codec_and_the_motion_codec_split_the_family() -> None:
@@ -68,7 +75,9 @@ def test_the_operator_codec_and_the_motion_codec_split_the_family() -> None:
 
 ANGLES = mw.encode(1, mw.Angles(1, 2, ((2, 1),), 7, (1.0,), (2, 0, 0, 0)))
 NOT_ASCENDING = "motion frame TARGETS: target DOF indices {} are not strictly ascending below 8"
-RESERVED = "control frame: message type 68 is reserved (docking motion, not yet defined)"
+RESERVED = "control frame: message type 69 is reserved (docking motion, not yet defined)"
+SET_OFF = mw.encode(1, mw.SetOff(1, 2, ((2, 1),), 5, 4, (5, 6), (7,)))
+TWICE = "motion frame SET_OFF: a marker named twice in body [5, 6] and others [6]"
 GOOD = mw.encode(2, mw.Targets(5, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 1))
 
 
@@ -78,7 +87,7 @@ GOOD = mw.encode(2, mw.Targets(5, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 
         (b"\x22", "motion frame: 1 bytes, too short for a header and a type"),
         (bytes((0xA2, 0x42)) + GOOD[2:], "motion frame: family 2, expected 0"),
         (bytes((0x20,)) + GOOD[1:], "motion frame: sender connector 0"),
-        (bytes((0x22, 0x44)) + GOOD[2:], RESERVED),
+        (bytes((0x22, 0x45)) + GOOD[2:], RESERVED),
         (bytes((0x12,)) + GOOD[1:], "motion frame TARGETS: class 1, expected 2"),
         (GOOD[:5], "motion frame TARGETS: cut short in the motion, seq and hops at byte 2"),
         (GOOD[:7], "motion frame TARGETS: cut short in the route length at byte 7"),
@@ -102,6 +111,18 @@ GOOD = mw.encode(2, mw.Targets(5, 7, ((2, 1), (2, 1)), ((0, 45.5), (1, -30.0)), 
         (ANGLES[:14] + b"\x10", "motion frame ANGLES: 16 links; a module has at most 15 connectors"),
         (ANGLES[:-1] + b"\x10", "motion frame ANGLES: a link names connector 16, beyond 15"),
         (ANGLES[:-1], "motion frame ANGLES: cut short in the links at byte 15"),
+        (SET_OFF[:11], "motion frame SET_OFF: cut short in the target module and connector at byte 9"),
+        (SET_OFF[:11] + b"\x00" + SET_OFF[12:], "motion frame SET_OFF: target connector 0, not 1..15"),
+        (SET_OFF[:11] + b"\x10" + SET_OFF[12:], "motion frame SET_OFF: target connector 16, not 1..15"),
+        (SET_OFF[:12], "motion frame SET_OFF: cut short in the number of markers in body at byte 12"),
+        (SET_OFF[:15], "motion frame SET_OFF: cut short in the markers in body at byte 13"),
+        (SET_OFF[:17], "motion frame SET_OFF: cut short in the number of markers in others at byte 17"),
+        (SET_OFF[:-1], "motion frame SET_OFF: cut short in the markers in others at byte 18"),
+        (SET_OFF[:12] + b"\x00\x00", "motion frame SET_OFF: 0 markers in body; 1..32"),
+        (SET_OFF[:12] + b"\x21" + bytes(66) + b"\x00", "motion frame SET_OFF: 33 markers in body; 1..32"),
+        (SET_OFF[:17] + b"\x21" + bytes(66), "motion frame SET_OFF: 33 markers in others; at most 32"),
+        (SET_OFF[:17] + b"\x01\x00\x06", TWICE),
+        (SET_OFF + b"\x00", "motion frame SET_OFF: 1 trailing byte(s)"),
         (mw.encode(1, mw.Ask(1, 2, ((2, 1),))) + b"\x05", "motion frame ASK: 1 trailing byte(s)"),
         (mw.encode(1, mw.End(1, 2, ((2, 1),))) + b"\x05", "motion frame END: 1 trailing byte(s)"),
     ],
@@ -130,6 +151,16 @@ def test_every_malformed_frame_is_a_decode_error_naming_the_field(data: bytes, e
         (1, mw.Targets(1, 2, ((2, 1),), ((1, 0.0), (0, 0.0))), "target DOF indices [1, 0] are not strictly ascending"),
         (1, mw.Targets(1, 2, ((2, 1),), ((8, 0.0),)), "target DOF index 8 is outside 0..7"),
         (1, mw.Targets(1, 2, ((2, 1),), ((0, -400.0),)), "target of DOF1 -400.0 degrees is outside +-327.67"),
+        (1, mw.SetOff(1, 2, ((2, 1),), 1 << 16, 1, (1,)), "target module 65536 is outside 0..65535"),
+        (1, mw.SetOff(1, 2, ((2, 1),), 1, 0, (1,)), "target connector 0 is outside 1..15"),
+        (1, mw.SetOff(1, 2, ((2, 1),), 1, 1, ()), "SET_OFF: 0 markers in body; 1..32"),
+        (1, mw.SetOff(1, 2, ((2, 1),), 1, 1, (1,), tuple(range(2, 35))), "SET_OFF: 33 markers in others; at most 32"),
+        (
+            1,
+            mw.SetOff(1, 2, ((2, 1),), 1, 1, (1, 2), (2,)),
+            "SET_OFF: a marker named twice in body [1, 2] and others [2]",
+        ),
+        (1, mw.SetOff(1, 2, ((2, 1),), 1, 1, (1 << 16,)), "marker 65536 is outside 0..65535"),
     ],
 )
 def test_what_breaks_a_wire_limit_is_an_encode_error(sender: int, message: mw.MotionMessage, error: str) -> None:

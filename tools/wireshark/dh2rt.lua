@@ -1214,7 +1214,8 @@ end
 -- Motion frames (dh2rt.wire.motion.decode): what a docking chain says to itself, control
 -- types 64..127, shown with the line dump prints (tools.control_view.motion_text).
 
-local MOTION_TYPES = { [64] = "ASK", [65] = "ANGLES", [66] = "TARGETS", [67] = "END" }
+local MOTION_TYPES = { [64] = "ASK", [65] = "ANGLES", [66] = "TARGETS", [67] = "END", [68] = "SET_OFF" }
+local MOTION_MAX_MARKERS = 32
 local MOTION_CLASS = 2
 local MOTION_MAX_JOINTS = 8
 
@@ -1307,6 +1308,39 @@ function Decode:motion()
                     table.concat(dofs, ", "), MOTION_MAX_JOINTS))
             end
             text = text .. ": " .. table.concat(targets, ", ")
+        elseif name == "SET_OFF" then
+            local head = self:take(what, pos, 3, "target module and connector")
+            local target, connector = head:byte(1) * 256 + head:byte(2), head:byte(3)
+            if connector < 1 or connector > 15 then
+                decode_error(string.format("%s: target connector %d, not 1..15", what, connector))
+            end
+            pos = pos + 3
+            local lists, seen, twice = {}, {}, false
+            for _, list in ipairs({ "body", "others" }) do
+                local n = self:take(what, pos, 1, "number of markers in " .. list):byte()
+                local raw = self:take(what, pos + 1, 2 * n, "markers in " .. list)
+                local markers = {}
+                for i = 1, n do
+                    markers[i] = raw:byte(2 * i - 1) * 256 + raw:byte(2 * i)
+                    twice = twice or seen[markers[i]] ~= nil
+                    seen[markers[i]] = true
+                end
+                lists[list] = markers
+                pos = pos + 1 + 2 * n
+            end
+            local body, others = lists.body, lists.others
+            if #body < 1 or #body > MOTION_MAX_MARKERS then
+                decode_error(string.format("%s: %d markers in body; 1..%d", what, #body, MOTION_MAX_MARKERS))
+            end
+            if #others > MOTION_MAX_MARKERS then
+                decode_error(string.format("%s: %d markers in others; at most %d", what, #others, MOTION_MAX_MARKERS))
+            end
+            if twice then
+                decode_error(string.format("%s: a marker named twice in body [%s] and others [%s]", what,
+                    table.concat(body, ", "), table.concat(others, ", ")))
+            end
+            text = string.format("%s: to module %d connector %d, body %s, others %s", text, target, connector,
+                table.concat(body, ","), #others > 0 and table.concat(others, ",") or "none")
         end
     end
     if pos ~= #data then
