@@ -6,6 +6,7 @@ module never seen is not reported."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import replace
 
 import pytest
@@ -19,10 +20,10 @@ from tools.tracker.sim_camera import CameraTracker
 
 
 @pytest.fixture(scope="module")
-def dragon() -> World:
+def dragon() -> Iterator[World]:
     world = World(parse_spec("dragon"), seed=0)
     world.step(60)
-    yield world  # type: ignore[misc]
+    yield world
     world.close()
 
 
