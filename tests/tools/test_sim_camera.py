@@ -61,3 +61,14 @@ def test_a_slower_camera_reports_its_last_frame_aged_between_frames(dragon: Worl
     assert camera.reading(13).pose(0).age == 0 and camera.frames == 2
     with pytest.raises(ValueError, match="every 0 cycles"):
         CameraTracker(dragon, every=0)
+
+
+def test_the_arena_camera_sees_a_turned_dragon_whole() -> None:
+    """Seed 1 lays the dragon out turned: the field grows, and the camera keeps its ground
+    resolution by its pixels (at a fixed 1600 x 1200 it saw none of the markers)."""
+    with World(parse_spec("dragon"), seed=1) as world:
+        world.step(60)
+        camera = CameraTracker(world)
+        field_mm = 2 * camera.camera.height_m * math.tan(math.radians(camera.camera.fov_deg) / 2) * 1000
+        assert field_mm / camera.camera.height_px <= 1.25
+        assert set(camera.reading(0).modules) == set(range(world.size))

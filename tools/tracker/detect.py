@@ -60,9 +60,25 @@ class MarkerDetector:
         self.marker_mm = marker_mm
         parameters = cv2.aruco.DetectorParameters()
         parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+        smallest = self.smallest_perimeter_rate()
+        if smallest is not None:  # OpenCV's default (0.03 of the frame's side) misses small markers on wide frames
+            parameters.minMarkerPerimeterRate = min(parameters.minMarkerPerimeterRate, smallest)
         self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), parameters)
         # a true square's four sides and two diagonals, as _pose measures them
         self._square = np.array([marker_mm] * 4 + [marker_mm * math.sqrt(2)] * 2, dtype=np.float64)
+
+    def smallest_perimeter_rate(self) -> float | None:
+        """Half the perimeter a marker on the plane under the camera spans, as a share of the
+        frame's longer side (ArUco's ``minMarkerPerimeterRate``): no smaller candidate can be
+        one of ours. None where the calibration gives no distance (a homography)."""
+        cal = self.calibration
+        if cal.translation_mm is None or cal.image_size is None:
+            return None
+        distance = float(cal.translation_mm[2]) - cal.marker_height_mm
+        if distance <= 0:
+            return None
+        side_px = cal.fx * self.marker_mm / distance
+        return 0.5 * 4 * side_px / max(cal.image_size)
 
     def detect(self, image: npt.NDArray[Any]) -> Detections:
         """The markers in ``image`` (BGR or grey), by ascending id."""
