@@ -55,7 +55,7 @@ import json
 import os
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 from dh2rt.errors import DecodeError, HormoneError
@@ -63,6 +63,7 @@ from dh2rt.hormone import Arrival, Hormone
 from dh2rt.runtime import ModuleRuntime
 from dh2rt.transport.base import FrameFamily, Inbound, Listening
 from dh2rt.wire import operator as op
+from firmware.outbound import Out
 
 #: The file in a module's flash directory that holds the last counter it accepted.
 COUNTER_FILE = "operator.json"
@@ -73,14 +74,6 @@ REFUSED_PER_CYCLE = 8
 REFUSED_MEMORY_CYCLES = 16
 #: The most hops a command carries (a byte): one with as many is passed on no further.
 MAX_HOPS = 255
-
-
-@dataclass(frozen=True, slots=True)
-class Out:
-    """A frame to send through ``connector``."""
-
-    connector: int
-    frame: bytes
 
 
 class OperatorCore:

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 from dh2rt.wire import motion as mw
 from dh2rt.wire.fields import Path
-from firmware.motion.member import IDLE_CYCLES, Out
+from firmware.motion.member import IDLE_CYCLES
+from firmware.outbound import Out
 
 #: Cycles an ASK waits for its answer before it is counted lost: a frame crosses a hop a
 #: cycle at worst (a module reads its links once a cycle), so a member k hops out answers

@@ -30,9 +30,9 @@ from dh2rt.profile import Profile
 from firmware.motion.asker import Asker
 from firmware.motion.body import ConroModel
 from firmware.motion.docking import Docking, Options
-from firmware.motion.member import Out
 from firmware.motion.readings import FloorPoses, Readings
 from firmware.motion.underway import Motion, Needs
+from firmware.outbound import Out
 
 #: Cycles the chain may take to answer before the reach is given up: a hop a round trip, each
 #: round trip up to two cycles a hop when a module reads its links once a cycle; a chain of 6

@@ -28,11 +28,11 @@ from __future__ import annotations
 
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 from dh2rt.errors import DecodeError, EncodeError
 from dh2rt.wire import motion as mw
+from firmware.outbound import Out
 
 #: Cycles a member holds targets with no frame of their motion before it gives its joints
 #: back. The asker writes to every member each cycle; liveness declares a silent link dead
@@ -43,14 +43,6 @@ IDLE_CYCLES = 10
 #: Motions whose newest seq a member remembers (so that late frames of an ended one stay
 #: ignored); the oldest is forgotten first.
 REMEMBERED = 16
-
-
-@dataclass(frozen=True, slots=True)
-class Out:
-    """A frame to send through ``connector``."""
-
-    connector: int
-    frame: bytes
 
 
 class Body(Protocol):

@@ -17,9 +17,10 @@ from firmware.motion.asker import SILENT_CYCLES, Asker
 from firmware.motion.asking import SelfReach
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.docking import Docking
-from firmware.motion.member import Member, Out
+from firmware.motion.member import Member
 from firmware.motion.readings import FloorPoses, Readings
 from firmware.motion.underway import Motion, Needs
+from firmware.outbound import Out
 
 C = CONRO.connector_index
 FRONT, BACK = C("front"), C("back")
