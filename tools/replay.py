@@ -28,12 +28,15 @@ walk the cycles forward and back at a prompt (:mod:`tools.replay_prompt`).
 Exit codes: 0 (whatever the notes say: a missing frame, a divergence from the capture), 1 a
 divergence from the model (``--model``), 2 bad input (not a
 capture, no cycle marks in it, a ``--program`` whose digest no Hello of the capture names,
-a breakpoint that names no hormone, receptor or module), 130 interrupted.
+a breakpoint that names no hormone, receptor or module; and, once the other modules are
+rebuilt, a module that switched to a program neither the capture nor ``--flashed`` holds),
+130 interrupted.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
@@ -44,10 +47,10 @@ from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
-from dh2rt.errors import CaptureError, OptionError
+from dh2rt.errors import CaptureError, OptionError, ProgramError
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
-from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture
+from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture, program_file
 from tools.replay_model import ModelResult, compare_with_model
 from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
 from tools.replay_rebuild import Note, Rebuild
@@ -63,6 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("capture", type=Path, help="a pcapng the launcher's --capture wrote (its cycle marks beside it)")
     p.add_argument("--program", type=Path, help=PROGRAM_HELP + "; its digest must be the one the Hellos name")
+    p.add_argument(
+        "--flashed",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="a program a module switched to in the run (a flash): its .dh2 source or image; repeatable",
+    )
     p.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC", help=BREAK_FORMS)
     p.add_argument("--first", action="store_true", help="end at the first breakpoint hit")
     p.add_argument("--trace", type=Path, metavar="FILE", help="write the rebuilt trace records to FILE (JSON Lines)")
@@ -97,7 +108,7 @@ def _open(ns: argparse.Namespace, capture: Capture) -> tuple[Rebuild, list[Break
             "replay needs each module's cycles (which frames it took in at which cycle, its timer phase); "
             "a loop run's --capture keeps them"
         )
-    rebuild = Rebuild(capture.program, marks, capture.hops())
+    rebuild = Rebuild(capture.program, marks, capture.hops(), capture.programs[1:])
     _check_digest(capture, rebuild, ns.program)
     modules = {m.name: m.module for m in cycles}
     breaks = [parse_break(text, capture, modules) for text in ns.breaks]
@@ -111,9 +122,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return started
     ns, capture = started
     try:
+        flashed = tuple(program_file(path) for path in ns.flashed)
+        capture = dataclasses.replace(capture, programs=(*capture.programs, *flashed))
         rebuild, breaks = _open(ns, capture)
         trace_out = ns.trace.open("w", encoding="utf-8") if ns.trace is not None else None
-    except (CaptureError, OptionError) as exc:
+    except (CaptureError, OptionError, ProgramError) as exc:
         err(str(exc))
         return EXIT_USAGE
     except OSError as exc:
@@ -148,7 +161,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             trace_out.close()
     model = _model(ns, capture, rebuild, rebuilt) if ns.model else None
     _summary(ns, rebuild.notes, stops, count, len(rebuild.period), model)
-    return EXIT_FAIL if model is not None and model.first is not None else EXIT_OK
+    if model is not None and model.first is not None:
+        return EXIT_FAIL
+    return EXIT_USAGE if rebuild.unknown else EXIT_OK  # a program the capture does not hold: incomplete
 
 
 def _model(ns: argparse.Namespace, capture: Capture, rebuild: Rebuild, rebuilt: list[dict[str, Any]]) -> ModelResult:

@@ -59,6 +59,7 @@ from dh2rt.hormone import Arrival, Emission, Hormone
 from dh2rt.natives import STANDARD_NATIVES
 from dh2rt.program import CompiledProgram, CompiledReceptor, ModuleState
 from dh2rt.records import cycle_json
+from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, LinkMark, Mark
 from tools.decode import Hop
 
@@ -130,8 +131,15 @@ class Frames:
     inbound: dict[End, deque[Hop]] = field(default_factory=lambda: defaultdict(deque))
     outbound: dict[End, deque[Hop]] = field(default_factory=lambda: defaultdict(deque))
     digests: set[str] = field(default_factory=set)
+    #: module -> (time, digest) of each Hello it sent: a new digest is a program switch
+    hellos: dict[int, list[tuple[float, str]]] = field(default_factory=lambda: defaultdict(list))
     unmapped: set[int] = field(default_factory=set)
     first_lost: dict[int, float] = field(default_factory=dict)  # link -> its first frame lost
+
+
+def digest_of(program: CompiledProgram) -> str:
+    """The digest a module's Hello names for ``program`` (hex)."""
+    return program_digest(program.image).hex()
 
 
 def sort_frames(hops: Iterable[Hop], links: Mapping[int, tuple[End, End]]) -> Frames:
@@ -140,6 +148,9 @@ def sort_frames(hops: Iterable[Hop], links: Mapping[int, tuple[End, End]]) -> Fr
     for hop in hops:
         if hop.kind == "hello":
             frames.digests.add(hop.text.split()[0])
+            sent_by = links.get(hop.link) if hop.link is not None and hop.side is not None else None
+            if sent_by is not None and hop.side is not None:
+                frames.hellos[sent_by[hop.side][0]].append((hop.time, hop.text.split()[0]))
         if hop.link is None or hop.side is None or hop.kind not in ("hormone", "routed", "error"):
             continue
         ends = links.get(hop.link)
@@ -188,10 +199,22 @@ def periods(marks: Sequence[CycleMark]) -> dict[int, float]:
 class Rebuild:
     """Steps every module's engine through its marks in the capture's time order."""
 
-    def __init__(self, program: CompiledProgram, marks: Sequence[Mark], hops: Iterable[Hop]) -> None:
+    def __init__(
+        self,
+        program: CompiledProgram,
+        marks: Sequence[Mark],
+        hops: Iterable[Hop],
+        flashed: Sequence[CompiledProgram] = (),
+    ) -> None:
         self.fired: list[str] = []
         self.program = watched(program, self.fired)
         self.profile = program.profile
+        #: the programs a module may run, by the digest its Hello names (the first, and those
+        #: given for a flash run: a module switches when its Hellos name another)
+        self.programs = {digest_of(p): watched(p, self.fired) for p in flashed}
+        self.programs[digest_of(program)] = self.program
+        #: modules that switched to a program replay does not have: (module, life) -> its note
+        self.unknown: dict[tuple[int, int], Note] = {}
         self.marks = marks
         links = {m.link: m.ends for m in marks if isinstance(m, LinkMark)}
         #: connectors a link was ever attached at: a send through any other fails, as the
@@ -214,25 +237,64 @@ class Rebuild:
             for link in sorted(self.frames.unmapped)
         ]
         self._modules: dict[int, _Module] = {}
+
+    def _new_engine(self, phase: int, program: CompiledProgram | None = None) -> Engine:
+        program = program or self.program
         used = {n: STANDARD_NATIVES[n] for n in program.natives if n in STANDARD_NATIVES}
-        self._new_engine: Callable[[int], Engine] = lambda phase: Engine(self.program, timer_phase=phase, natives=used)
+        return Engine(program, timer_phase=phase, natives=used)
+
+    def program_at(self, mark: CycleMark) -> str | None:
+        """The digest of the program ``mark``'s cycle ran: the one the module's last Hello
+        before the cycle's end named (a switch or a boot sends one in its first cycle);
+        None before any Hello (the first program)."""
+        end = self._ends.get((mark.module, mark.life, mark.cycle), math.inf)
+        named = [d for t, d in self.frames.hellos.get(mark.module, ()) if t < end]
+        return named[-1] if named else None
 
     def _note(self, kind: str, mark: CycleMark, text: str) -> None:
         self.notes.append(Note(kind, mark.module, mark.name, mark.life, mark.cycle, text))
 
     def steps(self) -> Iterator[Step]:
+        """Every cycle rebuilt, but those of a module after it switched to a program replay
+        does not have (:attr:`unknown` says which, from which cycle)."""
         for mark in self.cycles:
+            if (mark.module, mark.life) in self.unknown:
+                continue
+            digest = self.program_at(mark)
+            if digest is not None and digest not in self.programs:
+                note = Note(
+                    "program",
+                    mark.module,
+                    mark.name,
+                    mark.life,
+                    mark.cycle,
+                    f"runs program {digest} from this cycle (its Hello names it), which replay does not have "
+                    "(give it with --flashed FILE): this module's later cycles are not rebuilt",
+                )
+                self.unknown[(mark.module, mark.life)] = note
+                self.notes.append(note)
+                continue
             yield self.step(mark)
 
     def _module(self, mark: CycleMark) -> _Module:
         mod = self._modules.get(mark.module)
+        digest = self.program_at(mark)
+        program = self.programs.get(digest, self.program) if digest is not None else self.program
         if mod is None or mod.life != mark.life:
-            mod = _Module(self._new_engine(mark.timer), mark.life, mark.cycle - 1)
+            mod = _Module(self._new_engine(mark.timer, program), mark.life, mark.cycle - 1)
             self._modules[mark.module] = mod
             if mark.cycle != 0:
                 self._note("gap", mark, f"its first cycle in the capture is {mark.cycle}: state before unknown")
                 mod.uncertain = f"cycles before {mark.cycle} not in the capture"
-        elif mark.cycle != mod.cycle + 1:
+        elif mod.engine.program is not program:  # a rollout's switch (as ModuleRuntime.switch_program)
+            old = mod.engine
+            mod.engine = self._new_engine(old.timer, program)
+            for c, remote in enumerate(old.status, 1):
+                if remote:
+                    mod.engine.link_up(c, remote)
+            mod.engine.dof[0], mod.engine.dof[1] = old.dof[0], old.dof[1]
+            self._note("switch", mark, f"switched to program {digest} (its Hello names it)")
+        if mark.cycle != mod.cycle + 1:
             self._note("gap", mark, f"no marks for cycles {mod.cycle + 1}..{mark.cycle - 1}: state carried over")
             mod.uncertain = mod.uncertain or f"cycles {mod.cycle + 1}..{mark.cycle - 1} not in the capture"
         held = mark.cycle == mod.cycle + 1 and mark.timer == (mod.engine.timer - 1) % mod.engine.clock

@@ -1,0 +1,102 @@
+"""``dh2rt replay`` on the capture of a flash run: four modules over serial links, the
+caterpillar flashed with another ClockCycle through m0 in the middle. Each module's Hello
+names its new program when it switches; replay rebuilds every module's trace records across
+the switch with the flashed image given (``--flashed``), stops at a receptor of the new
+program where the run's own trace says, and without the image says which module switched to
+which program at which cycle, rebuilds the rest and exits 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil import launcher
+from hil.pace import PACE
+from tests.hil.flashing import robot_key_and_image
+from tests.tools.test_replay import key, replay
+
+pytestmark = pytest.mark.realtime
+Record = dict[str, Any]
+
+NEW_DIGEST_LEN = 12  # hex of a Hello's 6-byte digest
+
+
+@pytest.fixture(scope="module")
+def flashed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[Record]]:
+    """The run's capture, the flashed image and the run's own trace records."""
+    folder = tmp_path_factory.mktemp("replay_flash")
+    key, image = robot_key_and_image(folder, 20)  # the caterpillar's ClockCycle 40 -> 20
+    capture, trace = folder / "flash.pcapng", folder / "flash.jsonl"
+    code = PACE.call(
+        launcher.main,
+        ["--transport", "serial", "--module-count", "4", "--cycles", "120", "--stand-in", "none",
+         "--key", str(key), "--event", f"30:flash:m0:{image}", "--capture", str(capture), "--trace", str(trace)],
+    )  # fmt: skip
+    assert code == 0
+    return capture, image, [json.loads(line) for line in trace.read_text().splitlines()]
+
+
+def notes(err: str, kind: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith(f"replay: {kind}: ")]
+
+
+def switch_cycles(err: str, kind: str) -> dict[str, int]:
+    """module name -> the cycle a ``kind`` note (switch, program) names."""
+    found = {}
+    for line in notes(err, kind):
+        name, _, rest = line.split(": ", 2)[2].partition(" ")
+        found[name] = int(rest.split("cycle ")[1].split(":")[0])
+    return found
+
+
+def test_replay_rebuilds_every_record_across_the_switch(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, image, records = flashed
+    out, err = replay(capsys, capture, "--flashed", image)
+    rebuilt = [json.loads(line) for line in out.splitlines()]
+    assert {key(r): r for r in rebuilt} == {key(r): r for r in records}
+    assert len(rebuilt) == len(records)
+    switched = switch_cycles(err, "switch")
+    assert sorted(switched) == ["m0", "m1", "m2", "m3"], err
+    # the new program's ClockCycle (20) shows in the trace from the switch on: the records agree
+    for name, cycle in switched.items():
+        later = [r for r in records if r["name"] == name and r["cycle"] >= cycle]
+        assert later and max(r["timer"] for r in later) < 20, (name, cycle)
+    assert [line for line in err.splitlines() if "diverged" in line or "missing" in line] == []
+
+
+def test_a_receptor_breakpoint_of_the_new_program_stops_where_the_trace_says(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, image, records = flashed
+    _, err = replay(capsys, capture, "--flashed", image)
+    switch_at = switch_cycles(err, "switch")["m0"]
+    out, _ = replay(capsys, capture, "--flashed", image, "--json", "--break", "receptor head_a fires")
+    stops = [s for s in json.loads(out)["stops"] if s["record"]["cycle"] >= switch_at]
+    # the head runs head_a when its LocalTimer is 0: under the new ClockCycle, every 20 cycles
+    expected = [
+        (r["module"], r["cycle"]) for r in records if r["module"] == 0 and r["cycle"] >= switch_at and r["timer"] == 0
+    ]
+    assert expected
+    assert [(s["record"]["module"], s["record"]["cycle"]) for s in stops] == expected
+    assert all(s["fired"] == ["head_a"] for s in stops)
+
+
+def test_without_the_flashed_program_replay_names_module_cycle_and_digest_and_exits_2(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    capture, _, records = flashed
+    out, err = replay(capsys, capture, code=2)
+    missing = switch_cycles(err, "program")
+    assert sorted(missing) == ["m0", "m1", "m2", "m3"], err
+    digests = {line.split("runs program ")[1].split()[0] for line in notes(err, "program")}
+    assert len(digests) == 1 and len(digests.pop()) == NEW_DIGEST_LEN
+    assert "give it with --flashed FILE" in err
+    # the cycles before each module's switch are rebuilt as the run's own trace has them
+    rebuilt = {key(r): r for r in map(json.loads, out.splitlines())}
+    before = {key(r): r for r in records if r["cycle"] < missing[r["name"]]}
+    assert rebuilt == before
