@@ -47,13 +47,15 @@ from pathlib import Path
 from typing import IO, Any
 
 from dh2rt.cmdline import EXIT_FAIL, EXIT_OK, EXIT_USAGE, err
-from dh2rt.errors import CaptureError, OptionError, ProgramError
+from dh2rt.errors import CaptureError, DH2Error, OptionError, ProgramError
+from dh2rt.program import CompiledProgram
+from dh2rt.signed_image import Verdict, is_image_file, parse, read_public_key, verify
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture, program_file
 from tools.replay_model import ModelResult, compare_with_model
 from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
-from tools.replay_rebuild import Note, Rebuild
+from tools.replay_rebuild import Note, Rebuild, digest_of
 from tools.replay_view import BREAK_FORMS, Breakpoint, parse_break, view, view_text
 
 
@@ -66,14 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("capture", type=Path, help="a pcapng the launcher's --capture wrote (its cycle marks beside it)")
     p.add_argument("--program", type=Path, help=PROGRAM_HELP + "; its digest must be the one the Hellos name")
-    p.add_argument(
-        "--flashed",
-        type=Path,
-        action="append",
-        default=[],
-        metavar="FILE",
-        help="a program a module switched to in the run (a flash): its .dh2 source or image; repeatable",
+    repeatable = (
+        ("--flashed", "FILE", "a program a module switched to in the run (a flash): its .dh2 source or image"),
+        ("--trust", "PUBKEY", "a public key (dh2rt keys new's .pub): each --flashed image must be signed by one"),
     )
+    for flag, metavar, text in repeatable:
+        p.add_argument(flag, type=Path, action="append", default=[], metavar=metavar, help=text + "; repeatable")
     p.add_argument("--break", dest="breaks", action="append", default=[], metavar="SPEC", help=BREAK_FORMS)
     p.add_argument("--first", action="store_true", help="end at the first breakpoint hit")
     p.add_argument("--trace", type=Path, metavar="FILE", help="write the rebuilt trace records to FILE (JSON Lines)")
@@ -86,6 +86,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step", action="store_true", help="walk the cycles forward and back at a prompt")
     p.add_argument("--script", metavar="FILE", help="the prompt's commands from FILE (- for standard input)")
     return p
+
+
+def _flashed(path: Path, trust: Sequence[Path]) -> CompiledProgram:
+    """``--flashed path``; with ``--trust`` its signature checked as a module checks it."""
+    program = program_file(path)
+    if trust:
+        keys = []
+        for key in trust:
+            try:
+                keys.append(read_public_key(key))
+            except (DH2Error, OSError) as exc:
+                raise OptionError(f"--trust {key}: not a public key ({exc})") from None
+        try:
+            verdict = verify(parse(path.read_bytes()), keys) if is_image_file(path) else Verdict.UNSIGNED
+        except (DH2Error, OSError) as exc:
+            raise OptionError(f"--flashed {path}: {exc}") from None
+        if verdict is not Verdict.OK:
+            raise OptionError(f"--flashed {path}: {verdict} under the --trust keys: a module would refuse it")
+    return program
+
+
+def _check_flashed(rebuild: Rebuild, paths: Sequence[Path]) -> None:
+    given = rebuild.flashed[len(rebuild.flashed) - len(paths) :]  # after the capture's own
+    for path, program in zip(paths, given, strict=True):
+        mine = digest_of(program)
+        if mine not in rebuild.frames.digests:
+            named = ", ".join(sorted(rebuild.frames.digests))
+            raise OptionError(f"--flashed {path}: digest {mine}; the capture's Hellos name {named}: no module ran it")
 
 
 def _check_digest(capture: Capture, rebuild: Rebuild, program: Path | None) -> None:
@@ -110,6 +138,7 @@ def _open(ns: argparse.Namespace, capture: Capture) -> tuple[Rebuild, list[Break
         )
     rebuild = Rebuild(capture.program, marks, capture.hops(), capture.programs[1:])
     _check_digest(capture, rebuild, ns.program)
+    _check_flashed(rebuild, ns.flashed)
     modules = {m.name: m.module for m in cycles}
     breaks = [parse_break(text, capture, modules) for text in ns.breaks]
     return rebuild, breaks
@@ -122,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return started
     ns, capture = started
     try:
-        flashed = tuple(program_file(path) for path in ns.flashed)
+        flashed = tuple(_flashed(path, ns.trust) for path in ns.flashed)
         capture = dataclasses.replace(capture, programs=(*capture.programs, *flashed))
         rebuild, breaks = _open(ns, capture)
         trace_out = ns.trace.open("w", encoding="utf-8") if ns.trace is not None else None

@@ -211,6 +211,7 @@ class Rebuild:
         self.profile = program.profile
         #: the programs a module may run, by the digest its Hello names (the first, and those
         #: given for a flash run: a module switches when its Hellos name another)
+        self.flashed = tuple(flashed)
         self.programs = {digest_of(p): watched(p, self.fired) for p in flashed}
         self.programs[digest_of(program)] = self.program
         #: modules that switched to a program replay does not have: (module, life) -> its note

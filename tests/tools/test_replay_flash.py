@@ -13,9 +13,10 @@ from typing import Any
 
 import pytest
 
+from dh2rt.signed_image import write_key_pair
 from hil import launcher
 from hil.pace import PACE
-from tests.hil.flashing import robot_key_and_image
+from tests.hil.flashing import PROGRAM, robot_key_and_image
 from tests.tools.test_replay import key, replay
 
 pytestmark = pytest.mark.realtime
@@ -100,3 +101,26 @@ def test_without_the_flashed_program_replay_names_module_cycle_and_digest_and_ex
     rebuilt = {key(r): r for r in map(json.loads, out.splitlines())}
     before = {key(r): r for r in records if r["cycle"] < missing[r["name"]]}
     assert rebuilt == before
+
+
+def test_with_trust_keys_the_flashed_image_must_be_signed_by_one(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    capture, image, _ = flashed
+    _, err = replay(capsys, capture, "--flashed", image, "--trust", image.parent / "robot.key.pub")
+    assert len(notes(err, "switch")) == 4
+    write_key_pair(tmp_path / "other.key")
+    _, err = replay(capsys, capture, "--flashed", image, "--trust", tmp_path / "other.key.pub", code=2)
+    assert f"--flashed {image}: wrong key under the --trust keys: a module would refuse it" in err
+    assert "Traceback" not in err
+
+
+def test_a_flashed_program_no_hello_names_exits_2(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    capture, _, _ = flashed
+    other = tmp_path / "cat7.dh2"
+    text = PROGRAM.read_text(encoding="utf-8")
+    other.write_text(text.replace("const ClockCycle = 40", "const ClockCycle = 7"), encoding="utf-8")
+    _, err = replay(capsys, capture, "--flashed", other, code=2)
+    assert f"--flashed {other}: digest " in err and "no module ran it" in err
