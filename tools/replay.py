@@ -177,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     out.write(json.dumps(step.record, separators=(",", ":")) + "\n")
             hits = [b for b in breaks if b.hit(step)]
             if hits:
-                stops.append(view(step, [b.text for b in hits], capture.program))
+                stops.append(view(step, [b.text for b in hits]))
                 if not ns.json:
                     print(view_text(stops[-1]))
                 if ns.first:

@@ -43,7 +43,7 @@ class Timeline:
         self.views: list[dict[str, Any]] = []
         for step in rebuild.steps():
             self.steps.append(step)
-            self.views.append(view(step, (), capture.program))
+            self.views.append(view(step, ()))
         self.notes: list[Note] = list(rebuild.notes)
         self.modules = {s.mark.name: s.mark.module for s in self.steps}
 

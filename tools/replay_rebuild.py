@@ -403,7 +403,7 @@ class Rebuild:
                 mod.uncertain = mod.uncertain or f"a hormone taken in at {connector} in cycle {mark.cycle} is missing"
         for text in mark.injected:
             try:
-                arrivals.append(Arrival(0, 0, parse_hormone(text, self.program.vocabulary, "injected hormone")))
+                arrivals.append(Arrival(0, 0, parse_hormone(text, mod.engine.program.vocabulary, "injected hormone")))
             except DH2Error as exc:
                 self._note("missing", mark, f"injected {text!r} is no hormone of the program ({exc})")
         return arrivals

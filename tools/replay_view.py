@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from dh2rt.errors import OptionError
-from dh2rt.program import ACTIVE, PASSIVE, CompiledProgram
+from dh2rt.program import ACTIVE, PASSIVE
 from tools.reading import Capture
 from tools.replay_rebuild import Step
 
@@ -61,13 +61,13 @@ def parse_break(text: str, capture: Capture, modules: dict[str, int]) -> Breakpo
     raise OptionError(f"--break {text!r}: a breakpoint is {BREAK_FORMS}")
 
 
-def view(step: Step, hits: Sequence[str], program: CompiledProgram) -> dict[str, Any]:
+def view(step: Step, hits: Sequence[str]) -> dict[str, Any]:
     """Where a rebuilt cycle is and the module's state after it (its record, the receptors'
-    statuses as they stand now: take it right after the step); ``hits``: the breakpoints
-    it stopped at."""
+    statuses as they stand now: take it right after the step; those of the program the
+    module ran then, which a flash may have switched); ``hits``: the breakpoints it stopped at."""
     engine = step.engine
     status = {ACTIVE: "active", PASSIVE: "passive"}
-    receptors = {r.name: status.get(s, "absent") for r, s in zip(program.receptors, engine.rstatus, strict=True)}
+    receptors = {r.name: status.get(s, "absent") for r, s in zip(engine.program.receptors, engine.rstatus, strict=True)}
     return {
         "break": list(hits),
         "module": step.mark.module,
