@@ -53,6 +53,7 @@ from dh2rt.signed_image import Verdict, is_image_file, parse, read_public_key, v
 from dh2rt.wire.frame import program_digest
 from tools.capture_cycles import CycleMark, marks_path, read_marks
 from tools.reading import PROGRAM_HELP, Capture, interruptible, options_and_capture, program_file
+from tools.replay_images import images_on_the_wire
 from tools.replay_model import ModelResult, compare_with_model
 from tools.replay_prompt import ReplayPrompt, Timeline, interactive, run_script
 from tools.replay_rebuild import Note, Rebuild, digest_of
@@ -88,16 +89,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _trust_keys(trust: Sequence[Path]) -> list[bytes]:
+    keys = []
+    for key in trust:
+        try:
+            keys.append(read_public_key(key))
+        except (DH2Error, OSError) as exc:
+            raise OptionError(f"--trust {key}: not a public key ({exc})") from None
+    return keys
+
+
+def _wire_programs(
+    capture: Capture, flashed: Sequence[CompiledProgram], keys: Sequence[bytes]
+) -> tuple[list[CompiledProgram], list[str]]:
+    """The programs of the images the capture's transfer frames carry whole
+    (:mod:`tools.replay_images`), but those the capture or ``--flashed`` hold already; with
+    ``--trust`` keys, only those signed by one. And what replay says of each image."""
+    known = {digest_of(p) for p in (*capture.programs, *flashed)}
+    programs, notes = [], []
+    for image in images_on_the_wire(capture.path, capture.programs):
+        if image.program is None or image.signed is None:
+            notes.append(f"{image.note}: not rebuilt (give it with --flashed FILE)")
+            continue
+        if digest_of(image.program) in known:
+            continue
+        if keys:
+            verdict = verify(image.signed, keys)
+            if verdict is not Verdict.OK:
+                notes.append(f"{image.note}; {verdict} under the --trust keys: not run")
+                continue
+        known.add(digest_of(image.program))
+        programs.append(image.program)
+        notes.append(image.note + ("" if keys else " (its signature not checked: give --trust KEY)"))
+    return programs, notes
+
+
 def _flashed(path: Path, trust: Sequence[Path]) -> CompiledProgram:
     """``--flashed path``; with ``--trust`` its signature checked as a module checks it."""
     program = program_file(path)
     if trust:
-        keys = []
-        for key in trust:
-            try:
-                keys.append(read_public_key(key))
-            except (DH2Error, OSError) as exc:
-                raise OptionError(f"--trust {key}: not a public key ({exc})") from None
+        keys = _trust_keys(trust)
         try:
             verdict = verify(parse(path.read_bytes()), keys) if is_image_file(path) else Verdict.UNSIGNED
         except (DH2Error, OSError) as exc:
@@ -152,7 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ns, capture = started
     try:
         flashed = tuple(_flashed(path, ns.trust) for path in ns.flashed)
-        capture = dataclasses.replace(capture, programs=(*capture.programs, *flashed))
+        from_wire, image_notes = _wire_programs(capture, flashed, _trust_keys(ns.trust))
+        capture = dataclasses.replace(capture, programs=(*capture.programs, *from_wire, *flashed))
         rebuild, breaks = _open(ns, capture)
         trace_out = ns.trace.open("w", encoding="utf-8") if ns.trace is not None else None
     except (CaptureError, OptionError, ProgramError) as exc:
@@ -161,6 +193,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         err(f"--trace {ns.trace}: cannot be written ({exc.strerror or exc})")
         return EXIT_USAGE
+    if not ns.json:
+        for line in image_notes:
+            print(f"replay: image: {line}", file=sys.stderr)
     if ns.step or ns.script is not None:
         return _prompt(ns, capture, rebuild, breaks)
     records_out = sys.stdout if not breaks and not ns.json and not ns.model else None
@@ -189,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if trace_out is not None:
             trace_out.close()
     model = _model(ns, capture, rebuild, rebuilt) if ns.model else None
-    _summary(ns, rebuild.notes, stops, count, len(rebuild.period), model)
+    _summary(ns, rebuild.notes, stops, count, len(rebuild.period), model, image_notes)
     if model is not None and model.first is not None:
         return EXIT_FAIL
     return EXIT_USAGE if rebuild.unknown else EXIT_OK  # a program the capture does not hold: incomplete
@@ -214,6 +249,7 @@ def _summary(
     cycles: int,
     modules: int,
     model: ModelResult | None,
+    images: Sequence[str] = (),
 ) -> None:
     if ns.json:
         doc: dict[str, Any] = {
@@ -222,6 +258,7 @@ def _summary(
             "cycles": cycles,
             "stops": list(stops),
             "notes": [n.to_json() for n in notes],
+            "images": list(images),
         }
         if model is not None:
             doc["model"] = {

@@ -1,9 +1,10 @@
 """``dh2rt replay`` on the capture of a flash run: four modules over serial links, the
 caterpillar flashed with another ClockCycle through m0 in the middle. Each module's Hello
 names its new program when it switches; replay rebuilds every module's trace records across
-the switch with the flashed image given (``--flashed``), stops at a receptor of the new
-program where the run's own trace says, and without the image says which module switched to
-which program at which cycle, rebuilds the rest and exits 2."""
+the switch from the capture alone (the image joined from its transfer frames), or with the
+flashed image given (``--flashed``), stops at a receptor of the new program where the run's
+own trace says, and where a segment of the image is missing from the capture says so and
+which module switched to which program at which cycle, rebuilds the rest and exits 2."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from dh2rt.signed_image import write_key_pair
 from hil import launcher
 from hil.pace import PACE
 from tests.hil.flashing import PROGRAM, robot_key_and_image
-from tests.tools.test_replay import key, replay
+from tests.tools.test_replay import key, replay, rewrite
+from tools.reading import open_capture
 
 pytestmark = pytest.mark.realtime
 Record = dict[str, Any]
@@ -87,11 +89,37 @@ def test_a_receptor_breakpoint_of_the_new_program_stops_where_the_trace_says(
     assert all(s["fired"] == ["head_a"] for s in stops)
 
 
-def test_without_the_flashed_program_replay_names_module_cycle_and_digest_and_exits_2(
+def test_the_capture_alone_carries_the_flashed_image_and_replay_runs_it(
     flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str]
 ) -> None:
+    capture, image, records = flashed
+    out, err = replay(capsys, capture)
+    assert {key(r): r for r in map(json.loads, out.splitlines())} == {key(r): r for r in records}
+    (said,) = notes(err, "image")
+    assert "program caterpillar version 2, rebuilt from 5 segments" in said and "signature not checked" in said
+    assert sorted(switch_cycles(err, "switch")) == ["m0", "m1", "m2", "m3"]
+    # under --trust: the right key runs it, another key does not (and replay says the rest is incomplete)
+    _, err = replay(capsys, capture, "--trust", image.parent / "robot.key.pub")
+    assert "signature not checked" not in notes(err, "image")[0]
+    write_key_pair(image.parent / "stranger.key")
+    _, err = replay(capsys, capture, "--trust", image.parent / "stranger.key.pub", code=2)
+    assert notes(err, "image")[0].endswith("wrong key under the --trust keys: not run")
+
+
+def test_without_the_flashed_program_replay_names_module_cycle_and_digest_and_exits_2(
+    flashed: tuple[Path, Path, list[Record]], capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     capture, _, records = flashed
-    out, err = replay(capsys, capture, code=2)
+    # every copy of the image's second segment taken out of the capture: the image is not whole
+    serial = [h for h in open_capture(capture).hops() if h.medium == "serial"]
+    second = {
+        i for i, h in enumerate(serial) if h.kind == "transfer" and h.text.startswith("SEGMENT ") and " #1 " in h.text
+    }
+    assert second
+    cut = rewrite(capture, tmp_path / "cut.pcapng", lambda i: i not in second)
+    out, err = replay(capsys, cut, code=2)
+    (said,) = notes(err, "image")
+    assert "4 of its 5 segments are in the capture: not rebuilt (give it with --flashed FILE)" in said
     missing = switch_cycles(err, "program")
     assert sorted(missing) == ["m0", "m1", "m2", "m3"], err
     digests = {line.split("runs program ")[1].split()[0] for line in notes(err, "program")}
