@@ -578,6 +578,8 @@ class ModuleHost:
             self.report(TraceRecord(rec))
         rt.records.clear()
         for kind, args in rt.effects:
+            if kind == "release" and isinstance(self.latch, _ModuleLatch):
+                self.latch.release()  # the module's own latch opens; the link goes as before
             self.report(Effect(kind, list(args)))
         rt.effects.clear()
         log = rt.log
