@@ -91,6 +91,7 @@ if TYPE_CHECKING:
     from firmware.motion.foot import Foot
     from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
+from drivers.latch import Latch, LatchState
 from firmware.control import (
     Attach,
     Command,
@@ -115,6 +116,7 @@ from firmware.control import (
     command_from_json,
     report_to_json,
 )
+from firmware.latch import open_latch
 
 Reporter = Callable[[Report], None]
 #: After its last cycle a module keeps reading until nothing came for this many cycle
@@ -241,7 +243,7 @@ class ModuleHost:
         #: how many reads failed
         self.last_angles: tuple[float, float] | None = None
         self.unread_angles = 0
-        self.latch = _WorldLatch(self)
+        self.latch: _WorldLatch | _ModuleLatch = _module_latch(self)
         self._own_held: dict[int, float] = {}
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
@@ -607,6 +609,8 @@ class ModuleHost:
             self.report(TraceRecord(rec))
         rt.records.clear()
         for kind, args in rt.effects:
+            if kind == "release" and isinstance(self.latch, _ModuleLatch):
+                self.latch.release()  # the module's own latch opens; the link goes as before
             self.report(Effect(kind, list(args)))
         rt.effects.clear()
         log = rt.log
@@ -632,7 +636,7 @@ class ModuleHost:
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
                 self.own_readings.update(cmd.values)
-            elif isinstance(cmd, LatchAnswer):
+            elif isinstance(cmd, LatchAnswer) and isinstance(self.latch, _WorldLatch):
                 self.latch.answered(cmd)
             elif isinstance(cmd, OwnMotions):
                 self.self_motion = True
@@ -740,6 +744,71 @@ class _WorldLatch:
         self.asked.discard(answer.connector)
         if answer.closed:
             self.closed.add(answer.connector)
+
+
+#: cycles a closed latch waits for its connector's link to be verified before the dock is refused:
+#: a Hello each way is one cycle, a lost one is beaconed again the next; 10 cycles is the
+#: member's silence bound (docs/hil.md), past which a link that came would be taken as lost anyway
+LATCH_LINK_CYCLES = 10
+
+
+def _module_latch(host: ModuleHost) -> _WorldLatch | _ModuleLatch:
+    """The module's own latch when its config has a ``[latch]`` that opens, else the world's
+    (said once in the log)."""
+    driver, fault = open_latch(host.config, host.driver)
+    if driver is None:
+        why = fault or "no [latch] in module.toml"
+        host.runtime.log.append(f"latch: {why}; a reach's latch is asked of the world")
+        return _WorldLatch(host)
+    host.runtime.log.append(f"latch: the module's own ({host.config.latch.kind if host.config.latch else '?'})")
+    return _ModuleLatch(host, driver)
+
+
+class _ModuleLatch:
+    """The latch of a reach this module runs, its own (firmware.motion.asking.LatchAsk): when the
+    motion asks, the latch closes; the dock is aligned once the latch reports ``closed`` and the
+    connector's link is verified (a Hello heard on it), or refused (latch opened again) when
+    the latch faults or jams, or the link does not come within :data:`LATCH_LINK_CYCLES`."""
+
+    def __init__(self, host: ModuleHost, driver: Latch) -> None:
+        self.host = host
+        self.driver = driver
+        #: connector -> cycles waited since the latch was told to close
+        self.waiting: dict[int, int] = {}
+        #: connector -> docked (True) or refused (False), until the motion reads it
+        self.verdict: dict[int, bool] = {}
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn in self.verdict:
+            return True
+        if a_conn not in self.waiting:
+            self.waiting[a_conn] = 0
+            self.driver.close()
+            return False
+        self.waiting[a_conn] += 1
+        status = self.driver.state()
+        if status.state is LatchState.CLOSED and self.host.runtime.verified(a_conn):
+            return self._decide(a_conn, True, "closed and linked")
+        if status.state is LatchState.FAULT:
+            return self._decide(a_conn, False, f"latch {status}")
+        if self.waiting[a_conn] > LATCH_LINK_CYCLES:
+            return self._decide(a_conn, False, f"latch {status}, link not verified in {LATCH_LINK_CYCLES} cycles")
+        return False
+
+    def _decide(self, conn: int, docked: bool, why: str) -> bool:
+        del self.waiting[conn]
+        self.verdict[conn] = docked
+        self.host.runtime.log.append(f"latch on connector {conn}: {'docked' if docked else 'refused'} ({why})")
+        if not docked:
+            self.driver.open()
+        return True
+
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        return self.verdict.pop(a_conn, False)
+
+    def release(self) -> None:
+        """``release``: the latch opens (the link goes as before)."""
+        self.driver.open()
 
 
 class TrialWatch:

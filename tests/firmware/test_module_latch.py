@@ -1,0 +1,64 @@
+"""The module's own latch in a reach (firmware.main_loop._ModuleLatch): a dock is aligned only
+on latch closed and the connector's link verified; a latch fault or a link that does not come
+within LATCH_LINK_CYCLES refuses it and opens the latch again."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+from drivers.latch import Position, Sensed
+from drivers.recording import RecordingLatch
+from firmware.main_loop import LATCH_LINK_CYCLES, _ModuleLatch
+
+
+class JammedLatch(RecordingLatch):
+    """Told to close, the horn stays open (the faces are not within the dock tolerance)."""
+
+    def _sense(self, target: Position | None) -> Sensed:
+        return Sensed(Position.OPEN, "jammed open")
+
+
+def _host(verified: set[int]) -> Any:
+    return SimpleNamespace(runtime=SimpleNamespace(verified=lambda c: c in verified, log=[]))
+
+
+def test_dock_completes_only_on_closed_and_link() -> None:
+    linked: set[int] = set()
+    driver = RecordingLatch()
+    latch = _ModuleLatch(_host(linked), driver)
+    assert not latch.aligned(1, 2, 3, 4)  # told to close
+    assert driver.history == [Position.CLOSED]
+    assert not latch.aligned(1, 2, 3, 4)  # closed, no link yet
+    linked.add(2)
+    assert latch.aligned(1, 2, 3, 4)
+    assert latch.latch(1, 2, 3, 4)
+    latch.release()
+    assert driver.history == [Position.CLOSED, Position.OPEN]
+
+
+def test_no_link_in_the_bound_is_refused_and_opened() -> None:
+    driver = RecordingLatch()
+    latch = _ModuleLatch(_host(set()), driver)
+    answers = [latch.aligned(1, 2, 3, 4) for _ in range(LATCH_LINK_CYCLES + 2)]
+    assert answers[-1] and not any(answers[:-1])
+    assert not latch.latch(1, 2, 3, 4)
+    assert driver.history == [Position.CLOSED, Position.OPEN]
+
+
+def test_a_jammed_latch_is_refused_and_opened() -> None:
+    clock = [0.0]
+    driver = JammedLatch(timeout_s=0.1)
+    driver._clock = lambda: clock[0]  # the latch's own timeout judges the jam
+    host = _host({2})
+    latch = _ModuleLatch(host, driver)
+    verdicts = []
+    for _ in range(LATCH_LINK_CYCLES + 2):
+        verdicts.append(latch.aligned(1, 2, 3, 4))
+        clock[0] += 0.05
+        if verdicts[-1]:
+            break
+    assert verdicts[-1]
+    assert not latch.latch(1, 2, 3, 4)
+    assert driver.history[-1] is Position.OPEN
+    assert "fault" in host.runtime.log[-1] and len(verdicts) < LATCH_LINK_CYCLES
