@@ -527,19 +527,19 @@ class ModuleHost:
         effect), then walks and creeps on its own joints by the tracker and its front infrared;
         what becomes of it goes out as ``foot`` effects."""
         set_off, self.member.set_off = self.member.set_off, None
+        front = self.program.profile.connector_index("front")
         # the asker sends it each cycle until the foot lets go: a copy of the motion this foot
         # runs or ran is not a new trip
         if set_off is not None and (self.foot is None or self.foot.set_off.motion != set_off.motion):
             from firmware.motion.foot import Foot
 
-            front = self.program.profile.connector_index("front")
             self.foot = Foot(self.module, set_off)
             self.report(Effect("release", [front]))
             self._log_line(f"foot: motion {set_off.motion}: letting go, to module {set_off.target}")
         foot = self.foot
         if foot is None or foot.done:
             return
-        senses, front = _OwnSenses(self), self.program.profile.connector_index("front")
+        senses = _OwnSenses(self)
         targets = foot.step(senses.floor(), senses.infrared(), rt.engine.status[front - 1] != 0)
         for kind, detail in foot.events:
             self.report(Effect("foot", [kind, detail]))
@@ -755,12 +755,13 @@ LATCH_LINK_CYCLES = 10
 def _module_latch(host: ModuleHost) -> _WorldLatch | _ModuleLatch:
     """The module's own latch when its config has a ``[latch]`` that opens, else the world's
     (said once in the log)."""
+    spec = host.config.latch
     driver, fault = open_latch(host.config, host.driver)
-    if driver is None:
+    if driver is None or spec is None:
         why = fault or "no [latch] in module.toml"
         host.runtime.log.append(f"latch: {why}; a reach's latch is asked of the world")
         return _WorldLatch(host)
-    host.runtime.log.append(f"latch: the module's own ({host.config.latch.kind if host.config.latch else '?'})")
+    host.runtime.log.append(f"latch: the module's own ({spec.kind})")
     return _ModuleLatch(host, driver)
 
 

@@ -124,11 +124,10 @@ def _wire_programs(
     return programs, notes
 
 
-def _flashed(path: Path, trust: Sequence[Path]) -> CompiledProgram:
-    """``--flashed path``; with ``--trust`` its signature checked as a module checks it."""
+def _flashed(path: Path, keys: Sequence[bytes]) -> CompiledProgram:
+    """``--flashed path``; with ``--trust`` ``keys`` its signature checked as a module checks it."""
     program = program_file(path)
-    if trust:
-        keys = _trust_keys(trust)
+    if keys:
         try:
             verdict = verify(parse(path.read_bytes()), keys) if is_image_file(path) else Verdict.UNSIGNED
         except (DH2Error, OSError) as exc:
@@ -182,8 +181,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return started
     ns, capture = started
     try:
-        flashed = tuple(_flashed(path, ns.trust) for path in ns.flashed)
-        from_wire, image_notes = _wire_programs(capture, flashed, _trust_keys(ns.trust))
+        keys = _trust_keys(ns.trust)
+        flashed = tuple(_flashed(path, keys) for path in ns.flashed)
+        from_wire, image_notes = _wire_programs(capture, flashed, keys)
         capture = dataclasses.replace(capture, programs=(*capture.programs, *from_wire, *flashed))
         rebuild, breaks = _open(ns, capture)
         trace_out = ns.trace.open("w", encoding="utf-8") if ns.trace is not None else None

@@ -47,7 +47,7 @@ class _Collector(Decoder):
     """A decoder that keeps the OFFERs and SEGMENTs of the transfer frames it decodes."""
 
     def __init__(self, programs: Sequence[CompiledProgram]) -> None:
-        super().__init__(programs, memo=False)
+        super().__init__(programs)  # a frame the memo holds is a copy of one collected already
         self.offers: dict[bytes, Offer] = {}
         self.segments: dict[tuple[int, int], bytes] = {}
 

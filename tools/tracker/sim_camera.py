@@ -154,6 +154,6 @@ class CameraTracker:
                 p.resetBasePositionAndOrientation(
                     self.plates.bodies[3 * m + k], top, orientation, physicsClientId=self.world.client
                 )
-                t = self.world.part_transform(m, part)
-                truth[3 * m + k] = PartPose(float(t[0, 3]), float(t[1, 3]), math.atan2(float(t[1, 0]), float(t[0, 0])))
+                r = p.getMatrixFromQuaternion(orientation)  # row-major: the part's x axis is (r[0], r[3], r[6])
+                truth[3 * m + k] = PartPose(position[0], position[1], math.atan2(r[3], r[0]))
         return truth
