@@ -88,6 +88,7 @@ if TYPE_CHECKING:
     from firmware.flash.door import RolloutDoor
     from firmware.flash.slots import Boot, Flash
     from firmware.motion.asking import SelfReach
+    from firmware.motion.assimilating import SelfAssimilate
     from firmware.motion.foot import Foot
     from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
@@ -231,7 +232,7 @@ class ModuleHost:
         #: does (hil.reach_loop) unless told otherwise
         self.self_motion = config.control != "stdio" if self_motion is None else self_motion
         #: the reach this module runs (the last one, done or not), and how many it started
-        self.reach: SelfReach | None = None
+        self.reach: SelfReach | SelfAssimilate | None = None
         self._reaches = 0
         #: this module's own trip and creep once it is the released foot of a reach_and_dock
         self.foot: Foot | None = None
@@ -476,19 +477,28 @@ class ModuleHost:
                 self._log_line(f"motion: targets refused: {exc}")
                 member.held, member.holding = {}, None
 
+    def _next_motion(self) -> int:
+        """A new motion id: the module's index in it, so that two askers' motions never share
+        one at a member."""
+        motion = (self.module & 0xFF) << 8 | (self._reaches & 0xFF)
+        self._reaches += 1
+        return motion
+
     def _start_reaches(self, rt: ModuleRuntime) -> None:
-        """The program asked ``reach_dock`` this cycle: this module carries it out
-        (firmware.motion.asking), one at a time."""
+        """The program asked ``reach_dock`` or ``reach_and_dock`` this cycle: this module
+        carries it out (firmware.motion.asking, firmware.motion.assimilating), one at a time."""
         for kind, args in rt.effects:
-            if kind != "reach_dock":
+            if kind not in ("reach_dock", "reach_and_dock"):
                 continue
             if self.reach is not None and not self.reach.done:
-                self._log_line("reach_dock: a reach of this module is under way; this one refused")
+                self._log_line(f"{kind}: a reach of this module is under way; this one refused")
+                continue
+            if kind == "reach_and_dock":
+                self._start_assimilating(rt, args)
                 continue
             try:
                 connector, route, target = int(args[0]), tuple(int(c) for c in args[1]), int(args[2])
-                # the module's index in the id: two askers' motions never share one at a member
-                motion = (self.module & 0xFF) << 8 | (self._reaches & 0xFF)
+                motion = self._next_motion()
                 asker = Asker(motion, self.module, tuple(rt.engine.status), route, rt.cycle, log=self._log_line)
             except (IndexError, TypeError, ValueError) as exc:
                 self._log_line(f"reach_dock {list(args)!r} refused: {exc}")
@@ -497,12 +507,45 @@ class ModuleHost:
             from firmware.motion.asking import SelfReach
             from firmware.motion.body import DEFAULT_MODEL
 
-            self._reaches += 1
             profile = self.program.profile
             self.reach = SelfReach(
                 asker, connector, target, _OwnSenses(self), self.latch, DEFAULT_MODEL, profile, self._log_line
             )
             self._log_line(f"reach_dock: motion {motion} from {profile.connector_name(connector)}, learning the chain")
+
+    def _start_assimilating(self, rt: ModuleRuntime, args: Sequence[Any]) -> None:
+        """``reach_and_dock(connector, route)``: the foot at the route's end comes to this
+        module's connector by its own trip (firmware.motion.assimilating: the asking side)."""
+        from firmware.motion.assimilating import MAX_BODY, SelfAssimilate
+        from firmware.motion.body import DEFAULT_MODEL
+
+        profile = self.program.profile
+        front = profile.connector_index("front")
+        links = tuple(rt.engine.status)
+        try:
+            connector, route = int(args[0]), tuple(int(c) for c in args[1])
+            to_foot = Asker(self._next_motion(), self.module, links, route, rt.cycle, log=self._log_line)
+            body = None
+            if links[front - 1]:  # up the robot by front links, as far as they go
+                body = Asker(self._next_motion(), self.module, links, (front,) * MAX_BODY, rt.cycle, log=self._log_line)
+        except (IndexError, TypeError, ValueError) as exc:
+            self._log_line(f"reach_and_dock {list(args)!r} refused: {exc}")
+            return
+        self.reach = SelfAssimilate(
+            to_foot,
+            body,
+            connector,
+            _OwnSenses(self),
+            self.latch,
+            DEFAULT_MODEL,
+            profile,
+            self._log_line,
+            own_links=lambda: tuple(self.runtime.engine.status),
+            next_motion=self._next_motion,
+        )
+        self._log_line(
+            f"reach_and_dock: motion {to_foot.motion} from {profile.connector_name(connector)}, learning the route"
+        )
 
     def _step_reach(self, rt: ModuleRuntime) -> None:
         """Before each cycle: the reach this module runs takes the answers that came, makes
@@ -512,7 +555,7 @@ class ModuleHost:
         if reach is None or reach.done:
             return
         for report in reports:
-            reach.asker.received(report, rt.cycle)
+            reach.received(report, rt.cycle)
         for out in reach.step(rt.cycle):
             rt.transport.send_raw(out.connector, out.frame)
         if reach.own_targets != self._own_held:
@@ -534,6 +577,7 @@ class ModuleHost:
             from firmware.motion.foot import Foot
 
             self.foot = Foot(self.module, set_off)
+            self.report(Effect("foot", ["set_off", f"motion {set_off.motion}, to module {set_off.target}"]))
             self.report(Effect("release", [front]))
             self._log_line(f"foot: motion {set_off.motion}: letting go, to module {set_off.target}")
         foot = self.foot

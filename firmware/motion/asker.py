@@ -70,6 +70,9 @@ class Asker:
     asked: dict[int, tuple[int, int]] = field(default_factory=dict)
     #: what went out in each cycle, for the link load: cycle -> [frames, bytes]
     sent: dict[int, list[int]] = field(default_factory=dict)
+    #: the route ended before its last hop: a member's link for the next hop is down (a
+    #: route as far as it goes, such as the body up a robot: :attr:`learnt`)
+    short: bool = False
 
     def __post_init__(self) -> None:
         if not self.route:
@@ -84,6 +87,11 @@ class Asker:
     def known(self) -> bool:
         """Every member of the chain answered at least once."""
         return len(self.members) == len(self.route) and all(m.answered is not None for m in self.members)
+
+    @property
+    def learnt(self) -> bool:
+        """Every member there is answered: :attr:`known`, or the route ended :attr:`short`."""
+        return self.known or (self.short and all(m.answered is not None for m in self.members))
 
     def member(self, module: int) -> Known | None:
         return next((m for m in self.members if m.module == module), None)
@@ -114,15 +122,15 @@ class Asker:
             return (-1 if onward is None else onward), remote
         return -1, remote
 
-    def frames(self, cycle: int, targets: Mapping[int, Mapping[int, float]] = {}) -> list[Out]:
-        """This cycle's frames: an ASK to every member known, TARGETS to each member
-        ``targets`` names (by module index; the asker's own are not sent)."""
+    def frames(self, cycle: int, targets: Mapping[int, Mapping[int, float]] = {}, *, ask: bool = True) -> list[Out]:
+        """This cycle's frames: an ASK to every member known (none unless ``ask``), TARGETS to
+        each member ``targets`` names (by module index; the asker's own are not sent)."""
         for seq, (_, at) in list(self.asked.items()):
             if cycle - at > ANSWER_CYCLES:
                 del self.asked[seq]
                 self.counts["unanswered"] += 1
         out = []
-        for place, m in enumerate(self.members):
+        for place, m in enumerate(self.members if ask else ()):
             seq = self._next()
             self.asked[seq] = (place, cycle)
             out.append(self._out(mw.Ask(self.motion, seq, m.route)))
@@ -133,6 +141,14 @@ class Asker:
             held = tuple(sorted((dof, round(v, 2)) for dof, v in dofs.items()))
             out.append(self._out(mw.Targets(self.motion, self._next(), moved.route, held)))
         self._count(cycle, out)
+        return out
+
+    def set_off(self, cycle: int, target: int, connector: int, body: Sequence[int], others: Sequence[int]) -> Out:
+        """The SET_OFF to the route's last member (a foot about to let go:
+        :class:`firmware.motion.foot.Foot`): come to ``connector`` of module ``target``."""
+        last = self.members[-1]
+        out = self._out(mw.SetOff(self.motion, self._next(), last.route, target, connector, tuple(body), tuple(others)))
+        self._count(cycle, [out])
         return out
 
     def end(self, cycle: int) -> list[Out]:
@@ -157,7 +173,8 @@ class Asker:
             remote = report.links[c - 1] if c <= len(report.links) else 0
             if remote:
                 self.members.append(Known((*m.route, (c, remote))))
-            else:
+            elif not self.short:
+                self.short = True
                 self.log(f"motion {self.motion}: the route leaves module {report.module} through {c}, not linked")
 
     def _next(self) -> int:

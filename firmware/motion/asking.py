@@ -21,12 +21,14 @@ member went silent) every member is sent END.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
 from dh2rt.docking import End
 from dh2rt.profile import Profile
+from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
 from firmware.motion.body import ConroModel
 from firmware.motion.docking import Docking, Options
@@ -68,8 +70,86 @@ class LatchAsk(Protocol):
     def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool: ...
 
 
+class ModuleWorld:
+    """The world and the owner a docking sequence (:class:`Docking`) sees when a module runs it:
+    what the module has of the world (its chains' links and answers, its own senses) and its
+    latch. Shared by :class:`SelfReach` and :class:`firmware.motion.assimilating.SelfAssimilate`,
+    which say where the chain's links and angles come from (``peer_of``, ``running``,
+    ``_member_angles``)."""
+
+    cycle: int
+    senses: OwnSenses
+    latch_world: LatchAsk
+    profile: Profile
+    log: Callable[[str], None]
+
+    @property
+    def me(self) -> int:
+        raise NotImplementedError
+
+    def peer_of(self, end: End) -> End | None:
+        raise NotImplementedError
+
+    def running(self, module: int) -> bool:
+        raise NotImplementedError
+
+    def _member_angles(self, module: int) -> Sequence[float]:
+        raise NotImplementedError
+
+    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        return self.latch_world.aligned(a, a_conn, b, b_conn)
+
+    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        return self.latch_world.latch(a, a_conn, b, b_conn)
+
+    def cut(self, module: int, connector: int) -> None:
+        raise NotImplementedError("a module's reach cuts no link")
+
+    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
+        raise NotImplementedError("a module's reach links only through the latch")
+
+    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
+        raise NotImplementedError("the sequence schedules nothing")
+
+    def where(self, module: int, connector: int) -> str:
+        return f"m{module}.{self.profile.connector_name(connector)}"
+
+    def note(self, message: str) -> None:
+        self.log(message)
+
+    # ------------------------------------------------------------ the owner: what it reads
+
+    @property
+    def now(self) -> int:
+        return self.cycle
+
+    def sense(self, cycle: int, needs: Needs) -> Readings:
+        joints: dict[int, tuple[float, float]] = {}
+        for m in needs.joints:
+            angles = self.senses.angles() if m == self.me else self._member_angles(m)
+            joints[m] = (angles[0], angles[1])
+        infrared = {self.me: dict(self.senses.infrared())} if self.me in needs.infrared else {}
+        floor = self.senses.floor() if needs.floor else FloorPoses()
+        tilts = self.senses.attitude()
+        attitude = {m: tilts[m] for m in needs.attitude if m in tilts}
+        return Readings(joints, infrared, floor, attitude)
+
+    def ended(self, motion: Motion, linked: bool, readings: Readings) -> None:
+        (a, ac), (b, bc) = motion.reach.chain.asking, motion.reach.chain.target
+        counts = Counter[str]()
+        for asker in self._askers():
+            counts.update(asker.counts)
+        self.log(
+            f"reach_dock {self.where(a, ac)} -> {self.where(b, bc)}: {'latched' if linked else 'gave up'} after "
+            f"{motion.reach.cycles} steps (cycles {motion.asked}-{motion.last}); chain frames {dict(counts)}"
+        )
+
+    def _askers(self) -> list[Asker]:
+        raise NotImplementedError
+
+
 @dataclass
-class SelfReach:
+class SelfReach(ModuleWorld):
     """One ``reach_dock`` of the asking module ``me`` (module docs)."""
 
     asker: Asker
@@ -95,6 +175,10 @@ class SelfReach:
     @property
     def done(self) -> bool:
         return self.verdict is not None
+
+    def received(self, report: mw.Angles, cycle: int) -> None:
+        """An ANGLES that came back to the asker."""
+        self.asker.received(report, cycle)
 
     def step(self, cycle: int) -> list[Out]:
         """One control cycle: the frames to send (ASKs, TARGETS; END at the end)."""
@@ -139,53 +223,11 @@ class SelfReach:
     def running(self, module: int) -> bool:
         return self.asker.running(module, self.cycle)
 
-    def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
-        return self.latch_world.aligned(a, a_conn, b, b_conn)
-
-    def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
-        return self.latch_world.latch(a, a_conn, b, b_conn)
-
-    def cut(self, module: int, connector: int) -> None:
-        raise NotImplementedError("a reach_dock cuts no link")
-
-    def dock(self, a: int, a_conn: int, b: int, b_conn: int) -> None:
-        raise NotImplementedError("a reach_dock links only through the latch")
-
-    def schedule(self, cycles_from_now: int, action: Callable[[], None]) -> None:
-        raise NotImplementedError("the sequence schedules nothing")
-
-    def where(self, module: int, connector: int) -> str:
-        return f"m{module}.{self.profile.connector_name(connector)}"
-
-    def note(self, message: str) -> None:
-        self.log(message)
-
-    # ------------------------------------------------------------ the owner: what it reads
-
-    @property
-    def now(self) -> int:
-        return self.cycle
-
-    def sense(self, cycle: int, needs: Needs) -> Readings:
-        joints: dict[int, tuple[float, float]] = {}
-        for m in needs.joints:
-            angles = self.senses.angles() if m == self.me else self._member_angles(m)
-            joints[m] = (angles[0], angles[1])
-        infrared = {self.me: dict(self.senses.infrared())} if self.me in needs.infrared else {}
-        floor = self.senses.floor() if needs.floor else FloorPoses()
-        tilts = self.senses.attitude()
-        attitude = {m: tilts[m] for m in needs.attitude if m in tilts}
-        return Readings(joints, infrared, floor, attitude)
-
     def _member_angles(self, module: int) -> Sequence[float]:
         known = self.asker.member(module)
         if known is None or len(known.angles) < 2:
             raise KeyError(f"no joint reading of module {module}")
         return known.angles
 
-    def ended(self, motion: Motion, linked: bool, readings: Readings) -> None:
-        (a, ac), (b, bc) = motion.reach.chain.asking, motion.reach.chain.target
-        self.log(
-            f"reach_dock {self.where(a, ac)} -> {self.where(b, bc)}: {'latched' if linked else 'gave up'} after "
-            f"{motion.reach.cycles} steps (cycles {motion.asked}-{motion.last}); chain frames {dict(self.asker.counts)}"
-        )
+    def _askers(self) -> list[Asker]:
+        return [self.asker]

@@ -88,6 +88,42 @@ ALONGSIDE_M = 0.05
 ACROSS_BEHIND_M = 0.05
 
 
+#: Where a trip parks the foot's front in the target face's frame (along, aside; m), and how
+#: much further back than that it moves across (:class:`Trip`'s ``park`` and ``margin_m``).
+PARK = (-0.03, 0.005)
+MARGIN_M = 0.03
+
+
+def parked(
+    floor: FloorPoses,
+    model: ConroModel,
+    foot: int,
+    target: End,
+    *,
+    park: tuple[float, float] = PARK,
+    margin_m: float = MARGIN_M,
+    heading_deg: float = 6.0,
+) -> bool:
+    """Whether the tracker's ``floor`` shows ``foot`` where a :class:`Trip` to ``target``
+    arrives: its front squared (within ``heading_deg``) within 3 cm of the spot aside and
+    between ``margin_m`` + 2.5 cm further back and 2 cm nearer than it. What the asking
+    module, which cannot see the foot's trip, reads as "the foot is there"
+    (firmware.motion.assimilating)."""
+    fx, fy, _, _ = floor.face(model, foot, "front")
+    px, py, nx, ny = floor.face(model, *target)
+    norm = math.hypot(nx, ny) or 1.0
+    ux, uy = -nx / norm, -ny / norm
+    rx, ry = fx - px, fy - py
+    s, lat = rx * ux + ry * uy, -rx * uy + ry * ux
+    heading = (floor.heading(foot) - math.atan2(uy, ux) + math.pi) % (2 * math.pi) - math.pi
+    aim = park[0] - margin_m
+    return (
+        abs(abs(lat) - park[1]) <= 0.03
+        and aim - 0.025 <= s <= park[0] + 0.02
+        and abs(math.degrees(heading)) <= heading_deg
+    )
+
+
 class Trip:
     """A released foot's trip to a spot just behind a free face (the tail's back), facing it.
 
@@ -151,11 +187,11 @@ class Trip:
         model: ConroModel = DEFAULT_MODEL,
         backoff_m: float = 0.08,
         clear_m: float = 0.10,
-        park: tuple[float, float] = (-0.03, 0.005),
+        park: tuple[float, float] = PARK,
         budget: int = 2500,
         body: Callable[[], list[int]] | None = None,
         others: Callable[[], list[int]] | None = None,
-        margin_m: float = 0.03,
+        margin_m: float = MARGIN_M,
         diagonal_m: float = DIAGONAL_M,
     ) -> None:
         self.floor = floor

@@ -241,12 +241,15 @@ class Docking:
         *,
         timeout: int = DEFAULT_TIMEOUT,
         creep: bool = False,
+        creeps_itself: bool = False,
     ) -> bool:
         """Begin bending ``module``'s ``connector`` to ``target``, a face on a body no route
         reaches (a module lying apart); the joints that bend are those along ``route`` up
         ``module``'s own robot. With ``creep`` the target is a lone module whose face is its
-        front: it creeps towards the asking face meanwhile. False (logged) if a connector is
-        not free or the genders do not match."""
+        front: it creeps towards the asking face meanwhile, stepped here; with
+        ``creeps_itself`` it creeps on its own (a released foot running its own part,
+        firmware.motion.foot): planned the same, nothing stepped for it. False (logged) if a
+        connector is not free or the genders do not match."""
         o = self.world
         b, bc = target
         where = f"{o.where(module, connector)} -> {o.where(b, bc)}"
@@ -256,12 +259,14 @@ class Docking:
         if not self.profile.can_link(connector, bc):
             o.note(f"reach_dock {where}: both connectors are {self.profile.gender(connector)}")
             return False
-        free = creep and self.options.free_distance  # the creeping foot closes the distance
+        free = (creep or creeps_itself) and self.options.free_distance  # the creeping foot closes the distance
         chain = Chain.to_other(self.model, (module, connector), tuple(route), o.peer_of, target, free_distance=free)
         crept = Creep(b, self.model.connector(bc).name) if creep else None
         needs = Needs(frozenset(m for m, _ in chain.joints), (module,), floor=True)
         self._plan(chain, where, needs, timeout, crept)
-        o.note(f"reach_dock {where}: bending" + (f"; {o.where(b, bc)} creeps towards it" if creep else ""))
+        o.note(
+            f"reach_dock {where}: bending" + (f"; {o.where(b, bc)} creeps towards it" if creep or creeps_itself else "")
+        )
         return True
 
     def assimilate(self, module: int, connector: int, route: Sequence[int]) -> bool:

@@ -24,6 +24,7 @@ from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
 from firmware.control import Command, Detach, Effect, Floor, LatchAnswer, Readings, Report
 from firmware.main_loop import ModuleHost
+from firmware.motion.asking import SelfReach
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.member import IDLE_CYCLES
 
@@ -191,6 +192,7 @@ def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path
         cycles(4)
         assert head.reach is not None, head.runtime.log
         reach = head.reach
+        assert isinstance(reach, SelfReach)
         cycles(3)
         assert reach.asker.known and reach.docking is not None and reach.docking.busy, head.runtime.log
         assert tail.member.holding == reach.asker.motion and set(tail.member.held) == {0, 1}
@@ -264,6 +266,7 @@ def test_the_foot_lets_go_and_walks_by_the_tracker_on_its_own_servos(robot: Robo
 
     robot.commands[1].put(Floor({1: lying(0.0)}))  # the tracker lost the foot
     robot.cycles(2)
-    ((kind, detail),) = effects(robot, "foot")
+    set_off, (kind, detail) = effects(robot, "foot")
+    assert set_off[0] == "set_off" and "to module 1" in str(set_off[1])  # the world pushes it the tracker
     assert kind == "trip_gave_up" and "module 2" in detail
     assert foot.foot.tries == 1 and not foot.foot.done  # it goes round again

@@ -59,6 +59,13 @@ def _summary(out: str) -> dict[str, Any]:
     return summary
 
 
+def _docking_lines(log: list[str]) -> list[str]:
+    """The log's lines about the docking, for a failure's message (the first lines are every
+    module's latch line, which say nothing of why a T did not form)."""
+    words = ("reach", "dock", "latch refused", "releas", "gave up", "abandoned", "not aligned")
+    return [line for line in log if any(w in line for w in words) and "no [latch] in module.toml" not in line]
+
+
 def test_held_joints_go_to_the_driver_in_place_of_the_program_s() -> None:
     """ModuleRuntime.hold: the held joint's target reaches the driver from the next cycle, the
     other joint stays the program's; an empty hold gives the joint back."""
@@ -117,9 +124,9 @@ def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pyte
     summary = _summary(out)
     log = summary["log"]
     types = {m["name"]: m["type"] for m in summary["modules"]}
-    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, log)
+    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, _docking_lines(log))
     docked = [line for line in log if "m0.front docked to m5.left" in line]
-    assert len(docked) == 1 and "by motion" in docked[0], log
+    assert len(docked) == 1 and "by motion" in docked[0], _docking_lines(log)
     assert sum("m2.back released" in line for line in log) == 1, log
     reaches = summary["reaches"]
     assert not reaches["failed"], reaches
@@ -207,9 +214,9 @@ def test_snake_to_t_forms_with_the_motion_in_the_modules(
     assert holds == []  # the world moved no joint
     assert any("m0.front along" in line and "carried out by the module" in line for line in log), log
     types = {m["name"]: m["type"] for m in summary["modules"]}
-    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, log)
+    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, _docking_lines(log))
     docked = [line for line in log if "m0.front docked to m5.left" in line]
-    assert len(docked) == 1 and "by motion, the module's own" in docked[0], log
+    assert len(docked) == 1 and "by motion, the module's own" in docked[0], _docking_lines(log)
     assert any("m0.front: linked (the module's own)" in line for line in log), log
     (contact,) = summary["reaches"]["contacts"]
     assert contact["distance_mm"] <= DOCK_TOLERANCE_M * 1000 and contact["attitude_deg"] <= DOCK_TOLERANCE_DEG

@@ -1,0 +1,332 @@
+"""A ``reach_and_dock`` carried out by the module that asked for it (sans-IO): the asking side
+of legs to snake's ``dock_tail_to_foot`` (docs/hil.md, *`reach_and_dock` in the modules*).
+
+The foot at the end of the program's route lets go of the body and comes to the asking face
+by its own trip and creep (:class:`firmware.motion.foot.Foot`, told by a SET_OFF); this is
+everything else, run in the asking module from what it has on a robot: its own joints and
+infrared pairs, the overhead tracker's report, and what its neighbours answer over the links.
+
+Phases (:attr:`SelfAssimilate.phase`):
+
+1. ``learn``: two chains are learnt a hop a round trip (:class:`firmware.motion.asker.Asker`):
+   the route to the foot (its module index, and the connector it hangs by, which must be its
+   front) and the body up the asking robot by front links (:func:`dh2rt.docking.body_up`, as
+   far as it goes): the markers the foot's trip follows.
+2. ``clearing`` (only if the tracker shows a module lying on the spot behind the face,
+   :func:`firmware.motion.clearing.spot_taken`): the body crawls forward
+   (:class:`firmware.motion.clearing.Clearing`, its DOF1 targets sent as TARGETS), then gives
+   the members their joints back (END).
+3. ``hand over``: SET_OFF to the foot each cycle until its link goes (the foot lets go: the
+   member before it, or this module, reports that connector unlinked), at most
+   :data:`LET_GO_CYCLES`.
+4. ``waiting``: nothing is sent; each cycle the tracker's report (or the face's own infrared
+   pair) says whether the foot has parked where its trip ends (:func:`firmware.motion.crawl.parked`).
+5. ``squaring``: the last modules up the robot (:func:`dh2rt.docking.squaring_route`) are
+   learnt again, and :meth:`firmware.motion.docking.Docking.reach_other` squares the face to
+   the foot's front while the foot creeps on its own (``creeps_itself``); the latch is asked
+   as for a ``reach_dock`` (:class:`firmware.motion.asking.LatchAsk`). Linked: done. Not
+   linked: the foot goes round again by itself (its creep runs out), so this waits again,
+   for the foot to leave the spot and come back, up to :data:`firmware.motion.foot.ATTEMPTS`
+   squarings in all; it never sends the foot round itself (it has no link to it).
+
+The whole wait is bounded (:data:`WAIT_CYCLES`: every trip the foot may make, each with its
+creep); past it, or when the foot's trips are spent, the verdict is ``not linked``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from dh2rt import docking as rules
+from dh2rt.docking import End
+from dh2rt.profile import Profile
+from dh2rt.wire import motion as mw
+from firmware.motion.asker import Asker
+from firmware.motion.asking import LEARN_CYCLES, LatchAsk, ModuleWorld, OwnSenses
+from firmware.motion.body import ConroModel
+from firmware.motion.clearing import Clearing, spot_taken
+from firmware.motion.crawl import parked
+from firmware.motion.docking import Docking, Options
+from firmware.motion.foot import ATTEMPTS, CREEP_BUDGET
+from firmware.motion.readings import FloorPoses, TrackerMissing
+from firmware.outbound import Out
+
+#: Cycles the SET_OFF is sent before the foot's letting go is given up on: the foot takes it
+#: a hop a cycle down the route and lets go at once; a link seen down takes the neighbour's
+#: silence to show (the launcher's ``--silence-cycles``, a few cycles).
+LET_GO_CYCLES = 60
+#: Hops up the robot by front links learnt at most (a snake of 17 modules).
+MAX_BODY = 16
+#: A trip's budget (firmware.motion.crawl.Trip's ``budget``), for the whole wait's bound.
+TRIP_BUDGET = 2500
+#: Cycles this waits for the foot in all: each of its trips with its creep.
+WAIT_CYCLES = ATTEMPTS * (TRIP_BUDGET + CREEP_BUDGET)
+#: The face's own infrared pair sees the foot parked: nearer than this (mm) and square.
+SEES_MM = 85.0
+SEES_DEG = 20.0
+
+
+@dataclass
+class SelfAssimilate(ModuleWorld):
+    """One ``reach_and_dock`` of the asking module (module docs)."""
+
+    to_foot: Asker
+    #: up the robot by front links; None when the asking module's front is free (it is the head)
+    up_body: Asker | None
+    connector: int
+    senses: OwnSenses
+    latch_world: LatchAsk
+    model: ConroModel
+    profile: Profile
+    log: Callable[[str], None]
+    #: the asking module's links now (its ConnectorStatus)
+    own_links: Callable[[], Sequence[int]]
+    #: a fresh motion id for each chain learnt later (the squaring's)
+    next_motion: Callable[[], int]
+    options: Options = field(default_factory=Options)
+    cycle: int = 0
+    phase: str = "learn"
+    foot: int | None = None
+    body: list[int] = field(default_factory=list)
+    clearing: Clearing | None = None
+    squaring: Asker | None = None
+    docking: Docking | None = None
+    #: the cycle the current phase began
+    since: int = 0
+    waited: int = 0
+    squarings: int = 0
+    #: the foot was seen off the spot since the last squaring (it went round again)
+    away: bool = True
+    own_targets: dict[int, float] = field(default_factory=dict)
+    verdict: str | None = None
+
+    @property
+    def me(self) -> int:
+        return self.to_foot.me
+
+    @property
+    def done(self) -> bool:
+        return self.verdict is not None
+
+    @property
+    def askers(self) -> list[Asker]:
+        return [a for a in (self.to_foot, self.up_body, self.squaring) if a is not None]
+
+    def received(self, report: mw.Angles, cycle: int) -> None:
+        """An ANGLES that came back: to the chain whose motion it answers."""
+        for asker in self.askers:
+            if asker.motion == report.motion:
+                asker.received(report, cycle)
+                return
+
+    # ------------------------------------------------------------ each cycle
+
+    def step(self, cycle: int) -> list[Out]:
+        """One control cycle: the frames to send."""
+        self.cycle = cycle
+        if self.done:
+            return []
+        self.own_targets = {}
+        phase = getattr(self, "_" + self.phase.replace(" ", "_"))
+        out: list[Out] = phase()
+        return out
+
+    def _learn(self) -> list[Out]:
+        body = self.up_body
+        if not (self.to_foot.known and (body is None or body.learnt)):
+            if self.cycle - self.to_foot.started > LEARN_CYCLES:
+                return self._finish(f"the route or the body did not answer in {LEARN_CYCLES} cycles")
+            return self.to_foot.frames(self.cycle) + ([] if body is None else body.frames(self.cycle))
+        refused = self._rules()
+        if refused:
+            return self._finish(refused)
+        floor = self.senses.floor()
+        if not floor.modules:
+            if self.cycle - self.to_foot.started > LEARN_CYCLES:
+                return self._finish("no report of the overhead tracker (the foot's trip needs one)")
+            return self.to_foot.frames(self.cycle)  # the tracker's latency: keep the route answering
+        lying = self._spot_taken(floor)
+        if lying is not None and body is not None:
+            self.clearing = Clearing(self.body[::-1], lambda: self._spot_taken(self.senses.floor()) is not None)
+            self.log(f"reach_and_dock: module {lying} lies behind the face; the robot crawls clear first")
+            return self._enter("clearing")
+        return self._enter("hand over")
+
+    def _rules(self) -> str | None:
+        """The foot and the body as learnt; why the rules refuse the dock, or None."""
+        front = self.profile.connector_index("front")
+        foot = self.to_foot.members[-1]
+        if foot.module is None or foot.module == self.me:
+            return "the route leads back"
+        if foot.route[-1][1] != front:
+            return "the foot does not hang by its front"
+        if self.own_links()[self.connector - 1]:
+            return f"{self.where(self.me, self.connector)} is not free"
+        if not self.profile.can_link(self.connector, front):
+            return "both connectors are of one gender"
+        self.foot = foot.module
+        up = [] if self.up_body is None else [m.module for m in self.up_body.members if m.module is not None]
+        self.body = [self.me, *up]
+        self.log(f"reach_and_dock: the foot is module {self.foot}; the body up is {self.body}")
+        return None
+
+    def _spot_taken(self, floor: FloorPoses) -> int | None:
+        assert self.foot is not None
+        try:
+            size = 1 + max(floor.modules)
+            return spot_taken(floor, self.model, self.peer_of, self.profile, size, self._face, self.foot)
+        except TrackerMissing:
+            return None
+
+    @property
+    def _face(self) -> End:
+        return self.me, self.connector
+
+    def _clearing(self) -> list[Out]:
+        assert self.clearing is not None and self.up_body is not None
+        dof1 = self.clearing.step()
+        if not self.clearing.done:
+            if self.me in dof1:
+                self.own_targets = {0: dof1.pop(self.me)}
+            return self.up_body.frames(self.cycle, {m: {0: v} for m, v in dof1.items()})
+        c = self.clearing
+        self.log(
+            f"reach_and_dock: crawled {c.gait_cycles} gait cycles, the spot "
+            + ("clear" if c.cleared else "still taken; the foot sets off anyway")
+        )
+        return self.up_body.end(self.cycle) + self._enter("hand over")
+
+    def _hand_over(self) -> list[Out]:
+        assert self.foot is not None
+        if self._let_go():
+            self.log(f"reach_and_dock: module {self.foot} let go after {self.cycle - self.since} cycles")
+            return self.to_foot.end(self.cycle) + self._enter("waiting")
+        if self.cycle - self.since > LET_GO_CYCLES:
+            return self._finish(f"the foot did not let go in {LET_GO_CYCLES} cycles")
+        floor = self.senses.floor()
+        others = sorted(set(floor.modules) - set(self.body) - {self.foot})
+        asks = self.to_foot.frames(self.cycle)  # first: a member takes only frames newer than the last
+        return [*asks, self.to_foot.set_off(self.cycle, self.me, self.connector, self.body, others)]
+
+    def _let_go(self) -> bool:
+        """The foot's link is down: seen by the member before it, or by this module."""
+        route = self.to_foot.route
+        if len(route) == 1:
+            links: Sequence[int] = self.own_links()
+        else:
+            before = self.to_foot.members[-2]
+            if before.answered is None or before.answered <= self.since:
+                return False
+            links = before.links
+        return route[-1] > len(links) or not links[route[-1] - 1]
+
+    def _waiting(self) -> list[Out]:
+        assert self.foot is not None
+        self.waited += 1
+        if self.waited > WAIT_CYCLES:
+            return self._finish(f"not linked: no foot parked at the face in {WAIT_CYCLES} cycles")
+        there = self._foot_there()
+        if not there:
+            self.away = True
+            return []
+        if not self.away:
+            return []  # still where the last squaring left it: its creep runs out first
+        route = rules.squaring_route(self.peer_of, self.profile, self.me)
+        if not route:
+            return self._finish("the asking module has no body up its front to square its face with")
+        self.squaring = Asker(self.next_motion(), self.me, tuple(self.own_links()), route, self.cycle, log=self.log)
+        self.log(f"reach_and_dock: module {self.foot} is at the face; squaring along {list(route)}")
+        return self._enter("squaring")
+
+    def _foot_there(self) -> bool:
+        """The tracker shows the foot parked behind the face, or the face's pair sees it."""
+        assert self.foot is not None
+        floor = self.senses.floor()
+        front = self.profile.connector_index("front")
+        try:
+            if self.foot in floor.modules and parked(floor, self.model, self.foot, self._face):
+                return True
+        except TrackerMissing:
+            pass
+        name = self.profile.connector_name(self.connector)
+        ir = self.senses.infrared()
+        mm, deg = ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0)
+        return front > 0 and 0.0 < mm <= SEES_MM and deg <= SEES_DEG
+
+    def _squaring(self) -> list[Out]:
+        chain = self.squaring
+        assert chain is not None and self.foot is not None
+        if self.docking is None:
+            if not chain.known:
+                if self.cycle - chain.started > LEARN_CYCLES:
+                    return self._finish(f"the squaring chain did not answer in {LEARN_CYCLES} cycles")
+                return chain.frames(self.cycle)
+            size = 1 + max([self.me, self.foot, *self.body])
+            names = [f"m{i}" for i in range(size)]
+            self.docking = Docking(self, self, self.model, self.profile, names, self.options)
+            front = self.profile.connector_index("front")
+            if not self.docking.reach_other(
+                self.me, self.connector, chain.route, (self.foot, front), creeps_itself=True
+            ):
+                return self._finish("refused")
+        docking = self.docking
+        targets = docking.step(self.cycle)
+        if docking.busy:
+            self.own_targets = dict(targets.pop(self.me, {}))
+            return chain.frames(self.cycle, targets)
+        ended = chain.end(self.cycle)
+        self.squarings += 1
+        if docking.outcomes and docking.outcomes[-1].latched:
+            return ended + self._finish("linked")
+        why = "the chain went silent" if not docking.outcomes else "not latched"
+        self.docking, self.squaring = None, None
+        if self.squarings >= ATTEMPTS:
+            return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
+        self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
+        self.away = False
+        return ended + self._enter("waiting")
+
+    def _enter(self, phase: str) -> list[Out]:
+        self.phase, self.since = phase, self.cycle
+        return []
+
+    def _finish(self, verdict: str) -> list[Out]:
+        self.verdict, self.own_targets = verdict, {}
+        self.log(f"reach_and_dock from m{self.me}: {verdict}")
+        out: list[Out] = []
+        for asker in self.askers:
+            if asker.members and any(m.answered is not None for m in asker.members):
+                out += asker.end(self.cycle)
+        return out
+
+    # ------------------------------------------------------------ the world, as the module knows it
+
+    def peer_of(self, end: End) -> End | None:
+        module, connector = end
+        if module == self.foot:
+            return None  # the foot is lone once it let go; nothing docks it but the latch
+        for asker in (self.squaring, self.up_body, self.to_foot):
+            if asker is not None and (module == self.me or asker.member(module) is not None):
+                peer = asker.peer_of(module, connector)
+                if peer is not None and peer[0] != -1:
+                    return peer
+        if module == self.me:
+            remote = self.own_links()[connector - 1] if connector <= len(self.own_links()) else 0
+            return (-1, remote) if remote else None
+        return None
+
+    def running(self, module: int) -> bool:
+        if module == self.foot:
+            return True  # lone: nothing tells; its own trip gives up if it must
+        chain = self.squaring if self.squaring is not None else self.up_body
+        return chain is not None and chain.running(module, self.cycle)
+
+    def _askers(self) -> list[Asker]:
+        return self.askers
+
+    def _member_angles(self, module: int) -> Sequence[float]:
+        known = None if self.squaring is None else self.squaring.member(module)
+        if known is None or len(known.angles) < 2:
+            raise KeyError(f"no joint reading of module {module}")
+        return known.angles

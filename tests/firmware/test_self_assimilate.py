@@ -1,0 +1,203 @@
+"""A ``reach_and_dock`` carried out by the asking module (firmware.motion.assimilating), on
+plain numbers: links in a table, ideal servos, frames carried at once, the tracker's report
+and the face's infrared pair set by the test, the latch scripted.
+
+The robot: a snake 0-1-2-3 (k's back on k+1's front; 3 is the tail, its back the face) and a
+leg 4 hanging by its front on 1's left. The tail learns the route to the foot and the body up
+its front links, hands the foot its SET_OFF until the foot lets go, sends nothing while the
+foot is on its way, squares its face when the tracker shows the foot parked behind it, and
+latches; a squaring that does not latch waits for the foot to leave the spot and come back."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from dh2rt.profile import CONRO
+from dh2rt.wire import motion as mw
+from firmware.motion.asker import Asker
+from firmware.motion.assimilating import SelfAssimilate
+from firmware.motion.body import DEFAULT_MODEL
+from firmware.motion.crawl import parked
+from firmware.motion.readings import FloorPoses, ModulePose, PartPose
+from tests.firmware.test_self_reach import Robot
+
+C = CONRO.connector_index
+FRONT, BACK, LEFT = C("front"), C("back"), C("left")
+ROUTE = (FRONT, FRONT, LEFT)
+#: centre to centre of two modules docked front to back, lying straight
+PITCH = DEFAULT_MODEL.length + DEFAULT_MODEL.front.half[0] + DEFAULT_MODEL.back.half[0]
+
+
+def lying(x: float, y: float = 0.0) -> ModulePose:
+    """A module lying straight along the arena's x axis, its front towards +x."""
+    half = DEFAULT_MODEL.length / 2 + DEFAULT_MODEL.front.half[0]
+    return ModulePose(PartPose(x, y, 0.0), PartPose(x + half, y, 0.0), PartPose(x - half, y, 0.0))
+
+
+@dataclass
+class Legged(Robot):
+    """The robot of the module docs, the tracker's report set by the test."""
+
+    report: dict[int, ModulePose] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        del self.links[(3, BACK)], self.links[(4, FRONT)]  # 4 is the leg, not the snake's fifth
+        self.links[(1, LEFT)], self.links[(4, FRONT)] = (4, FRONT), (1, LEFT)
+        self.report = {m: lying(-m * PITCH) for m in range(4)} | {4: lying(-PITCH, 0.3)}
+
+    def floor(self) -> FloorPoses:
+        return FloorPoses(dict(self.report))
+
+    def foot_at(self, behind_m: float) -> None:
+        """The foot lying straight behind the tail, its front ``behind_m`` from the face."""
+        floor = self.floor()
+        fx, _, _, _ = floor.face(DEFAULT_MODEL, 3, "back")
+        probe = FloorPoses({4: lying(0.0)})
+        front_x, _, _, _ = probe.face(DEFAULT_MODEL, 4, "front")
+        self.report[4] = lying(fx - behind_m - front_x)
+
+    def cut(self, a: int, connector: int) -> None:
+        peer = self.links.pop((a, connector))
+        del self.links[peer]
+
+    def run(self, reach: SelfAssimilate, cycle: int) -> int:
+        """One cycle as the asking module's host runs it; the frames it sent."""
+        outs = reach.step(cycle)
+        self.deliver(self.asking, outs, cycle)
+        me = self.members[self.asking]
+        for report in me.reports:
+            reach.received(report, cycle)
+        me.reports.clear()
+        for m, member in enumerate(self.members):
+            member.cycle(cycle)
+            held = reach.own_targets if m == self.asking else member.held
+            pos = list(self.joints.get(m, (0.0, 0.0)))
+            for dof, v in held.items():
+                pos[dof] = v
+            self.joints[m] = (pos[0], pos[1])
+        return len(outs)
+
+
+def assimilate(robot: Legged, route: tuple[int, ...] = ROUTE) -> SelfAssimilate:
+    motions = iter(range(20, 40))
+    to_foot = Asker(10, 3, robot.status(3), route, 0, log=robot.log.append)
+    body = Asker(11, 3, robot.status(3), (FRONT,) * 16, 0, log=robot.log.append)
+    return SelfAssimilate(
+        to_foot,
+        body,
+        BACK,
+        robot,
+        robot,
+        DEFAULT_MODEL,
+        CONRO,
+        robot.log.append,
+        own_links=lambda: robot.status(3),
+        next_motion=lambda: next(motions),
+    )
+
+
+def test_parked_is_where_a_trip_ends() -> None:
+    robot = Legged(5, asking=3)
+    robot.foot_at(0.04)
+    assert parked(robot.floor(), DEFAULT_MODEL, 4, (3, BACK))
+    robot.foot_at(0.30)  # still on its way
+    assert not parked(robot.floor(), DEFAULT_MODEL, 4, (3, BACK))
+    robot.foot_at(0.04)
+    foot = robot.report[4]
+    centre, front, back = (PartPose(p.x, p.y, 0.5) for p in (foot.centre, foot.front, foot.back))
+    robot.report[4] = ModulePose(centre, front, back)
+    assert not parked(robot.floor(), DEFAULT_MODEL, 4, (3, BACK))  # not squared
+
+
+def test_the_tail_hands_the_foot_over_waits_squares_and_latches() -> None:
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = 0
+    while reach.phase == "learn":
+        robot.run(reach, cycle)
+        cycle += 1
+        assert cycle < 10 and not reach.done, robot.log
+    assert reach.foot == 4 and reach.body == [3, 2, 1, 0]
+    assert reach.phase == "hand over"
+
+    robot.run(reach, cycle)  # the SET_OFF reaches the foot: come to the tail's back
+    set_off = robot.members[4].set_off
+    assert isinstance(set_off, mw.SetOff)
+    assert (set_off.target, set_off.connector, set_off.body, set_off.others) == (3, BACK, (3, 2, 1, 0), ())
+    robot.members[4].set_off = None
+    cycle += 1
+    robot.run(reach, cycle)
+    assert robot.members[4].set_off is not None  # sent again until the foot lets go
+    robot.cut(4, FRONT)  # it lets go
+    for _ in range(3):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == "waiting", robot.log
+
+    robot.foot_at(0.40)  # on its way: nothing goes on the links
+    assert [robot.run(reach, cycle + k) for k in range(1, 6)] == [0] * 5
+    cycle += 6
+    robot.foot_at(0.04)  # parked behind the face
+    robot.run(reach, cycle)
+    assert reach.phase == "squaring" and reach.squaring is not None
+    while reach.docking is None:
+        cycle += 1
+        robot.run(reach, cycle)
+        assert cycle < 60, robot.log
+    assert reach.squaring.route == (FRONT, FRONT)  # the last two modules up the robot
+    cycle += 1
+    robot.run(reach, cycle)
+    assert robot.members[2].held and reach.own_targets  # squaring: the tail's joints and m2's, by TARGETS
+    robot.ir = (12.0, 5.0)  # the foot's front in view, within the tolerance
+    for _ in range(3):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert robot.latches == [(3, BACK, 4, FRONT)] and reach.verdict == "linked", robot.log
+    assert all(member.held == {} for member in robot.members)  # END to every member
+    assert any("reach_dock m3.back -> m4.front: latched" in line for line in robot.log), robot.log
+
+
+def test_a_squaring_that_does_not_latch_waits_for_the_foot_to_come_round_again() -> None:
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = 0
+    while reach.phase != "hand over":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.cut(4, FRONT)
+    while reach.phase != "waiting":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.foot_at(0.04)
+    robot.run(reach, cycle)
+    assert reach.phase == "squaring" and reach.docking is None
+    while reach.docking is None:
+        cycle += 1
+        robot.run(reach, cycle)
+    reach.docking.motions[0].reach.timeout = reach.docking.motions[0].reach.cycles + 1  # it gives up now
+    for _ in range(3):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == "waiting" and reach.squarings == 1 and not robot.latches, robot.log
+    cycle += 1
+    robot.run(reach, cycle)
+    assert reach.phase == "waiting"  # the foot still lies there: its creep runs out first
+    robot.foot_at(0.30)  # it went round again
+    cycle += 1
+    robot.run(reach, cycle)
+    robot.foot_at(0.04)  # and is back
+    cycle += 1
+    robot.run(reach, cycle)
+    assert reach.phase == "squaring"
+
+
+def test_a_foot_that_does_not_hang_by_its_front_is_refused() -> None:
+    robot = Legged(5, asking=3)
+    robot.cut(1, LEFT)
+    robot.links[(1, LEFT)], robot.links[(4, BACK)] = (4, BACK), (1, LEFT)
+    reach = assimilate(robot)
+    for cycle in range(8):
+        robot.run(reach, cycle)
+    assert reach.verdict == "the foot does not hang by its front"
+    assert robot.members[4].set_off is None
