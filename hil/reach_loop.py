@@ -119,6 +119,13 @@ class LoopReaches:
         #: reaches the modules carry out themselves (World.modules_move): asking module ->
         #: (its connector, the world cycle it asked at, the target module)
         self.own: dict[int, tuple[int, int, int | None]] = {}
+        #: of those, the ones carrying out a ``reach_and_dock`` (firmware.motion.assimilating):
+        #: they read the tracker's whole report (the body up, the modules off the path, the foot)
+        self.own_assimilating: set[int] = set()
+        #: released feet running their own trip and creep (firmware.motion.foot): each world
+        #: cycle their infrared pairs and the tracker's whole report, as a module on a robot
+        #: reads its own pairs and hears the tracker's broadcast
+        self.feet: set[int] = set()
         self._pushed_own = -1
 
     # ------------------------------------------------------------ what the sequence asks of the world
@@ -191,7 +198,7 @@ class LoopReaches:
         moves the targets to hold, and push the ``docking`` readings."""
         if self.docking.busy:
             self._send_holds(self.docking.step(cycle, due))
-        if self.own and cycle != self._pushed_own:
+        if (self.own or self.feet) and cycle != self._pushed_own:
             self._pushed_own = cycle
             self._push_own(cycle)
         self.sync_docking()
@@ -221,24 +228,57 @@ class LoopReaches:
         w.note(f"reach_dock {w.where(module, connector)} along {list(route)}: carried out by the module")
         self.sync_docking([module])
 
+    def own_assimilate(self, module: int, connector: int, route: Sequence[int]) -> None:
+        """``module`` carries out its ``reach_and_dock`` itself (firmware.motion.assimilating),
+        the foot its own trip (firmware.motion.foot, once it reports its SET_OFF:
+        :meth:`foot_event`): the world computes nothing for either; it pushes them their
+        infrared pairs and the tracker's whole report each world cycle and answers the asking
+        module's latch, until it reports the end."""
+        w = self.world
+        self.own[module] = (connector, w.cycle, None)
+        self.own_assimilating.add(module)
+        w.note(f"reach_and_dock {w.where(module, connector)} along {list(route)}: carried out by the modules")
+        self.sync_docking([module])
+
+    def foot_event(self, module: int, kind: str) -> None:
+        """A released foot's ``foot`` effect: from its ``set_off`` until it is ``docked`` or
+        ``gave_up`` it hears the tracker and its pairs are pushed."""
+        if kind == "set_off":
+            self.feet.add(module)
+        elif kind in ("docked", "gave_up"):
+            self.feet.discard(module)
+
     def _push_own(self, cycle: int) -> None:
-        """The asking modules' infrared pairs as physics has them, whole millimetres and
-        degrees (what the module's pair reads; its program may not declare them)."""
-        for m, (_, _, target) in list(self.own.items()):
-            if not self.world.running(m):
-                del self.own[m]
-                continue
-            both = (m,) if target is None else (m, target)
-            with self.physics.lock:
-                readings = self.sensors.read(cycle, frozenset(), (m,), floor=True, attitude=both)
+        """The asking modules' and the feet's infrared pairs as physics has them, whole
+        millimetres and degrees (what the module's pair reads; its program may not declare
+        them), and the overhead tracker's report: of the asking and target modules for a
+        ``reach_dock``, of every module for a ``reach_and_dock`` and a foot."""
+        for m in [m for m in self.own if not self.world.running(m)]:
+            del self.own[m]
+            self.own_assimilating.discard(m)
+        self.feet = {m for m in self.feet if self.world.running(m)}
+        readers = sorted(set(self.own) | self.feet)
+        if not readers:
+            return
+        every = tuple(range(self.world.topology.size))
+        with self.physics.lock:
+            readings = self.sensors.read(cycle, frozenset(), tuple(readers), floor=True, attitude=every)
+        parts = {
+            k: tuple((p.x, p.y, p.heading) for p in (pose.centre, pose.front, pose.back))
+            for k, pose in readings.floor.modules.items()
+        }
+        for m in readers:
             pairs = readings.infrared.get(m, {})
             self.world.send_readings(m, Readings({name: round(v) for name, v in pairs.items()}))
-            parts = {
-                k: tuple((p.x, p.y, p.heading) for p in (pose.centre, pose.front, pose.back))
-                for k, pose in readings.floor.modules.items()
-                if k in both
-            }
-            self.world.send_readings(m, Floor(parts, {k: readings.attitude[k] for k in both if k in readings.attitude}))
+            target = self.own.get(m, (0, 0, None))[2]
+            seen = every if m in self.feet or m in self.own_assimilating else (m,) if target is None else (m, target)
+            self.world.send_readings(
+                m,
+                Floor(
+                    {k: v for k, v in parts.items() if k in seen},
+                    {k: readings.attitude[k] for k in seen if k in readings.attitude},
+                ),
+            )
 
     def own_latch(self, module: int, connector: int, target: int, target_conn: int) -> bool:
         """The module asks its latch to close: closed in physics and linked, or refused
@@ -269,5 +309,7 @@ class LoopReaches:
         """The module's reach ended (its ``reach_ended`` effect)."""
         w = self.world
         self.own.pop(module, None)
-        w.note(f"reach_dock {w.where(module, connector)}: {verdict} (the module's own)")
+        kind = "reach_and_dock" if module in self.own_assimilating else "reach_dock"
+        self.own_assimilating.discard(module)
+        w.note(f"{kind} {w.where(module, connector)}: {verdict} (the module's own)")
         self.sync_docking([module])

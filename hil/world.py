@@ -592,6 +592,8 @@ class World:
         """Carry out what a native asked of the physical world (as the Robot does)."""
         if kind == "foot":  # a released foot's own trip and creep (firmware.motion.foot)
             self.log.append(f"{self.topology.names[module]}: foot {' '.join(map(str, args))}")
+            if self.reaches is not None and args:
+                self.reaches.foot_event(module, str(args[0]))
             return
         if kind not in ("reach_and_dock", "reach_dock", "release", "latch", "reach_ended"):
             return  # "assist" and the like only move joints, which the module did itself
@@ -615,7 +617,9 @@ class World:
                     docking.reach_and_dock_to(self, module, connector, route, target)
             else:
                 connector, route = int(args[0]), [int(c) for c in args[1]]
-                if self.reaches is not None:  # the foot comes by its own gaits, then they dock by motion
+                if self.reaches is not None and self.modules_move:  # the modules carry it out themselves
+                    self.reaches.own_assimilate(module, connector, route)
+                elif self.reaches is not None:  # the foot comes by its own gaits, then they dock by motion
                     self.reaches.assimilate(module, connector, route)
                 else:
                     docking.reach_and_dock(self, module, connector, route)
