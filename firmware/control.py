@@ -81,8 +81,9 @@ class Floor:
     """The overhead tracker's last report, for the reach a module runs itself (the world fills
     it as it fills the other sensors; on a robot it is ``dh2rt tracker`` over UDP,
     firmware.tracker_feed): the three parts of each module the motion reads, on the floor
-    (x, y in metres, heading in radians: centre, front, back), and those modules' IMU
-    (roll, pitch in degrees)."""
+    (x, y in metres, heading in radians: centre, front, back), and the module's own IMU
+    (roll, pitch in degrees, by its index; another module's tilt reaches it in that module's
+    ANGLES, firmware.motion.member)."""
 
     parts: Mapping[int, tuple[tuple[float, ...], ...]] = field(default_factory=dict)
     attitude: Mapping[int, tuple[float, ...]] = field(default_factory=dict)

@@ -77,8 +77,7 @@ from dh2rt.wire.motion import is_motion
 from drivers.base import ModuleDriver
 from drivers.recording import RecordingDriver
 from firmware.config import ModuleConfig
-from firmware.motion.asker import Asker
-from firmware.motion.member import Member
+from firmware.motion.host import NATIVES, MotionHost
 from firmware.operator import OperatorChannel
 from firmware.sensors import attach_sensors
 
@@ -90,6 +89,7 @@ if TYPE_CHECKING:
     from firmware.motion.asking import SelfReach
     from firmware.motion.assimilating import SelfAssimilate
     from firmware.motion.foot import Foot
+    from firmware.motion.member import Member
     from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
 from drivers.latch import Latch, LatchState
@@ -223,19 +223,11 @@ class ModuleHost:
         #: the operator's commands (dh2rt console): trusted keys as the flash's, the last
         #: counter accepted kept in the flash directory (docs/console.md)
         self.operator = OperatorChannel(self.runtime, config.trust, Path(config.flash) if config.flash else None)
-        #: the docking chains this module is a member of (dh2rt.wire.motion): it answers for its
-        #: joints, holds the targets it is sent and passes frames on along their route
-        self.member = Member(config.module, _ServoBody(self), log=self._log_line)
         self._split_control()
         #: whether this module carries out its program's ``reach_dock`` itself
         #: (firmware.motion.asking); under the HIL world (control on stdio) the world still
         #: does (hil.reach_loop) unless told otherwise
         self.self_motion = config.control != "stdio" if self_motion is None else self_motion
-        #: the reach this module runs (the last one, done or not), and how many it started
-        self.reach: SelfReach | SelfAssimilate | None = None
-        self._reaches = 0
-        #: this module's own trip and creep once it is the released foot of a reach_and_dock
-        self.foot: Foot | None = None
         #: the last value of every reading the world pushed (the motion reads its infrared)
         self.own_readings: dict[str, float] = {}
         #: the overhead tracker's last report for this module's reach (the world fills it)
@@ -245,6 +237,12 @@ class ModuleHost:
         self.last_angles: tuple[float, float] | None = None
         self.unread_angles = 0
         self.latch: _WorldLatch | _ModuleLatch = _module_latch(self)
+        #: this module's docking motions (firmware.motion.host): the chains it is a member of,
+        #: the reach it runs, its own trip once it is a released foot; what they hold on the
+        #: joints was last sent to the servos as ``_own_held``
+        self.motion = MotionHost(
+            config.module, self.program.profile, _ServoBody(self), _OwnSenses(self), self.latch, self._log_line
+        )
         self._own_held: dict[int, float] = {}
         if driver_fault is not None:
             self.runtime.actuator_fault = driver_fault
@@ -463,134 +461,59 @@ class ModuleHost:
 
         self.operator.listening = self.runtime.transport.listen(FrameFamily.CONTROL, on_control)
 
+    @property
+    def member(self) -> Member:
+        """The docking chains this module is a member of (dh2rt.wire.motion): it answers for
+        its joints, holds the targets it is sent and passes frames on along their route."""
+        return self.motion.member
+
+    @property
+    def reach(self) -> SelfReach | SelfAssimilate | None:
+        """The reach this module runs (the last one, done or not)."""
+        return self.motion.reach
+
+    @property
+    def foot(self) -> Foot | None:
+        """This module's own trip and creep once it is the released foot of a reach_and_dock."""
+        return self.motion.foot
+
     def _on_motion(self, frame: Inbound) -> None:
         """A motion frame: send what the member answers or passes on; the targets it holds
-        are written to the servos at this cycle's end (or the joints are the program's)."""
-        rt, member = self.runtime, self.member
-        before = member.held
-        for out in member.received(frame.connector, frame.payload, rt.cycle):
+        are written to the servos before the next cycle (or the joints are the program's)."""
+        rt = self.runtime
+        for out in self.motion.received(frame.connector, frame.payload, rt.cycle):
             rt.transport.send_raw(out.connector, out.frame)
-        if member.held is not before:
-            try:
-                rt.hold(member.held)
-            except DH2Error as exc:  # a joint this body does not have
-                self._log_line(f"motion: targets refused: {exc}")
-                member.held, member.holding = {}, None
+        self._hold(rt)
 
-    def _next_motion(self) -> int:
-        """A new motion id: the module's index in it, so that two askers' motions never share
-        one at a member."""
-        motion = (self.module & 0xFF) << 8 | (self._reaches & 0xFF)
-        self._reaches += 1
-        return motion
+    def _hold(self, rt: ModuleRuntime) -> None:
+        """What the motions hold on the joints, to the servos if it changed."""
+        joints = self.motion.joints
+        if joints == self._own_held:
+            return
+        try:
+            rt.hold(joints)
+            self._own_held = dict(joints)
+        except DH2Error as exc:  # a joint this body does not have
+            self._log_line(f"motion: targets refused: {exc}")
+            self.motion.member.held, self.motion.member.holding = {}, None
 
     def _start_reaches(self, rt: ModuleRuntime) -> None:
         """The program asked ``reach_dock`` or ``reach_and_dock`` this cycle: this module
-        carries it out (firmware.motion.asking, firmware.motion.assimilating), one at a time."""
+        carries it out (firmware.motion.host), one at a time."""
         for kind, args in rt.effects:
-            if kind not in ("reach_dock", "reach_and_dock"):
-                continue
-            if self.reach is not None and not self.reach.done:
-                self._log_line(f"{kind}: a reach of this module is under way; this one refused")
-                continue
-            if kind == "reach_and_dock":
-                self._start_assimilating(rt, args)
-                continue
-            try:
-                connector, route, target = int(args[0]), tuple(int(c) for c in args[1]), int(args[2])
-                motion = self._next_motion()
-                asker = Asker(motion, self.module, tuple(rt.engine.status), route, rt.cycle, log=self._log_line)
-            except (IndexError, TypeError, ValueError) as exc:
-                self._log_line(f"reach_dock {list(args)!r} refused: {exc}")
-                continue
-            # the planner (numpy) is loaded by the first reach, not by every module at boot
-            from firmware.motion.asking import SelfReach
-            from firmware.motion.body import DEFAULT_MODEL
+            if kind in NATIVES:
+                self.motion.start(kind, args, rt.engine.status, rt.cycle)
 
-            profile = self.program.profile
-            self.reach = SelfReach(
-                asker, connector, target, _OwnSenses(self), self.latch, DEFAULT_MODEL, profile, self._log_line
-            )
-            self._log_line(f"reach_dock: motion {motion} from {profile.connector_name(connector)}, learning the chain")
-
-    def _start_assimilating(self, rt: ModuleRuntime, args: Sequence[Any]) -> None:
-        """``reach_and_dock(connector, route)``: the foot at the route's end comes to this
-        module's connector by its own trip (firmware.motion.assimilating: the asking side)."""
-        from firmware.motion.assimilating import MAX_BODY, SelfAssimilate
-        from firmware.motion.body import DEFAULT_MODEL
-
-        profile = self.program.profile
-        front = profile.connector_index("front")
-        links = tuple(rt.engine.status)
-        try:
-            connector, route = int(args[0]), tuple(int(c) for c in args[1])
-            to_foot = Asker(self._next_motion(), self.module, links, route, rt.cycle, log=self._log_line)
-            body = None
-            if links[front - 1]:  # up the robot by front links, as far as they go
-                body = Asker(self._next_motion(), self.module, links, (front,) * MAX_BODY, rt.cycle, log=self._log_line)
-        except (IndexError, TypeError, ValueError) as exc:
-            self._log_line(f"reach_and_dock {list(args)!r} refused: {exc}")
-            return
-        self.reach = SelfAssimilate(
-            to_foot,
-            body,
-            connector,
-            _OwnSenses(self),
-            self.latch,
-            DEFAULT_MODEL,
-            profile,
-            self._log_line,
-            own_links=lambda: tuple(self.runtime.engine.status),
-            next_motion=self._next_motion,
-        )
-        self._log_line(
-            f"reach_and_dock: motion {to_foot.motion} from {profile.connector_name(connector)}, learning the route"
-        )
-
-    def _step_reach(self, rt: ModuleRuntime) -> None:
-        """Before each cycle: the reach this module runs takes the answers that came, makes
-        its step and sends its frames; its own joints are held as it says."""
-        reports, self.member.reports = self.member.reports, []
-        reach = self.reach
-        if reach is None or reach.done:
-            return
-        for report in reports:
-            reach.received(report, rt.cycle)
-        for out in reach.step(rt.cycle):
+    def _step_motions(self, rt: ModuleRuntime) -> None:
+        """Before each cycle: the motions make their steps (firmware.motion.host.MotionHost):
+        their frames go out, what they hold goes to the servos, what they tell the world is
+        reported."""
+        for out in self.motion.before_cycle(rt.cycle):
             rt.transport.send_raw(out.connector, out.frame)
-        if reach.own_targets != self._own_held:
-            self._own_held = dict(reach.own_targets)
-            rt.hold(self._own_held)
-        if reach.done:
-            self.report(Effect("reach_ended", [reach.connector, reach.verdict]))
-
-    def _step_foot(self, rt: ModuleRuntime) -> None:
-        """Before each cycle: a SET_OFF this module took makes it the foot of a
-        ``reach_and_dock`` (firmware.motion.foot): it lets go of its front (a ``release``
-        effect), then walks and creeps on its own joints by the tracker and its front infrared;
-        what becomes of it goes out as ``foot`` effects."""
-        set_off, self.member.set_off = self.member.set_off, None
-        front = self.program.profile.connector_index("front")
-        # the asker sends it each cycle until the foot lets go: a copy of the motion this foot
-        # runs or ran is not a new trip
-        if set_off is not None and (self.foot is None or self.foot.set_off.motion != set_off.motion):
-            from firmware.motion.foot import Foot
-
-            self.foot = Foot(self.module, set_off)
-            self.report(Effect("foot", ["set_off", f"motion {set_off.motion}, to module {set_off.target}"]))
-            self.report(Effect("release", [front]))
-            self._log_line(f"foot: motion {set_off.motion}: letting go, to module {set_off.target}")
-        foot = self.foot
-        if foot is None or foot.done:
-            return
-        senses = _OwnSenses(self)
-        targets = foot.step(senses.floor(), senses.infrared(), rt.engine.status[front - 1] != 0)
-        for kind, detail in foot.events:
-            self.report(Effect("foot", [kind, detail]))
-        foot.events.clear()
-        if targets != self._own_held:
-            self._own_held = targets
-            rt.hold(targets)
+        self._hold(rt)
+        effects, self.motion.effects = self.motion.effects, []
+        for kind, args in effects:
+            self.report(Effect(kind, args))
 
     def _log_line(self, line: str) -> None:
         self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
@@ -599,13 +522,7 @@ class ModuleHost:
         """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
         or pushed readings count in this very cycle); a motion gone silent gives the joints
         back (firmware.motion.member)."""
-        member = self.member
-        if member.holding is not None:
-            member.cycle(rt.cycle)
-            if member.holding is None:
-                rt.hold({})
-        self._step_reach(rt)
-        self._step_foot(rt)
+        self._step_motions(rt)
         while True:
             try:
                 cmd = self.commands.get_nowait()
@@ -757,8 +674,11 @@ class _OwnSenses:
         return FloorPoses(modules)
 
     def attitude(self) -> dict[int, tuple[float, float]]:
-        report = self.host.floor_report
-        return {} if report is None else {m: (a[0], a[1]) for m, a in report.attitude.items()}
+        """Its own IMU (roll, pitch) as the world last measured it; another module's tilt comes
+        in that module's ANGLES."""
+        report, me = self.host.floor_report, self.host.module
+        own = None if report is None else report.attitude.get(me)
+        return {} if own is None else {me: (own[0], own[1])}
 
 
 class _WorldLatch:

@@ -260,9 +260,15 @@ class LoopReaches:
         readers = sorted(set(self.own) | self.feet)
         if not readers:
             return
+        # the target of a reach_dock answers the asker with its own IMU (in its ANGLES): it is
+        # pushed its own roll and pitch, as every module would read its own
+        targets = {t for _, _, t in self.own.values() if t is not None and self.world.running(t)} - set(readers)
         every = tuple(range(self.world.topology.size))
         with self.physics.lock:
             readings = self.sensors.read(cycle, frozenset(), tuple(readers), floor=True, attitude=every)
+        for t in sorted(targets):
+            if t in readings.attitude:
+                self.world.send_readings(t, Floor({}, {t: readings.attitude[t]}))
         parts = {
             k: tuple((p.x, p.y, p.heading) for p in (pose.centre, pose.front, pose.back))
             for k, pose in readings.floor.modules.items()
@@ -272,13 +278,8 @@ class LoopReaches:
             self.world.send_readings(m, Readings({name: round(v) for name, v in pairs.items()}))
             target = self.own.get(m, (0, 0, None))[2]
             seen = every if m in self.feet or m in self.own_assimilating else (m,) if target is None else (m, target)
-            self.world.send_readings(
-                m,
-                Floor(
-                    {k: v for k, v in parts.items() if k in seen},
-                    {k: readings.attitude[k] for k in seen if k in readings.attitude},
-                ),
-            )
+            own = {m: readings.attitude[m]} if m in readings.attitude else {}
+            self.world.send_readings(m, Floor({k: v for k, v in parts.items() if k in seen}, own))
 
     def own_latch(self, module: int, connector: int, target: int, target_conn: int) -> bool:
         """The module asks its latch to close: closed in physics and linked, or refused

@@ -18,6 +18,7 @@ from dh2rt.profile import CONRO
 from dh2rt.program import CompiledProgram
 from dh2rt.robot import Robot
 from dh2rt.topology import parse_spec
+from firmware.motion.assimilating import SelfAssimilate
 from sim.runner import PhysicsRun
 
 DRAGON = parse_spec("dragon")
@@ -56,12 +57,14 @@ def reconfigure(
     *,
     budget: int = BUDGET,
     setup: Callable[[PhysicsRun], None] | None = None,
+    modules_move: bool = False,
 ) -> tuple[PhysicsRun, int | None]:
     """Run LTS on the dragon until it is one snake (or ``budget`` cycles pass); the run (the
     caller closes it) and the cycle the snake formed. ``setup`` adjusts the run before the
-    first cycle; ``on_cycle`` is called after every cycle from LTS on."""
+    first cycle; ``on_cycle`` is called after every cycle from LTS on. ``modules_move``: the
+    modules carry out the docking themselves (sim.module_motions), not the run's sequence."""
     robot = Robot(program, DRAGON, seed=seed)
-    run = PhysicsRun(robot)
+    run = PhysicsRun(robot, modules_move=modules_move)
     if setup is not None:
         setup(run)
     run.run(LTS_CYCLE)
@@ -70,7 +73,7 @@ def reconfigure(
         run.cycle()
         if on_cycle is not None:
             on_cycle(run)
-        if not run.docking.trips and not run.docking.motions and snake_of(robot) is not None and len(run.contacts) >= 3:
+        if not run.moving and snake_of(robot) is not None and len(run.contacts) >= 3:
             return run, robot.cycle
     return run, None
 
@@ -89,13 +92,27 @@ class KillWinner:
     def __call__(self, run: PhysicsRun) -> None:
         if self.killed or self.when == "none":
             return
-        trips = run.docking.trips
-        creeps = [m.creep for m in run.docking.motions if m.creep is not None]
-        if self.when == "trip" and trips and trips[0].trip.cycles == TRIP_KILL_CYCLES:
-            foot = trips[0].trip.module
-        elif self.when == "dock" and creeps:
-            foot = creeps[0].module
-        else:
+        foot = self._due(run)
+        if foot is None:
             return
         self.killed.append(foot)
         run.robot.kill(foot)
+
+    def _due(self, run: PhysicsRun) -> int | None:
+        """The foot to kill now, if any: on its trip's cycle, or as the dock begins (the
+        run's sequence, or the modules' own: a foot running its trip, an asker squaring)."""
+        trips = [(b.trip.module, b.trip.cycles) for b in run.docking.trips]
+        creeps = [m.creep.module for m in run.docking.motions if m.creep is not None]
+        if run.module_motions is not None:
+            for host in run.module_motions.hosts:
+                foot = host.foot
+                if foot is not None and not foot.done and foot.trip is not None:
+                    trips.append((foot.module, foot.trip.cycles))
+                reach = host.reach
+                if isinstance(reach, SelfAssimilate) and reach.docking is not None and reach.foot is not None:
+                    creeps.append(reach.foot)
+        if self.when == "trip":
+            return next((m for m, cycles in trips if cycles == TRIP_KILL_CYCLES), None)
+        if self.when == "dock" and creeps:
+            return creeps[0]
+        return None

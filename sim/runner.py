@@ -54,6 +54,7 @@ from firmware.motion.docking import DOCK_TOLERANCE_M as DOCK_TOLERANCE_M
 from firmware.motion.docking import Docking
 from firmware.motion.readings import Readings
 from firmware.motion.underway import Motion, Needs
+from sim.module_motions import ModuleMotions
 from sim.motion_readings import Contact, MotionSensors, Verdicts
 from sim.record import Sample
 from sim.sensors import PhysicsSensors
@@ -79,6 +80,7 @@ class PhysicsRun:
         gui: bool = False,
         settle: Callable[[], None] | None = None,
         tracker: OverheadTracker | None = None,
+        modules_move: bool = False,
     ) -> None:
         self.robot = robot
         self.world = world or World(robot.topology, gui=gui, seed=robot.seed)
@@ -128,6 +130,14 @@ class PhysicsRun:
             for n in FLOOR_SENSORS
             if n in program.sensor_names and n in profile.sensor_names
         ]
+        #: With ``modules_move`` the modules carry out their docking natives themselves, each
+        #: its own firmware.motion.host.MotionHost (sim.module_motions): this run then plans
+        #: nothing and holds no joint; :attr:`docking` stays idle.
+        self.module_motions: ModuleMotions | None = None
+        if modules_move:
+            self.module_motions = ModuleMotions(self)
+            robot.effect_handlers["reach_dock"] = lambda _r, m, args: self._own_native(m, "reach_dock", args)
+            robot.effect_handlers["reach_and_dock"] = lambda _r, m, args: self._own_native(m, "reach_and_dock", args)
         #: The engines' slot of the ``docking`` sensor, if the program declares it.
         self._docking_slot = (
             program.sensor_names.index("docking")
@@ -222,6 +232,18 @@ class PhysicsRun:
         assert isinstance(connector, int) and isinstance(route, tuple)
         self.docking.assimilate(module, connector, route)
 
+    @property
+    def moving(self) -> bool:
+        """A reach or a foot's trip is under way: the run's sequence's, or a module's own."""
+        if self.docking.trips or self.docking.motions:
+            return True
+        return self.module_motions is not None and any(h.busy for h in self.module_motions.hosts)
+
+    def _own_native(self, module: int, kind: str, args: tuple[object, ...]) -> None:
+        """A docking native the module carries out itself (``modules_move``)."""
+        assert self.module_motions is not None
+        self.module_motions.start(module, kind, args)
+
     def release(self, module: int, connector: int) -> None:
         """A module lets go of its link at ``connector`` (nothing if there is none)."""
         docking.release(self, module, connector)
@@ -249,6 +271,8 @@ class PhysicsRun:
         slot = self._docking_slot
         if slot is not None:
             busy = self.docking.docking_modules()
+            if self.module_motions is not None:
+                busy |= self.module_motions.docking()
             for m, e in enumerate(engines):
                 if e is not None and "docking" not in sensed.get(m, {}):
                     e.sensors[slot] = int(m in busy)
@@ -282,8 +306,13 @@ class PhysicsRun:
     def cycle(self) -> None:
         """One control cycle: sensors, engines, then joints, then physics."""
         self.fill_sensors()
+        motions = self.module_motions
+        if motions is not None:
+            motions.before_cycle()
         self.robot.step()
         held = self.docking.step(self.robot.cycle) if self.docking.busy else {}
+        if motions is not None:
+            held = motions.joints()
         for m, e in enumerate(self.robot.engines):
             if e is None:
                 continue

@@ -50,6 +50,12 @@ class Known:
     links: tuple[int, ...] = ()
     answered: int | None = None
 
+    @property
+    def attitude(self) -> tuple[float, float] | None:
+        """Its IMU's roll and pitch (degrees), which an ANGLES carries after the joints' two
+        angles when the member has one; None if it did not."""
+        return (self.angles[2], self.angles[3]) if len(self.angles) >= 4 else None
+
 
 @dataclass
 class Asker:

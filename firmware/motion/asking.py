@@ -42,6 +42,12 @@ from firmware.outbound import Out
 LEARN_CYCLES = 80
 
 
+def learn_cycles(hops: int) -> int:
+    """Cycles a chain of ``hops`` may take to answer: :data:`LEARN_CYCLES`, or for a longer
+    chain its round trips at two cycles a hop each way (2 * (1 + ... + hops)) and 20 more."""
+    return max(LEARN_CYCLES, hops * (hops + 1) + 20)
+
+
 class OwnSenses(Protocol):
     """What the asking module senses of itself."""
 
@@ -58,7 +64,8 @@ class OwnSenses(Protocol):
         ...
 
     def attitude(self) -> Mapping[int, tuple[float, float]]:
-        """IMU readings (roll, pitch, degrees) by module: its own, and what it was told."""
+        """Its own IMU reading (roll, pitch, degrees), by its module index (empty: none).
+        Another module's tilt comes from that module, in its ANGLES."""
         ...
 
 
@@ -130,9 +137,21 @@ class ModuleWorld:
             joints[m] = (angles[0], angles[1])
         infrared = {self.me: dict(self.senses.infrared())} if self.me in needs.infrared else {}
         floor = self.senses.floor() if needs.floor else FloorPoses()
-        tilts = self.senses.attitude()
-        attitude = {m: tilts[m] for m in needs.attitude if m in tilts}
+        attitude = {}
+        own = self.senses.attitude().get(self.me)
+        for m in needs.attitude:
+            tilt = own if m == self.me else self._member_attitude(m)
+            if tilt is not None:
+                attitude[m] = tilt
         return Readings(joints, infrared, floor, attitude)
+
+    def _member_attitude(self, module: int) -> tuple[float, float] | None:
+        """A member's IMU as its last ANGLES carried it (None: it carried none)."""
+        for asker in self._askers():
+            known = asker.member(module)
+            if known is not None and known.attitude is not None:
+                return known.attitude
+        return None
 
     def ended(self, motion: Motion, linked: bool, readings: Readings) -> None:
         (a, ac), (b, bc) = motion.reach.chain.asking, motion.reach.chain.target

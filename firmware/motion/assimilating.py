@@ -43,7 +43,7 @@ from dh2rt.docking import End
 from dh2rt.profile import Profile
 from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
-from firmware.motion.asking import LEARN_CYCLES, LatchAsk, ModuleWorld, OwnSenses
+from firmware.motion.asking import LEARN_CYCLES, LatchAsk, ModuleWorld, OwnSenses, learn_cycles
 from firmware.motion.body import ConroModel
 from firmware.motion.clearing import Clearing, spot_taken
 from firmware.motion.crawl import parked
@@ -135,8 +135,10 @@ class SelfAssimilate(ModuleWorld):
     def _learn(self) -> list[Out]:
         body = self.up_body
         if not (self.to_foot.known and (body is None or body.learnt)):
-            if self.cycle - self.to_foot.started > LEARN_CYCLES:
-                return self._finish(f"the route or the body did not answer in {LEARN_CYCLES} cycles")
+            # the longer of the two chains, as far as the body is known yet
+            limit = learn_cycles(max(len(self.to_foot.route), 0 if body is None else len(body.members) + 1))
+            if self.cycle - self.to_foot.started > limit:
+                return self._finish(f"the route or the body did not answer in {limit} cycles")
             return self.to_foot.frames(self.cycle) + ([] if body is None else body.frames(self.cycle))
         refused = self._rules()
         if refused:

@@ -61,10 +61,18 @@ class Member:
     """One module's side of the motions of the chains it is part of."""
 
     def __init__(
-        self, module: int, body: Body, log: Callable[[str], None] = lambda line: None, idle_cycles: int = IDLE_CYCLES
+        self,
+        module: int,
+        body: Body,
+        log: Callable[[str], None] = lambda line: None,
+        idle_cycles: int = IDLE_CYCLES,
+        attitude: Callable[[], tuple[float, float] | None] = lambda: None,
     ) -> None:
         self.module = module
         self.body = body
+        #: its own IMU (roll, pitch, degrees), None without one: an ANGLES carries it after
+        #: the joints' angles (the asker plans with a target's tilt: firmware.motion.reach)
+        self.attitude = attitude
         self.log = log
         self.idle_cycles = idle_cycles
         #: Joint targets (degrees by DOF index) its servos hold in place of the program's;
@@ -122,9 +130,9 @@ class Member:
             self.heard = cycle
         try:
             body = self.body
-            answer = mw.Angles(
-                message.motion, message.seq, route, self.module, body.angles(), body.links(), len(route) - 1
-            )
+            tilt = self.attitude()
+            angles = body.angles() + (() if tilt is None else tuple(tilt))
+            answer = mw.Angles(message.motion, message.seq, route, self.module, angles, body.links(), len(route) - 1)
             return [Out(connector, mw.encode(connector, answer))]
         except EncodeError as exc:
             self.log(f"motion: cannot answer motion {message.motion}: {exc}")
