@@ -61,6 +61,7 @@ def one_run(
     tracker: tuple[float, float, int, float] = (0, 0, 0, 0),
     oracle: bool = False,
     camera: int = 0,
+    modules_move: bool = False,
 ) -> dict[str, Any]:
     """One whole reconfiguration; what happened. ``tracker``: noise (mm, degrees), latency
     (cycles) and dropout probability of the overhead tracker; ``oracle``: PhysicsRun.oracle_poses."""
@@ -82,7 +83,7 @@ def one_run(
             run.world, noise_m=noise_mm / 1000, noise_deg=noise_deg, latency=latency, dropout=dropout, seed=seed
         )
 
-    run, formed = reconfigure(program, seed, hook, setup=setup)
+    run, formed = reconfigure(program, seed, hook, setup=setup, modules_move=modules_move)
     try:
         result: dict[str, Any] = {
             "seed": seed,

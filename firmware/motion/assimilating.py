@@ -65,6 +65,16 @@ WAIT_CYCLES = ATTEMPTS * (TRIP_BUDGET + CREEP_BUDGET)
 #: The face's own infrared pair sees the foot parked: nearer than this (mm) and square.
 SEES_MM = 85.0
 SEES_DEG = 20.0
+#: Cycles in a row the foot must be seen parked before the square-up begins: a foot passing
+#: through the parking window on its way (turning, or moving across) is not there yet, and a
+#: square-up begun then moves the face the foot's trip steers to (seen in physics, seed 0: the
+#: trip gave up, and the squarings with it).
+PARKED_CYCLES = 10
+#: How square (degrees, in the face's frame) the foot must lie to count as parked: wider than
+#: the trip's own 6, since the foot creeps on from its arrival and turns as it does (seed 0,
+#: second round: 8.5 to 11 degrees off in the 60 cycles after it arrived, so a 6-degree window
+#: never saw it, and its creep ran out unsquared).
+PARKED_HEADING_DEG = 15.0
 
 
 @dataclass
@@ -98,6 +108,10 @@ class SelfAssimilate(ModuleWorld):
     squarings: int = 0
     #: the foot was seen off the spot since the last squaring (it went round again)
     away: bool = True
+    #: cycles in a row the foot was seen parked, and (after a squaring that did not latch)
+    #: seen off the parking window
+    parked_for: int = 0
+    off_for: int = 0
     own_targets: dict[int, float] = field(default_factory=dict)
     verdict: str | None = None
 
@@ -228,12 +242,13 @@ class SelfAssimilate(ModuleWorld):
         self.waited += 1
         if self.waited > WAIT_CYCLES:
             return self._finish(f"not linked: no foot parked at the face in {WAIT_CYCLES} cycles")
-        there = self._foot_there()
-        if not there:
-            self.away = True
+        if not self.away:  # where the last squaring left it, until it has gone round again
+            self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
+            self.away = self.off_for >= PARKED_CYCLES
             return []
-        if not self.away:
-            return []  # still where the last squaring left it: its creep runs out first
+        self.parked_for = self.parked_for + 1 if self._foot_there() else 0
+        if self.parked_for < PARKED_CYCLES:
+            return []
         route = rules.squaring_route(self.peer_of, self.profile, self.me)
         if not route:
             return self._finish("the asking module has no body up its front to square its face with")
@@ -241,13 +256,14 @@ class SelfAssimilate(ModuleWorld):
         self.log(f"reach_and_dock: module {self.foot} is at the face; squaring along {list(route)}")
         return self._enter("squaring")
 
-    def _foot_there(self) -> bool:
-        """The tracker shows the foot parked behind the face, or the face's pair sees it."""
+    def _foot_there(self, heading_deg: float = PARKED_HEADING_DEG) -> bool:
+        """The tracker shows the foot parked behind the face (squared within ``heading_deg``),
+        or the face's pair sees it."""
         assert self.foot is not None
         floor = self.senses.floor()
         front = self.profile.connector_index("front")
         try:
-            if self.foot in floor.modules and parked(floor, self.model, self.foot, self._face):
+            if self.foot in floor.modules and parked(floor, self.model, self.foot, self._face, heading_deg=heading_deg):
                 return True
         except TrackerMissing:
             pass
@@ -286,7 +302,7 @@ class SelfAssimilate(ModuleWorld):
         if self.squarings >= ATTEMPTS:
             return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
         self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
-        self.away = False
+        self.away, self.parked_for, self.off_for = False, 0, 0
         return ended + self._enter("waiting")
 
     def _enter(self, phase: str) -> list[Out]:

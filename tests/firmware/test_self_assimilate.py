@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from dh2rt.profile import CONRO
 from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
-from firmware.motion.assimilating import SelfAssimilate
+from firmware.motion.assimilating import PARKED_CYCLES, SelfAssimilate
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.crawl import parked
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
@@ -138,7 +138,11 @@ def test_the_tail_hands_the_foot_over_waits_squares_and_latches() -> None:
     robot.foot_at(0.40)  # on its way: nothing goes on the links
     assert [robot.run(reach, cycle + k) for k in range(1, 6)] == [0] * 5
     cycle += 6
-    robot.foot_at(0.04)  # parked behind the face
+    robot.foot_at(0.04)  # parked behind the face: after PARKED_CYCLES in a row, the square-up
+    for _ in range(PARKED_CYCLES - 1):
+        robot.run(reach, cycle)
+        cycle += 1
+    assert reach.phase == "waiting"
     robot.run(reach, cycle)
     assert reach.phase == "squaring" and reach.squaring is not None
     while reach.docking is None:
@@ -170,7 +174,9 @@ def test_a_squaring_that_does_not_latch_waits_for_the_foot_to_come_round_again()
         robot.run(reach, cycle)
         cycle += 1
     robot.foot_at(0.04)
-    robot.run(reach, cycle)
+    for _ in range(PARKED_CYCLES):
+        robot.run(reach, cycle)
+        cycle += 1
     assert reach.phase == "squaring" and reach.docking is None
     while reach.docking is None:
         cycle += 1
@@ -183,12 +189,22 @@ def test_a_squaring_that_does_not_latch_waits_for_the_foot_to_come_round_again()
     cycle += 1
     robot.run(reach, cycle)
     assert reach.phase == "waiting"  # the foot still lies there: its creep runs out first
-    robot.foot_at(0.30)  # it went round again
+    robot.foot_at(0.10)  # off the window for a moment: not gone round yet
     cycle += 1
     robot.run(reach, cycle)
+    robot.foot_at(0.04)
+    for _ in range(PARKED_CYCLES + 2):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == "waiting"
+    robot.foot_at(0.12)  # it went round again: off the window for PARKED_CYCLES in a row
+    for _ in range(PARKED_CYCLES):
+        cycle += 1
+        robot.run(reach, cycle)
     robot.foot_at(0.04)  # and is back
-    cycle += 1
-    robot.run(reach, cycle)
+    for _ in range(PARKED_CYCLES):
+        cycle += 1
+        robot.run(reach, cycle)
     assert reach.phase == "squaring"
 
 
