@@ -89,7 +89,7 @@ def one_run(
             "seed": seed,
             "kill": kill,
             "formed": formed,
-            "gave_up": len(run.failed),
+            "gave_up": len(run.failed) + (run.module_motions.given_up() if run.module_motions else 0),
             "latch_mm": [round(c.distance_m * 1000, 1) for c in run.contacts],
             "latch_deg": [round(c.attitude_deg, 1) for c in run.contacts],
         }

@@ -64,7 +64,7 @@ def released_run(kind: str, seed: int, modules_move: bool) -> dict[str, Any]:
         while sum(line.endswith("released") for line in robot.log) < releases and robot.cycle < budget:
             run.run(1)
         formed = robot.cycle if sum(line.endswith("released") for line in robot.log) >= releases else None
-        gave_up = len(run.failed) + sum("reach_dock from" in line and "not linked" in line for line in robot.log)
+        gave_up = len(run.failed) + (run.module_motions.given_up() if run.module_motions else 0)
         return {"seed": seed, "kill": "none", "formed": formed, "gave_up": gave_up, "latches": len(run.contacts)}
     finally:
         run.close()

@@ -133,6 +133,10 @@ class ModuleMotions:
         """What each module's motions hold on its joints this cycle (absent: its program's)."""
         return {m: dict(h.joints) for m, h in enumerate(self.hosts) if h.joints and self.run.robot.alive(m)}
 
+    def given_up(self) -> int:
+        """Reaches the modules ran that gave up (each says so in its log line)."""
+        return sum(": reach_dock m" in line and " gave up after " in line for line in self.run.robot.log)
+
     def docking(self) -> set[int]:
         """The modules whose own reach is under way: what their ``docking`` sensor reads."""
         return {m for m, h in enumerate(self.hosts) if h.reach is not None and not h.reach.done}
