@@ -35,6 +35,7 @@ creep); past it, or when the foot's trips are spent, the verdict is ``not linked
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -75,6 +76,13 @@ PARKED_CYCLES = 10
 #: second round: 8.5 to 11 degrees off in the 60 cycles after it arrived, so a 6-degree window
 #: never saw it, and its creep ran out unsquared).
 PARKED_HEADING_DEG = 15.0
+#: Cycles the foot may lie still (its centre within :data:`STILL_M`, its heading within
+#: :data:`STILL_DEG`) while this waits before the dock is given up: a foot on its trip always
+#: crawls or turns, so one that does neither has died or is stuck, and nothing else will tell
+#: the asker (the world's sequence learns it from the link map; a module cannot).
+STILL_CYCLES = 200
+STILL_M = 0.01
+STILL_DEG = 5.0
 
 
 @dataclass
@@ -112,6 +120,8 @@ class SelfAssimilate(ModuleWorld):
     #: seen off the parking window
     parked_for: int = 0
     off_for: int = 0
+    #: where the foot was last seen move to (x, y, heading) and the cycle it was
+    moved: tuple[float, float, float, int] | None = None
     own_targets: dict[int, float] = field(default_factory=dict)
     verdict: str | None = None
 
@@ -242,6 +252,10 @@ class SelfAssimilate(ModuleWorld):
         self.waited += 1
         if self.waited > WAIT_CYCLES:
             return self._finish(f"not linked: no foot parked at the face in {WAIT_CYCLES} cycles")
+        if self._still():
+            return self._finish(
+                f"not linked: module {self.foot} has not moved for {STILL_CYCLES} cycles (dead or stuck)"
+            )
         if not self.away:  # where the last squaring left it, until it has gone round again
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
             self.away = self.off_for >= PARKED_CYCLES
@@ -271,6 +285,21 @@ class SelfAssimilate(ModuleWorld):
         ir = self.senses.infrared()
         mm, deg = ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0)
         return front > 0 and 0.0 < mm <= SEES_MM and deg <= SEES_DEG
+
+    def _still(self) -> bool:
+        """The foot has lain still for :data:`STILL_CYCLES` by the tracker's report."""
+        assert self.foot is not None
+        floor = self.senses.floor()
+        if self.foot not in floor.modules:
+            return False
+        x, y = floor.centre(self.foot)
+        heading = math.degrees(floor.heading(self.foot))
+        last = self.moved
+        turned = 0.0 if last is None else abs((heading - last[2] + 180.0) % 360.0 - 180.0)
+        if last is None or math.hypot(x - last[0], y - last[1]) > STILL_M or turned > STILL_DEG:
+            self.moved = (x, y, heading, self.cycle)
+            return False
+        return self.cycle - last[3] > STILL_CYCLES
 
     def _squaring(self) -> list[Out]:
         chain = self.squaring
@@ -302,7 +331,7 @@ class SelfAssimilate(ModuleWorld):
         if self.squarings >= ATTEMPTS:
             return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
         self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
-        self.away, self.parked_for, self.off_for = False, 0, 0
+        self.away, self.parked_for, self.off_for, self.moved = False, 0, 0, None
         return ended + self._enter("waiting")
 
     def _enter(self, phase: str) -> list[Out]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from dh2rt.profile import CONRO
 from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
-from firmware.motion.assimilating import PARKED_CYCLES, SelfAssimilate
+from firmware.motion.assimilating import PARKED_CYCLES, STILL_CYCLES, SelfAssimilate
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.crawl import parked
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
@@ -217,3 +217,27 @@ def test_a_foot_that_does_not_hang_by_its_front_is_refused() -> None:
         robot.run(reach, cycle)
     assert reach.verdict == "the foot does not hang by its front"
     assert robot.members[4].set_off is None
+
+
+def test_a_foot_that_lies_still_on_its_way_ends_the_dock() -> None:
+    """A foot on its trip always crawls or turns: one the tracker shows still for STILL_CYCLES
+    (it died, or is stuck) ends the wait, not linked, and the tail can ask for the next."""
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = 0
+    while reach.phase != "hand over":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.cut(4, FRONT)
+    while reach.phase != "waiting":
+        robot.run(reach, cycle)
+        cycle += 1
+    for k in range(STILL_CYCLES // 2):  # crawling on its way: 2 cm a cycle, then lying still
+        robot.foot_at(0.40 + 0.02 * (k % 2))
+        robot.run(reach, cycle)
+        cycle += 1
+    assert not reach.done
+    for _ in range(STILL_CYCLES + 2):
+        robot.run(reach, cycle)
+        cycle += 1
+    assert reach.verdict == f"not linked: module 4 has not moved for {STILL_CYCLES} cycles (dead or stuck)"
