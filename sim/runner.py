@@ -237,7 +237,8 @@ class PhysicsRun:
         """A reach or a foot's trip is under way: the run's sequence's, or a module's own."""
         if self.docking.trips or self.docking.motions:
             return True
-        return self.module_motions is not None and any(h.busy for h in self.module_motions.hosts)
+        motions = self.module_motions
+        return motions is not None and any(h.busy for m, h in enumerate(motions.hosts) if self.robot.alive(m))
 
     def _own_native(self, module: int, kind: str, args: tuple[object, ...]) -> None:
         """A docking native the module carries out itself (``modules_move``)."""
