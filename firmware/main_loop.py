@@ -653,8 +653,8 @@ class ModuleHost:
             self.report(TraceRecord(rec))
         rt.records.clear()
         for kind, args in rt.effects:
-            if kind == "release" and isinstance(self.latch, _ModuleLatch):
-                self.latch.release()  # the module's own latch opens; the link goes as before
+            if kind == "release" and isinstance(self.latch, _ModuleLatch) and args:
+                self.latch.release(int(args[0]))  # the module's own latch opens; the link goes as before
             self.report(Effect(kind, list(args)))
         rt.effects.clear()
         log = rt.log
@@ -680,7 +680,7 @@ class ModuleHost:
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
                 self.own_readings.update(cmd.values)
-            elif isinstance(cmd, LatchAnswer) and isinstance(self.latch, _WorldLatch):
+            elif isinstance(cmd, LatchAnswer):
                 self.latch.answered(cmd)
             elif isinstance(cmd, OwnMotions):
                 self.self_motion = True
@@ -805,25 +805,31 @@ def _module_latch(host: ModuleHost) -> _WorldLatch | _ModuleLatch:
         why = fault or "no [latch] in module.toml"
         host.runtime.log.append(f"latch: {why}; a reach's latch is asked of the world")
         return _WorldLatch(host)
-    host.runtime.log.append(f"latch: the module's own ({spec.kind})")
-    return _ModuleLatch(host, driver)
+    host.runtime.log.append(f"latch: the module's own ({spec.kind}) on connector {spec.connector}")
+    return _ModuleLatch(host, driver, spec.connector)
 
 
 class _ModuleLatch:
     """The latch of a reach this module runs, its own (firmware.motion.asking.LatchAsk): when the
     motion asks, the latch closes; the dock is aligned once the latch reports ``closed`` and the
     connector's link is verified (a Hello heard on it), or refused (latch opened again) when
-    the latch faults or jams, or the link does not come within :data:`LATCH_LINK_CYCLES`."""
+    the latch faults or jams, or the link does not come within :data:`LATCH_LINK_CYCLES`.
+    A dock on another connector (a male face, held by the other module's latch) is asked of
+    the world, as without a latch."""
 
-    def __init__(self, host: ModuleHost, driver: Latch) -> None:
+    def __init__(self, host: ModuleHost, driver: Latch, connector: int) -> None:
         self.host = host
         self.driver = driver
+        self.connector = connector
+        self.world = _WorldLatch(host)
         #: connector -> cycles waited since the latch was told to close
         self.waiting: dict[int, int] = {}
         #: connector -> docked (True) or refused (False), until the motion reads it
         self.verdict: dict[int, bool] = {}
 
     def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn != self.connector:
+            return self.world.aligned(a, a_conn, b, b_conn)
         if a_conn in self.verdict:
             return True
         if a_conn not in self.waiting:
@@ -849,11 +855,18 @@ class _ModuleLatch:
         return True
 
     def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn != self.connector:
+            return self.world.latch(a, a_conn, b, b_conn)
         return self.verdict.pop(a_conn, False)
 
-    def release(self) -> None:
-        """``release``: the latch opens (the link goes as before)."""
-        self.driver.open()
+    def answered(self, answer: LatchAnswer) -> None:
+        """The world's answer for a dock on another connector."""
+        self.world.answered(answer)
+
+    def release(self, connector: int) -> None:
+        """``release`` of the latch's connector: the latch opens (the link goes as before)."""
+        if connector == self.connector:
+            self.driver.open()
 
 
 class TrialWatch:

@@ -41,7 +41,12 @@ of the body, comes to the asking face by its own gaits (:class:`firmware.motion.
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
 sensor reads 1 meanwhile (pushed by the world). With :attr:`World.modules_move` a
 ``reach_dock`` is the asking module's own (firmware.motion.asking): the world sends no
-``Hold``, only the sensors it fills and the latch's answer.
+``Hold``, only the sensors it fills and the latch's answer. With ``latch_emulator`` (the
+launcher's ``--latch-emulator``) each module has a latch servo on its front face
+(hil.physics_stand_in) and a ``[latch]`` in its module.toml: it closes its own latch, and the
+world docks the link when the horn gets past the pins (the face aligned with a free one) and
+undocks it when the horn opens (:meth:`World.watch_latches`); such a module is sent no
+``LatchAnswer`` for that face, and its ``release`` of it waits for the horn.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -75,7 +80,15 @@ from dh2rt.transport.base import HeldEnd, LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.inproc import inproc_bus
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
+from firmware.config import (
+    DEFAULT_STAND_IN,
+    DEFAULTS,
+    EMULATED_SERVO_LATENCY_MS,
+    STAND_INS,
+    ChannelSpec,
+    LatchSpec,
+    ModuleConfig,
+)
 from firmware.control import (
     Attach,
     Command,
@@ -176,6 +189,7 @@ class World:
         line_baud: int = LINE_BAUD,
         sensor_every: int = 1,
         modules_move: bool | None = None,
+        latch_emulator: bool = False,
     ) -> None:
         if sensor_every < 1:
             raise HilWorldError(f"sensor readings pushed every {sensor_every} cycles: must be 1 or more")
@@ -251,12 +265,21 @@ class World:
         self.physics: PhysicsStandIn | None = None
         #: The docking motions on the PyBullet stand-in (``reach_dock`` by motion), or None.
         self.reaches: LoopReaches | None = None
+        if latch_emulator and stand_in != "pybullet":
+            raise HilWorldError("the latch emulator needs the PyBullet stand-in")
+        #: LatchAnswers sent (a module with its own latch is sent none for its face)
+        self.latch_answers = 0
+        #: module -> the face its latch's horn docked its front to (the horn's link), or None
+        self.horn_links: dict[int, tuple[int, int] | None] = {}
+        self._horns_closed: dict[int, bool] = {}
         try:
             if stand_in == "pybullet":
                 from hil.physics_stand_in import PhysicsStandIn
                 from hil.reach_loop import LoopReaches
 
-                self.physics = PhysicsStandIn(topology, seed=seed, gui=gui)
+                self.physics = PhysicsStandIn(topology, seed=seed, gui=gui, latches=latch_emulator)
+                self._horns_closed = {m: self.physics.horn_closed(m) for m in self.physics.latches}
+                self.horn_links = dict.fromkeys(self.physics.latches)
                 self.reaches = LoopReaches(self, self.physics)
             elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
@@ -371,6 +394,11 @@ class World:
         if real is not None and real.servo_port:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
+        if self.physics is not None and module in self.physics.latches and servo_port is not None:
+            from hil.physics_stand_in import LATCH_CONNECTOR, LATCH_SETTINGS
+
+            latch = LatchSpec.from_mapping({**LATCH_SETTINGS, "connector": LATCH_CONNECTOR}, "latch", servo_port)
+            servos["latch"] = latch
         bus_options = dict(self.bus_options)
         if real is not None and real.can_channel:
             bus_options["channel"] = real.can_channel
@@ -603,8 +631,11 @@ class World:
                     if kind == "latch":
                         closed = self.reaches.own_latch(module, int(args[0]), int(args[1]), int(args[2]))
                         self._send(module, LatchAnswer(int(args[0]), closed))
+                        self.latch_answers += 1
                     else:
                         self.reaches.own_ended(module, int(args[0]), str(args[1]))
+            elif kind == "release" and self._own_latch(module, int(args[0])):
+                self.note(f"release {self.where(module, int(args[0]))}: undocked when its latch opens")
             elif kind == "release":
                 docking.release(self, module, int(args[0]))
             elif kind == "reach_dock":
@@ -625,6 +656,37 @@ class World:
                     docking.reach_and_dock(self, module, connector, route)
         except (IndexError, TypeError, ValueError):
             self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
+
+    def _own_latch(self, module: int, connector: int) -> bool:
+        """Whether ``module``'s ``connector`` has its emulated latch (the module drives it)."""
+        from hil.physics_stand_in import LATCH_CONNECTOR
+
+        return module in self.horn_links and connector == LATCH_CONNECTOR
+
+    def watch_latches(self) -> None:
+        """Each emulated latch's horn (``latch_emulator``): one that got past the pins docks its
+        face to the face it mated with (physics, then the link, as :meth:`latch`); one that
+        opened undocks what it held (as ``release``)."""
+        from hil.physics_stand_in import LATCH_CONNECTOR
+
+        if self.physics is None:
+            return
+        for m in self.horn_links:
+            closed = self.physics.horn_closed(m)
+            if closed == self._horns_closed[m]:
+                continue
+            self._horns_closed[m] = closed
+            mate = self.physics.mated[m]
+            if closed and mate is not None and self.latch(m, LATCH_CONNECTOR, *mate):
+                self.horn_links[m] = mate
+                if self.reaches is not None:
+                    self.reaches.record_latch(m, LATCH_CONNECTOR, *mate, how="by its latch's horn")
+            elif closed:
+                self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch closed, on no face")
+            elif self.link_map.peer_of((m, LATCH_CONNECTOR)) is not None:
+                self.horn_links[m] = None
+                self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch opened")
+                docking.release(self, m, LATCH_CONNECTOR)
 
     def push_readings(self, modules: Iterable[int] | None = None) -> None:
         """Measure the sensors of ``modules`` (default: every live one) in physics and send
@@ -672,6 +734,7 @@ class World:
                 self.push_readings()
             if self.reaches is not None:
                 self.reaches.step(self.cycle, due=self.motions_due())
+            self.watch_latches()
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]
