@@ -30,12 +30,11 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Final
 
 from dh2rt.closing import Closing
 from dh2rt.topology import Topology
 from drivers.base import Health, Joint, ModuleDriver
-from hil.latch_emulator import LatchJoint, emulate
+from hil.latch_emulator import LATCH_CONNECTOR, LATCH_ID, LATCH_SETTINGS, LatchJoint, emulate
 from hil.servo_emulator import ServoEmulator
 from hil.servo_joints import ModuleJointAdapter
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
@@ -45,12 +44,6 @@ from sim.world import World as PhysicsWorld
 #: A long hiccup (a slow start, a paused process) is not caught up: physics never runs more
 #: than this many seconds of simulated time in one advance.
 MAX_CATCH_UP_S = 0.25
-
-#: The emulated latch servo (``latches``): its id beside the joints' 1 and 2, the female face
-#: it holds (CONRO's front), and its module.toml ``[latch]`` (hil.world.World.config).
-LATCH_ID: Final = 3
-LATCH_CONNECTOR: Final = 1
-LATCH_SETTINGS: Final[dict[str, Any]] = {"kind": "servo", "id": LATCH_ID, "open_deg": -30.0, "closed_deg": 30.0}
 
 
 @dataclass

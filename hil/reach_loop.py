@@ -288,13 +288,13 @@ class LoopReaches:
         if not (0 <= target < w.topology.size and connector in faces and target_conn in faces):
             w.note(f"{w.topology.names[module]}: a latch to module {target} connector {target_conn}: no such face")
             return False
-        pair = self._pair(module, connector)
+        pair = self.pair(module, connector)
         closed = w.latch(module, connector, target, target_conn)
         if closed:
             self.record_latch(module, connector, target, target_conn, how="by motion, the module's own", pair=pair)
         return closed
 
-    def _pair(self, module: int, connector: int) -> tuple[float, float]:
+    def pair(self, module: int, connector: int) -> tuple[float, float]:
         """``module``'s infrared pair at ``connector`` now (distance mm, alignment degrees)."""
         with self.physics.lock:
             ir = self.sensors.read(self.world.cycle, frozenset(), (module,), floor=False, attitude=())
@@ -310,11 +310,11 @@ class LoopReaches:
         target_conn: int,
         *,
         how: str,
-        pair: tuple[float, float] | None = None,
+        pair: tuple[float, float],
     ) -> None:
-        """A latch that closed (the world docked it): recorded in :attr:`contacts` and logged."""
+        """A latch that closed (the world docked it): recorded in :attr:`contacts` and logged,
+        with ``pair``, the infrared pair read before the dock (:meth:`pair`)."""
         w = self.world
-        pair = self._pair(module, connector) if pair is None else pair
         with self.physics.lock:
             record = contact(self.physics.world, w.cycle, (module, connector), (target, target_conn), pair)
         self.contacts.append(record)

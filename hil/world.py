@@ -115,6 +115,7 @@ from hil.bus_witness import SHARED_INTERFACES, BusWitness, EndId, Span, negotiat
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
 from hil.contact_emulator import ContactEmulator
 from hil.hardware_map import HardwareMap
+from hil.latch_emulator import LATCH_CONNECTOR, LATCH_SETTINGS
 from hil.link_emulator import LinkEmulator, LinkStats, SideCounts
 from hil.link_map import LinkMap
 from hil.status import ModuleView
@@ -395,8 +396,6 @@ class World:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
         if self.physics is not None and module in self.physics.latches and servo_port is not None:
-            from hil.physics_stand_in import LATCH_CONNECTOR, LATCH_SETTINGS
-
             latch = LatchSpec.from_mapping({**LATCH_SETTINGS, "connector": LATCH_CONNECTOR}, "latch", servo_port)
             servos["latch"] = latch
         bus_options = dict(self.bus_options)
@@ -659,16 +658,12 @@ class World:
 
     def _own_latch(self, module: int, connector: int) -> bool:
         """Whether ``module``'s ``connector`` has its emulated latch (the module drives it)."""
-        from hil.physics_stand_in import LATCH_CONNECTOR
-
         return module in self.horn_links and connector == LATCH_CONNECTOR
 
     def watch_latches(self) -> None:
         """Each emulated latch's horn (``latch_emulator``): one that got past the pins docks its
         face to the face it mated with (physics, then the link, as :meth:`latch`); one that
         opened undocks what it held (as ``release``)."""
-        from hil.physics_stand_in import LATCH_CONNECTOR
-
         if self.physics is None:
             return
         for m in self.horn_links:
@@ -677,16 +672,24 @@ class World:
                 continue
             self._horns_closed[m] = closed
             mate = self.physics.mated[m]
-            if closed and mate is not None and self.latch(m, LATCH_CONNECTOR, *mate):
-                self.horn_links[m] = mate
-                if self.reaches is not None:
-                    self.reaches.record_latch(m, LATCH_CONNECTOR, *mate, how="by its latch's horn")
+            if closed and mate is not None:
+                self._horn_docks(m, mate)
             elif closed:
                 self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch closed, on no face")
             elif self.link_map.peer_of((m, LATCH_CONNECTOR)) is not None:
                 self.horn_links[m] = None
                 self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch opened")
                 docking.release(self, m, LATCH_CONNECTOR)
+
+    def _horn_docks(self, module: int, mate: tuple[int, int]) -> None:
+        """``module``'s latch got past the pins on ``mate``: dock them (as :meth:`latch`), the
+        infrared pair read before the dock (a docked face reads none)."""
+        pair = self.reaches.pair(module, LATCH_CONNECTOR) if self.reaches is not None else None
+        if not self.latch(module, LATCH_CONNECTOR, *mate):
+            return
+        self.horn_links[module] = mate
+        if self.reaches is not None and pair is not None:
+            self.reaches.record_latch(module, LATCH_CONNECTOR, *mate, how="by its latch's horn", pair=pair)
 
     def push_readings(self, modules: Iterable[int] | None = None) -> None:
         """Measure the sensors of ``modules`` (default: every live one) in physics and send

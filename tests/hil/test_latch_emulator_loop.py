@@ -8,11 +8,12 @@ reach decides it (firmware.main_loop._ModuleLatch)."""
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
@@ -20,13 +21,21 @@ from dh2rt.compiler import compile_file
 from dh2rt.topology import parse_spec
 from drivers.latch import Latch, LatchState
 from firmware.latch import open_latch
-from firmware.main_loop import _ModuleLatch
+from firmware.main_loop import ModuleHost, _ModuleLatch
 from hil import launcher
-from hil.physics_stand_in import LATCH_CONNECTOR, LATCH_ID
+from hil.latch_emulator import LATCH_CONNECTOR, LATCH_ID
+from hil.pace import PACE
 from hil.world import World
+from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from tests.marks import LONG
 
 ROOT = Path(__file__).resolve().parents[2]
 FRONT, BACK = 1, 2
+#: World cycles for snake_to_t with the motion in the modules (as tests/hil/test_hil_reach_physics.py)
+OWN_T_CYCLES = 1000
+
+#: module processes run in real time here: make test runs these in a group of their own (tests/conftest.py)
+pytestmark = pytest.mark.realtime
 
 
 @pytest.fixture
@@ -54,7 +63,8 @@ def _dock(world: World, latch: Latch) -> tuple[bool, list[str]]:
     cycle): the dock's verdict, and the module's log."""
     log: list[str] = []
     verified = SimpleNamespace(verified=lambda c: world.link_map.peer_of((1, c)) is not None, log=log)
-    own = _ModuleLatch(SimpleNamespace(runtime=verified), latch, FRONT)
+    host = cast(ModuleHost, SimpleNamespace(runtime=verified))
+    own = _ModuleLatch(host, latch, FRONT)
     while not own.aligned(1, FRONT, 0, BACK):
         time.sleep(0.05)
         world.watch_latches()
@@ -104,3 +114,34 @@ def test_the_option_needs_the_pybullet_stand_in(capsys: pytest.CaptureFixture[st
     )  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and "--latch-emulator" in err and "--stand-in pybullet" in err and "Traceback" not in err
+
+
+@LONG  # a whole reconfiguration in the loop
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_snake_to_t_forms_on_the_latch_servos(seed: int, capsys: pytest.CaptureFixture[str]) -> None:
+    """--motions-in-modules --latch-emulator: m0's own reach closes m0's own latch servo; its horn
+    passes the pins (m0.front aligned with m5.left in physics) and the world links them on that;
+    no LatchAnswer is sent. The T forms as with the world's latch."""
+    code = PACE.call(
+        launcher.main,
+        ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8",
+         "--cycles", str(OWN_T_CYCLES), "--cycle-ms", "50", "--silence-cycles", "6", "--event", "50:inject:m4:STT",
+         "--seed", str(seed), "--json", "--stand-in", "pybullet", "--motions-in-modules", "--latch-emulator"]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0, out
+    summary: dict[str, Any] = json.loads(out.strip().splitlines()[-1])
+    log = summary["log"]
+    docking = [line for line in log if "dock" in line or "latch" in line or "release" in line]
+    assert any("m0: latch: the module's own (servo) on connector 1" in line for line in log), docking
+    types = {m["name"]: m["type"] for m in summary["modules"]}
+    assert types["m3"] == "head" and types["m2"] == "tail" and types["m7"] == "tail", (types, docking)
+    docked = [line for line in log if "m0.front docked to m5.left" in line]
+    assert len(docked) == 1 and "by its latch's horn" in docked[0], docking
+    assert any("m0: latch on connector 1: docked (closed and linked)" in line for line in log), docking
+    reaches = summary["reaches"]
+    assert reaches["latch_answers"] == 0
+    (contact,) = reaches["contacts"]
+    assert contact["distance_mm"] <= DOCK_TOLERANCE_M * 1000 and contact["attitude_deg"] <= DOCK_TOLERANCE_DEG
+    order = [i for i, line in enumerate(log) if "docked to m5.left" in line or "m2.back released" in line]
+    assert len(order) == 2 and "docked" in log[order[0]], docking
