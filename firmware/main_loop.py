@@ -578,7 +578,7 @@ class ModuleHost:
 
             self.foot = Foot(self.module, set_off)
             self.report(Effect("foot", ["set_off", f"motion {set_off.motion}, to module {set_off.target}"]))
-            self.report(Effect("release", [front]))
+            self._release(front)
             self._log_line(f"foot: motion {set_off.motion}: letting go, to module {set_off.target}")
         foot = self.foot
         if foot is None or foot.done:
@@ -663,6 +663,14 @@ class ModuleHost:
         for line in log[self._logged :]:
             self.report(Log(line))
         self._logged = len(log)
+
+    def _release(self, connector: int) -> None:
+        """A foot lets go of ``connector`` (as a program's ``release`` does in :meth:`flush`): the
+        module's own latch there opens; the effect goes to the world as before (which cuts the
+        link, or with a latch it emulates, waits for the horn to open)."""
+        if isinstance(self.latch, _ModuleLatch):
+            self.latch.release(connector)
+        self.report(Effect("release", [connector]))
 
     def _command(self, cmd: Command) -> None:
         rt = self.runtime

@@ -657,8 +657,9 @@ class World:
             self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
 
     def _own_latch(self, module: int, connector: int) -> bool:
-        """Whether ``module``'s ``connector`` has its emulated latch (the module drives it)."""
-        return module in self.horn_links and connector == LATCH_CONNECTOR
+        """Whether ``module``'s ``connector`` is held by its emulated latch's horn (closed now):
+        its ``release`` opens it, and the world undocks when it sees it open."""
+        return connector == LATCH_CONNECTOR and self._horns_closed.get(module, False)
 
     def watch_latches(self) -> None:
         """Each emulated latch's horn (``latch_emulator``): one that got past the pins docks its
