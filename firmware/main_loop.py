@@ -820,8 +820,10 @@ def _module_latch(host: ModuleHost) -> _WorldLatch | _ModuleLatch:
 class _ModuleLatch:
     """The latch of a reach this module runs, its own (firmware.motion.asking.LatchAsk): when the
     motion asks, the latch closes; the dock is aligned once the latch reports ``closed`` and the
-    connector's link is verified (a Hello heard on it), or refused (latch opened again) when
-    the latch faults or jams, or the link does not come within :data:`LATCH_LINK_CYCLES`.
+    connector's link is verified (a Hello heard on it). A latch that faults or jams, or a link
+    that does not come within :data:`LATCH_LINK_CYCLES`, refuses this try: the latch opens
+    again and the dock is not aligned yet, so the motion goes on and asks again, as it does
+    when the world refuses its latch (a refused ``LatchAnswer``); its own budget bounds it.
     A dock on another connector (a male face, held by the other module's latch) is asked of
     the world, as without a latch."""
 
@@ -855,12 +857,16 @@ class _ModuleLatch:
         return False
 
     def _decide(self, conn: int, docked: bool, why: str) -> bool:
+        """Docked (aligned: the motion reads the verdict), or refused: opened, not aligned yet."""
         del self.waiting[conn]
-        self.verdict[conn] = docked
-        self.host.runtime.log.append(f"latch on connector {conn}: {'docked' if docked else 'refused'} ({why})")
-        if not docked:
-            self.driver.open()
-        return True
+        log = self.host.runtime.log
+        if docked:
+            self.verdict[conn] = True
+            log.append(f"latch on connector {conn}: docked ({why})")
+            return True
+        log.append(f"latch on connector {conn}: refused ({why}); opened, asked again when the motion next asks")
+        self.driver.open()
+        return False
 
     def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
         if a_conn != self.connector:

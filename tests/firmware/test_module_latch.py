@@ -43,11 +43,14 @@ def test_dock_completes_only_on_closed_and_link() -> None:
 
 def test_no_link_in_the_bound_is_refused_and_opened() -> None:
     driver = RecordingLatch()
-    latch = _ModuleLatch(_host(set()), driver, 2)
+    host = _host(set())
+    latch = _ModuleLatch(host, driver, 2)
     answers = [latch.aligned(1, 2, 3, 4) for _ in range(LATCH_LINK_CYCLES + 2)]
-    assert answers[-1] and not any(answers[:-1])
-    assert not latch.latch(1, 2, 3, 4)
+    assert not any(answers)  # refused: not aligned yet, the motion goes on
     assert driver.history == [Position.CLOSED, Position.OPEN]
+    assert "refused" in host.runtime.log[-1] and "link not verified" in host.runtime.log[-1]
+    assert not latch.aligned(1, 2, 3, 4)  # the motion asks again: the latch closes again
+    assert driver.history == [Position.CLOSED, Position.OPEN, Position.CLOSED]
 
 
 def test_a_jammed_latch_is_refused_and_opened() -> None:
@@ -56,16 +59,14 @@ def test_a_jammed_latch_is_refused_and_opened() -> None:
     driver._clock = lambda: clock[0]  # the latch's own timeout judges the jam
     host = _host({2})
     latch = _ModuleLatch(host, driver, 2)
-    verdicts = []
-    for _ in range(LATCH_LINK_CYCLES + 2):
-        verdicts.append(latch.aligned(1, 2, 3, 4))
+    cycles = 0
+    while driver.history[-1] is not Position.OPEN and cycles < LATCH_LINK_CYCLES:
+        assert not latch.aligned(1, 2, 3, 4)
         clock[0] += 0.05
-        if verdicts[-1]:
-            break
-    assert verdicts[-1]
+        cycles += 1
+    assert driver.history == [Position.CLOSED, Position.OPEN] and cycles < LATCH_LINK_CYCLES  # the jam, not the link
+    assert "refused (latch fault" in host.runtime.log[-1]
     assert not latch.latch(1, 2, 3, 4)
-    assert driver.history[-1] is Position.OPEN
-    assert "fault" in host.runtime.log[-1] and len(verdicts) < LATCH_LINK_CYCLES
 
 
 def test_a_dock_on_another_connector_is_asked_of_the_world() -> None:

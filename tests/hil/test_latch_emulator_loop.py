@@ -60,15 +60,19 @@ def _settle(world: World, latch: Latch, want: LatchState, most_s: float = 3.0) -
 
 def _dock(world: World, latch: Latch) -> tuple[bool, list[str]]:
     """A module's reach asking its own latch to close at its front (as firmware.main_loop does each
-    cycle): the dock's verdict, and the module's log."""
+    cycle) until the latch docks it or refuses a try: whether it docked, and the module's log."""
     log: list[str] = []
     verified = SimpleNamespace(verified=lambda c: world.link_map.peer_of((1, c)) is not None, log=log)
     host = cast(ModuleHost, SimpleNamespace(runtime=verified))
     own = _ModuleLatch(host, latch, FRONT)
-    while not own.aligned(1, FRONT, 0, BACK):
+    for _ in range(60):  # 3 s of 50 ms cycles
+        if own.aligned(1, FRONT, 0, BACK):
+            return own.latch(1, FRONT, 0, BACK), log
+        if log:  # refused: opened again, the motion would go on and ask again
+            return False, log
         time.sleep(0.05)
         world.watch_latches()
-    return own.latch(1, FRONT, 0, BACK), log
+    raise AssertionError(f"neither docked nor refused in 3 s: {log}")
 
 
 def test_the_horn_links_only_when_aligned(world: World) -> None:
