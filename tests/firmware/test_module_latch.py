@@ -60,7 +60,7 @@ def test_a_jammed_latch_is_refused_and_opened() -> None:
     host = _host({2})
     latch = _ModuleLatch(host, driver, 2)
     cycles = 0
-    while driver.history[-1] is not Position.OPEN and cycles < LATCH_LINK_CYCLES:
+    while driver.history[-1:] != [Position.OPEN] and cycles < LATCH_LINK_CYCLES:
         assert not latch.aligned(1, 2, 3, 4)
         clock[0] += 0.05
         cycles += 1
