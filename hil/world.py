@@ -392,12 +392,13 @@ class World:
         servos: dict[str, Any] = {}
         if servo_port is not None:  # servos this world emulates answer from one of its threads
             servos["servo_latency_ms"] = EMULATED_SERVO_LATENCY_MS
+        if servo_port is not None and self.physics is not None and module in self.physics.latches:
+            # the emulated latch servo on the same emulated bus (hil.physics_stand_in)
+            latch = {**LATCH_SETTINGS, "connector": LATCH_CONNECTOR}
+            servos["latch"] = LatchSpec.from_mapping(latch, "the loop's latch", servo_port)
         if real is not None and real.servo_port:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
-        if self.physics is not None and module in self.physics.latches and servo_port is not None:
-            latch = LatchSpec.from_mapping({**LATCH_SETTINGS, "connector": LATCH_CONNECTOR}, "latch", servo_port)
-            servos["latch"] = latch
         bus_options = dict(self.bus_options)
         if real is not None and real.can_channel:
             bus_options["channel"] = real.can_channel
