@@ -513,7 +513,10 @@ class ModuleHost:
         self._hold(rt)
         effects, self.motion.effects = self.motion.effects, []
         for kind, args in effects:
-            self.report(Effect(kind, args))
+            if kind == "release":  # a foot letting go: its own latch opens first
+                self._release(int(args[0]))
+            else:
+                self.report(Effect(kind, args))
 
     def _log_line(self, line: str) -> None:
         self.runtime.log.append(f"cycle {self.runtime.cycle}: {line}")
@@ -570,8 +573,8 @@ class ModuleHost:
             self.report(TraceRecord(rec))
         rt.records.clear()
         for kind, args in rt.effects:
-            if kind == "release" and isinstance(self.latch, _ModuleLatch):
-                self.latch.release()  # the module's own latch opens; the link goes as before
+            if kind == "release" and isinstance(self.latch, _ModuleLatch) and args:
+                self.latch.release(int(args[0]))  # the module's own latch opens; the link goes as before
             self.report(Effect(kind, list(args)))
         rt.effects.clear()
         log = rt.log
@@ -580,6 +583,14 @@ class ModuleHost:
         for line in log[self._logged :]:
             self.report(Log(line))
         self._logged = len(log)
+
+    def _release(self, connector: int) -> None:
+        """A foot lets go of ``connector`` (as a program's ``release`` does in :meth:`flush`): the
+        module's own latch there opens; the effect goes to the world as before (which cuts the
+        link, or with a latch it emulates, waits for the horn to open)."""
+        if isinstance(self.latch, _ModuleLatch):
+            self.latch.release(connector)
+        self.report(Effect("release", [connector]))
 
     def _command(self, cmd: Command) -> None:
         rt = self.runtime
@@ -597,7 +608,7 @@ class ModuleHost:
             elif isinstance(cmd, Readings):
                 rt.push_readings(cmd.values)
                 self.own_readings.update(cmd.values)
-            elif isinstance(cmd, LatchAnswer) and isinstance(self.latch, _WorldLatch):
+            elif isinstance(cmd, LatchAnswer):
                 self.latch.answered(cmd)
             elif isinstance(cmd, OwnMotions):
                 self.self_motion = True
@@ -725,25 +736,33 @@ def _module_latch(host: ModuleHost) -> _WorldLatch | _ModuleLatch:
         why = fault or "no [latch] in module.toml"
         host.runtime.log.append(f"latch: {why}; a reach's latch is asked of the world")
         return _WorldLatch(host)
-    host.runtime.log.append(f"latch: the module's own ({spec.kind})")
-    return _ModuleLatch(host, driver)
+    host.runtime.log.append(f"latch: the module's own ({spec.kind}) on connector {spec.connector}")
+    return _ModuleLatch(host, driver, spec.connector)
 
 
 class _ModuleLatch:
     """The latch of a reach this module runs, its own (firmware.motion.asking.LatchAsk): when the
     motion asks, the latch closes; the dock is aligned once the latch reports ``closed`` and the
-    connector's link is verified (a Hello heard on it), or refused (latch opened again) when
-    the latch faults or jams, or the link does not come within :data:`LATCH_LINK_CYCLES`."""
+    connector's link is verified (a Hello heard on it). A latch that faults or jams, or a link
+    that does not come within :data:`LATCH_LINK_CYCLES`, refuses this try: the latch opens
+    again and the dock is not aligned yet, so the motion goes on and asks again, as it does
+    when the world refuses its latch (a refused ``LatchAnswer``); its own budget bounds it.
+    A dock on another connector (a male face, held by the other module's latch) is asked of
+    the world, as without a latch."""
 
-    def __init__(self, host: ModuleHost, driver: Latch) -> None:
+    def __init__(self, host: ModuleHost, driver: Latch, connector: int) -> None:
         self.host = host
         self.driver = driver
+        self.connector = connector
+        self.world = _WorldLatch(host)
         #: connector -> cycles waited since the latch was told to close
         self.waiting: dict[int, int] = {}
         #: connector -> docked (True) or refused (False), until the motion reads it
         self.verdict: dict[int, bool] = {}
 
     def aligned(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn != self.connector:
+            return self.world.aligned(a, a_conn, b, b_conn)
         if a_conn in self.verdict:
             return True
         if a_conn not in self.waiting:
@@ -761,19 +780,30 @@ class _ModuleLatch:
         return False
 
     def _decide(self, conn: int, docked: bool, why: str) -> bool:
+        """Docked (aligned: the motion reads the verdict), or refused: opened, not aligned yet."""
         del self.waiting[conn]
-        self.verdict[conn] = docked
-        self.host.runtime.log.append(f"latch on connector {conn}: {'docked' if docked else 'refused'} ({why})")
-        if not docked:
-            self.driver.open()
-        return True
+        log = self.host.runtime.log
+        if docked:
+            self.verdict[conn] = True
+            log.append(f"latch on connector {conn}: docked ({why})")
+            return True
+        log.append(f"latch on connector {conn}: refused ({why}); opened, asked again when the motion next asks")
+        self.driver.open()
+        return False
 
     def latch(self, a: int, a_conn: int, b: int, b_conn: int) -> bool:
+        if a_conn != self.connector:
+            return self.world.latch(a, a_conn, b, b_conn)
         return self.verdict.pop(a_conn, False)
 
-    def release(self) -> None:
-        """``release``: the latch opens (the link goes as before)."""
-        self.driver.open()
+    def answered(self, answer: LatchAnswer) -> None:
+        """The world's answer for a dock on another connector."""
+        self.world.answered(answer)
+
+    def release(self, connector: int) -> None:
+        """``release`` of the latch's connector: the latch opens (the link goes as before)."""
+        if connector == self.connector:
+            self.driver.open()
 
 
 class TrialWatch:

@@ -18,12 +18,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from typing import Any, Final
 
 from dh2rt.errors import EmulatorError
 from drivers import dxl_table as dxt
 from hil.servo_emulator import ServoEmulator
 from hil.servo_joints import DEFAULT_SPEED_TPS, JointBackend, KinematicJoint
 from hil.servo_table import EmulatedServo
+
+#: The loop's latch servo (hil.physics_stand_in with ``latches``, the launcher's
+#: ``--latch-emulator``): its id beside the joints' 1 and 2, the female face it holds (CONRO's
+#: front, its only one), and the module.toml ``[latch]`` the world gives it (hil.world.World.config).
+LATCH_ID: Final = 3
+LATCH_CONNECTOR: Final = 1
+LATCH_SETTINGS: Final[dict[str, Any]] = {"kind": "servo", "id": LATCH_ID, "open_deg": -30.0, "closed_deg": 30.0}
 
 
 def always() -> bool:

@@ -143,6 +143,14 @@ def build_parser() -> argparse.ArgumentParser:
         "physics, infrared, the tracker and the latch (reach_and_dock stays the world's)",
     )
     view.add_argument(
+        "--latch-emulator",
+        action="store_true",
+        help="each module gets an emulated latch servo (id 3, beside its joints on its emulated bus) on its "
+        "front face and a [latch] in its module.toml: it closes its own latch, whose horn passes the pins only "
+        "if physics has that face aligned with a free male face; the world docks on the horn closing and "
+        "undocks on it opening (needs --stand-in pybullet)",
+    )
+    view.add_argument(
         "--sensor-every",
         type=int_in(1, MAX_CYCLES),
         default=1,
@@ -457,6 +465,8 @@ def check_views(ns: argparse.Namespace) -> None:
     wanted = [o for o, v in (("--record", ns.record), ("--plot", ns.plot), ("--gui", ns.gui or None)) if v is not None]
     if ns.motions_in_modules and ns.stand_in != "pybullet":
         raise OptionError("--motions-in-modules: the modules move bodies in physics; it needs --stand-in pybullet")
+    if ns.latch_emulator and ns.stand_in != "pybullet":
+        raise OptionError("--latch-emulator: the latch servos are emulated in physics; it needs --stand-in pybullet")
     if wanted and ns.stand_in != "pybullet":
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
     PYBULLET.check(ns)
@@ -499,6 +509,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             signer=ns.signer,
             sensor_every=ns.sensor_every,
             modules_move=ns.motions_in_modules,
+            latch_emulator=ns.latch_emulator,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:
@@ -798,6 +809,12 @@ def _reaches(world: World) -> dict[str, Any] | None:
         "failed": [c.as_dict() for c in r.failed],
         "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.docking.outcomes],
         "arrivals": [asdict(a) for a in r.docking.arrivals],
+        "latch_answers": world.latch_answers,
+        # --latch-emulator: each module's latch servo, the closes refused (a jam) and its overloads
+        "latch_servos": {
+            world.topology.names[m]: {"refused": horn.refused, "overloads": horn.overloads}
+            for m, horn in r.physics.latches.items()
+        },
     }
 
 

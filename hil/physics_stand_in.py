@@ -10,12 +10,22 @@ the IMU, each connector's infrared pair and ground contact, by ``sim.sensors``);
 world pushes those readings to the module processes, while the joints' present position and
 load reach each module through its own servos.
 
+With ``latches`` (the launcher's ``--latch-emulator``) each module's bus also has a latch servo
+(:class:`hil.latch_emulator.LatchJoint`, id :data:`LATCH_ID`) on its female face
+(:data:`LATCH_CONNECTOR`, CONRO's ``front``, the only one): its horn passes the pins only if
+that face is aligned within the docking tolerance with the nearest free male face of another
+module (:meth:`PhysicsStandIn.mate`); the world docks and undocks on the horn
+(:meth:`PhysicsStandIn.horn_closed`, ``hil.world.World``). A latch on a face docked at the start
+starts closed.
+
 PyBullet is not thread-safe: one lock serialises the emulators' joint reads and writes (each
-in its own thread) with the stepping.
+in its own thread) with the stepping. A latch's horn is read under its bus's lock, which
+then takes the world's (never the other way round).
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -23,8 +33,10 @@ from dataclasses import dataclass
 
 from dh2rt.closing import Closing
 from dh2rt.topology import Topology
-from drivers.base import Health, ModuleDriver
+from drivers.base import Health, Joint, ModuleDriver
+from hil.latch_emulator import LATCH_CONNECTOR, LATCH_ID, LATCH_SETTINGS, LatchJoint, emulate
 from hil.servo_emulator import ServoEmulator
+from hil.servo_joints import ModuleJointAdapter
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
 from sim.sensors import JOINT_SENSORS, PhysicsSensors
 from sim.world import World as PhysicsWorld
@@ -66,19 +78,24 @@ class _LockedDriver(ModuleDriver):
 
 
 class PhysicsStandIn(Closing):
-    """One PyBullet world and one servo emulator (a pty) per module of ``topology``."""
+    """One PyBullet world and one servo emulator (a pty) per module of ``topology``; with
+    ``latches``, a latch servo on each bus (see the module docstring)."""
 
-    def __init__(self, topology: Topology, *, seed: int = 0, gui: bool = False) -> None:
+    def __init__(self, topology: Topology, *, seed: int = 0, gui: bool = False, latches: bool = False) -> None:
         # everything close() reads exists before anything can fail (or be interrupted)
         self.lock = threading.Lock()
         self.emulators: list[ServoEmulator] = []
+        #: module -> its latch's horn (``latches``), and the face it mated with when it passed the pins
+        self.latches: dict[int, LatchJoint] = {}
+        self.mated: dict[int, tuple[int, int] | None] = {}
         self._t0: float | None = None
         self._steps = 0
         self._final: tuple[float, float] | None = None  # (displacement, simulated s) once closed
         self.world = PhysicsWorld(topology, seed=seed, gui=gui)
         try:
             for m in range(topology.size):
-                emulator = ServoEmulator.for_module(_LockedDriver(self.world.driver(m), self.lock))
+                driver = _LockedDriver(self.world.driver(m), self.lock)
+                emulator = self._latched_bus(m, driver) if latches else ServoEmulator.for_module(driver)
                 emulator.start()
                 self.emulators.append(emulator)
         except BaseException:
@@ -86,6 +103,50 @@ class PhysicsStandIn(Closing):
             raise
         self.start_centroid = self.world.centroid()
         self._sensors: PhysicsSensors | None = None
+
+    def _latched_bus(self, module: int, driver: ModuleDriver) -> ServoEmulator:
+        adapter = ModuleJointAdapter(driver)
+        docked = any((module, LATCH_CONNECTOR) in link.ends() for link in self.world.links())
+        closed = float(LATCH_SETTINGS["closed_deg"])
+        horn = LatchJoint(
+            float(LATCH_SETTINGS["open_deg"]), closed, lambda: self._can_close(module),
+            start_deg=closed if docked else None,
+        )  # fmt: skip
+        self.latches[module] = horn
+        self.mated[module] = None
+        return emulate(LATCH_ID, horn, {1: adapter.joint(Joint.DOF1), 2: adapter.joint(Joint.DOF2)})
+
+    def _can_close(self, module: int) -> bool:
+        """The latch's hook (its bus's thread): the pins pass if the face is aligned with a mate."""
+        self.mated[module] = self.mate(module, LATCH_CONNECTOR)
+        return self.mated[module] is not None
+
+    def mate(self, module: int, connector: int) -> tuple[int, int] | None:
+        """The free face of another module nearest ``module``'s free ``connector`` that can link
+        with it, if the two are aligned within the docking tolerance; else None."""
+        with self.lock:
+            w = self.world
+            docked = {end for link in w.links() for end in link.ends()}
+            if (module, connector) in docked:
+                return None
+            here = w.connector_pose(module, connector)[0]
+            faces = range(1, w.topology.profile.connector_count + 1)
+            free = [
+                (m, c)
+                for m in range(w.size)
+                for c in faces
+                if m != module and (m, c) not in docked and w.topology.profile.can_link(connector, c)
+            ]
+            if not free:
+                return None
+            m, c = min(free, key=lambda end: math.dist(here, w.connector_pose(*end)[0]))
+            aligned = w.aligned(module, connector, m, c, DOCK_TOLERANCE_M, DOCK_TOLERANCE_DEG)
+            return (m, c) if aligned else None
+
+    def horn_closed(self, module: int) -> bool:
+        """Whether ``module``'s latch holds now (its horn past the pins): read under its bus's lock."""
+        with self.emulators[module].lock:
+            return self.latches[module].is_past_the_pins
 
     def measure(self, names: Iterable[str]) -> tuple[str, ...]:
         """From now on :meth:`readings` computes those of ``names`` that physics provides

@@ -289,22 +289,42 @@ class LoopReaches:
         if not (0 <= target < w.topology.size and connector in faces and target_conn in faces):
             w.note(f"{w.topology.names[module]}: a latch to module {target} connector {target_conn}: no such face")
             return False
-        with self.physics.lock:
-            ir = self.sensors.read(w.cycle, frozenset(), (module,), floor=False, attitude=()).infrared.get(module, {})
-        name = w.profile.connector_name(connector)
-        pair = (ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0))
+        pair = self.pair(module, connector)
         closed = w.latch(module, connector, target, target_conn)
         if closed:
-            with self.physics.lock:
-                record = contact(self.physics.world, w.cycle, (module, connector), (target, target_conn), pair)
-            self.contacts.append(record)
-            asked = self.own[module][1] if module in self.own else w.cycle
-            w.note(
-                f"{w.where(module, connector)} docked to {w.where(target, target_conn)} by motion, the module's own "
-                f"(asked at world cycle {asked}; {record.distance_m * 1000:.1f} mm, {record.attitude_deg:.1f} deg "
-                f"apart; infrared {pair[0]:.1f} mm, {pair[1]:.1f} deg)"
-            )
+            self.record_latch(module, connector, target, target_conn, how="by motion, the module's own", pair=pair)
         return closed
+
+    def pair(self, module: int, connector: int) -> tuple[float, float]:
+        """``module``'s infrared pair at ``connector`` now (distance mm, alignment degrees)."""
+        with self.physics.lock:
+            ir = self.sensors.read(self.world.cycle, frozenset(), (module,), floor=False, attitude=())
+        name = self.world.profile.connector_name(connector)
+        pairs = ir.infrared.get(module, {})
+        return pairs.get(f"ir_{name}", 0.0), pairs.get(f"ir_{name}_align", 180.0)
+
+    def record_latch(
+        self,
+        module: int,
+        connector: int,
+        target: int,
+        target_conn: int,
+        *,
+        how: str,
+        pair: tuple[float, float],
+    ) -> None:
+        """A latch that closed (the world docked it): recorded in :attr:`contacts` and logged,
+        with ``pair``, the infrared pair read before the dock (:meth:`pair`)."""
+        w = self.world
+        with self.physics.lock:
+            record = contact(self.physics.world, w.cycle, (module, connector), (target, target_conn), pair)
+        self.contacts.append(record)
+        asked = self.own[module][1] if module in self.own else w.cycle
+        w.note(
+            f"{w.where(module, connector)} docked to {w.where(target, target_conn)} {how} "
+            f"(asked at world cycle {asked}; {record.distance_m * 1000:.1f} mm, {record.attitude_deg:.1f} deg "
+            f"apart; infrared {pair[0]:.1f} mm, {pair[1]:.1f} deg)"
+        )
 
     def own_ended(self, module: int, connector: int, verdict: str) -> None:
         """The module's reach ended (its ``reach_ended`` effect)."""

@@ -111,6 +111,12 @@ class ServoEmulator:
     # -- servos and faults --
 
     @property
+    def lock(self) -> threading.RLock:
+        """The bus's lock: held while a packet is handled (a backend's state read from another
+        thread is read under it)."""
+        return self._lock
+
+    @property
     def ids(self) -> tuple[int, ...]:
         with self._lock:
             return tuple(sorted(self._servos))

@@ -41,7 +41,12 @@ of the body, comes to the asking face by its own gaits (:class:`firmware.motion.
 own servos) and the two dock by motion while it creeps; the asking module's ``docking``
 sensor reads 1 meanwhile (pushed by the world). With :attr:`World.modules_move` a
 ``reach_dock`` is the asking module's own (firmware.motion.asking): the world sends no
-``Hold``, only the sensors it fills and the latch's answer.
+``Hold``, only the sensors it fills and the latch's answer. With ``latch_emulator`` (the
+launcher's ``--latch-emulator``) each module has a latch servo on its front face
+(hil.physics_stand_in) and a ``[latch]`` in its module.toml: it closes its own latch, and the
+world docks the link when the horn gets past the pins (the face aligned with a free one) and
+undocks it when the horn opens (:meth:`World.watch_latches`); such a module is sent no
+``LatchAnswer`` for that face, and its ``release`` of it waits for the horn.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -75,7 +80,15 @@ from dh2rt.transport.base import HeldEnd, LinkCounters, PortEnd
 from dh2rt.transport.can_bus import SocketCanTransport, UdpCanTransport, VirtualCanTransport
 from dh2rt.transport.inproc import inproc_bus
 from dh2rt.transport.registry import parse_spec as parse_transport_spec
-from firmware.config import DEFAULT_STAND_IN, DEFAULTS, EMULATED_SERVO_LATENCY_MS, STAND_INS, ChannelSpec, ModuleConfig
+from firmware.config import (
+    DEFAULT_STAND_IN,
+    DEFAULTS,
+    EMULATED_SERVO_LATENCY_MS,
+    STAND_INS,
+    ChannelSpec,
+    LatchSpec,
+    ModuleConfig,
+)
 from firmware.control import (
     Attach,
     Command,
@@ -102,6 +115,7 @@ from hil.bus_witness import SHARED_INTERFACES, BusWitness, EndId, Span, negotiat
 from hil.capture_tap import PYTHON_CAN, BusTap, CaptureSink
 from hil.contact_emulator import ContactEmulator
 from hil.hardware_map import HardwareMap
+from hil.latch_emulator import LATCH_CONNECTOR, LATCH_SETTINGS
 from hil.link_emulator import LinkEmulator, LinkStats, SideCounts
 from hil.link_map import LinkMap
 from hil.status import ModuleView
@@ -176,6 +190,7 @@ class World:
         line_baud: int = LINE_BAUD,
         sensor_every: int = 1,
         modules_move: bool | None = None,
+        latch_emulator: bool = False,
     ) -> None:
         if sensor_every < 1:
             raise HilWorldError(f"sensor readings pushed every {sensor_every} cycles: must be 1 or more")
@@ -251,12 +266,21 @@ class World:
         self.physics: PhysicsStandIn | None = None
         #: The docking motions on the PyBullet stand-in (``reach_dock`` by motion), or None.
         self.reaches: LoopReaches | None = None
+        if latch_emulator and stand_in != "pybullet":
+            raise HilWorldError("the latch emulator needs the PyBullet stand-in")
+        #: LatchAnswers sent (a module with its own latch is sent none for its face)
+        self.latch_answers = 0
+        #: module -> the face its latch's horn docked its front to (the horn's link), or None
+        self.horn_links: dict[int, tuple[int, int] | None] = {}
+        self._horns_closed: dict[int, bool] = {}
         try:
             if stand_in == "pybullet":
                 from hil.physics_stand_in import PhysicsStandIn
                 from hil.reach_loop import LoopReaches
 
-                self.physics = PhysicsStandIn(topology, seed=seed, gui=gui)
+                self.physics = PhysicsStandIn(topology, seed=seed, gui=gui, latches=latch_emulator)
+                self._horns_closed = {m: self.physics.horn_closed(m) for m in self.physics.latches}
+                self.horn_links = dict.fromkeys(self.physics.latches)
                 self.reaches = LoopReaches(self, self.physics)
             elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
@@ -368,6 +392,10 @@ class World:
         servos: dict[str, Any] = {}
         if servo_port is not None:  # servos this world emulates answer from one of its threads
             servos["servo_latency_ms"] = EMULATED_SERVO_LATENCY_MS
+        if servo_port is not None and self.physics is not None and module in self.physics.latches:
+            # the emulated latch servo on the same emulated bus (hil.physics_stand_in)
+            latch = {**LATCH_SETTINGS, "connector": LATCH_CONNECTOR}
+            servos["latch"] = LatchSpec.from_mapping(latch, "the loop's latch", servo_port)
         if real is not None and real.servo_port:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
@@ -603,8 +631,11 @@ class World:
                     if kind == "latch":
                         closed = self.reaches.own_latch(module, int(args[0]), int(args[1]), int(args[2]))
                         self._send(module, LatchAnswer(int(args[0]), closed))
+                        self.latch_answers += 1
                     else:
                         self.reaches.own_ended(module, int(args[0]), str(args[1]))
+            elif kind == "release" and self._own_latch(module, int(args[0])):
+                self.note(f"release {self.where(module, int(args[0]))}: undocked when its latch opens")
             elif kind == "release":
                 docking.release(self, module, int(args[0]))
             elif kind == "reach_dock":
@@ -625,6 +656,42 @@ class World:
                     docking.reach_and_dock(self, module, connector, route)
         except (IndexError, TypeError, ValueError):
             self.log.append(f"{self.topology.names[module]}: malformed {kind} {args!r}")
+
+    def _own_latch(self, module: int, connector: int) -> bool:
+        """Whether ``module``'s ``connector`` is held by its emulated latch's horn (closed now):
+        its ``release`` opens it, and the world undocks when it sees it open."""
+        return connector == LATCH_CONNECTOR and self._horns_closed.get(module, False)
+
+    def watch_latches(self) -> None:
+        """Each emulated latch's horn (``latch_emulator``): one that got past the pins docks its
+        face to the face it mated with (physics, then the link, as :meth:`latch`); one that
+        opened undocks what it held (as ``release``)."""
+        if self.physics is None:
+            return
+        for m in self.horn_links:
+            closed = self.physics.horn_closed(m)
+            if closed == self._horns_closed[m]:
+                continue
+            self._horns_closed[m] = closed
+            mate = self.physics.mated[m]
+            if closed and mate is not None:
+                self._horn_docks(m, mate)
+            elif closed:
+                self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch closed, on no face")
+            elif self.link_map.peer_of((m, LATCH_CONNECTOR)) is not None:
+                self.horn_links[m] = None
+                self.note(f"{self.where(m, LATCH_CONNECTOR)}: its latch opened")
+                docking.release(self, m, LATCH_CONNECTOR)
+
+    def _horn_docks(self, module: int, mate: tuple[int, int]) -> None:
+        """``module``'s latch got past the pins on ``mate``: dock them (as :meth:`latch`), the
+        infrared pair read before the dock (a docked face reads none)."""
+        pair = self.reaches.pair(module, LATCH_CONNECTOR) if self.reaches is not None else None
+        if not self.latch(module, LATCH_CONNECTOR, *mate):
+            return
+        self.horn_links[module] = mate
+        if self.reaches is not None and pair is not None:
+            self.reaches.record_latch(module, LATCH_CONNECTOR, *mate, how="by its latch's horn", pair=pair)
 
     def push_readings(self, modules: Iterable[int] | None = None) -> None:
         """Measure the sensors of ``modules`` (default: every live one) in physics and send
@@ -672,6 +739,7 @@ class World:
                 self.push_readings()
             if self.reaches is not None:
                 self.reaches.step(self.cycle, due=self.motions_due())
+            self.watch_latches()
         if self._pending:
             now = self.cycle
             due = [action for when, action in self._pending if when <= now]

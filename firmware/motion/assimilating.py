@@ -255,9 +255,7 @@ class SelfAssimilate(ModuleWorld):
         if self.waited > WAIT_CYCLES:
             return self._finish(f"not linked: no foot parked at the face in {WAIT_CYCLES} cycles")
         if self._still():
-            return self._finish(
-                f"not linked: module {self.foot} hardly moved in {STILL_CYCLES} cycles (dead or stuck)"
-            )
+            return self._finish(f"not linked: module {self.foot} hardly moved in {STILL_CYCLES} cycles (dead or stuck)")
         if not self.away:  # where the last squaring left it, until it has gone round again
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
             self.away = self.off_for >= PARKED_CYCLES
