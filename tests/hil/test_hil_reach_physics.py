@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -110,17 +111,24 @@ def test_a_latch_needs_the_faces_aligned_in_physics() -> None:
 
 @LONG  # whole reconfigurations by motion in the loop (in physics: tests/sim/test_snake_to_t_physics.py)
 @pytest.mark.parametrize(("seed", "at"), [(0, "m4"), (1, "m0")])
-def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_snake_to_t_forms_by_motion_in_the_loop(seed: int, at: str) -> None:
     """snake_to_t on snake:8 with the PyBullet stand-in: the head's front is bent to m5's left
-    by the modules' own servos and latches within tolerance; m2 releases its back; the T."""
-    code = PACE.call(
-        cli.main,
-        ["--transport", "serial", "--program", str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8",
-         "--cycles", str(T_CYCLES), "--cycle-ms", "50", "--silence-cycles", "6", "--event", f"50:inject:{at}:STT",
-         "--seed", str(seed), "--json", "--stand-in", "pybullet"]
-    )  # fmt: skip
-    out = capsys.readouterr().out
-    assert code == 0, out
+    by the modules' own servos and latches within tolerance; m2 releases its back; the T.
+
+    The launcher runs in a process of its own, as a user runs it: run inside the test
+    session's process (PACE.call) after the seed 0 case, seed 1's reach gave up (49.6 mm
+    apart) in 2 of 3 sequences, where 17 of 17 runs of the launcher in processes of their own
+    latched (seeds 1 to 4; session 9's note: the world steps the reach and relays the links
+    in its own process, and the test session's is far larger)."""
+    cmd = [
+        sys.executable, "-m", "hil.launcher", "--transport", "serial", "--program",
+        str(ROOT / "examples" / "snake_to_t.dh2"), "--topology", "snake:8", "--cycles", str(T_CYCLES),
+        "--cycle-ms", "50", "--silence-cycles", "6", "--event", f"50:inject:{at}:STT", "--seed", str(seed),
+        "--json", "--stand-in", "pybullet",
+    ]  # fmt: skip
+    proc = PACE.run(cmd, text=True, timeout=240, cwd=ROOT)
+    out = proc.stdout
+    assert proc.returncode == 0, (out[-2000:], proc.stderr[-2000:])
     summary = _summary(out)
     log = summary["log"]
     types = {m["name"]: m["type"] for m in summary["modules"]}
