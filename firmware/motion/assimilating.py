@@ -30,7 +30,9 @@ Phases (:attr:`SelfAssimilate.phase`):
    squarings in all; it never sends the foot round itself (it has no link to it).
 
 The whole wait is bounded (:data:`WAIT_CYCLES`: every trip the foot may make, each with its
-creep); past it, or when the foot's trips are spent, the verdict is ``not linked``.
+creep); past it, when the foot's trips are spent, or when the tracker shows the foot hardly
+moving for :data:`STILL_CYCLES` (it died or is stuck: nothing else can tell the asker), the
+verdict is ``not linked``, and the program may ask for the next foot.
 """
 
 from __future__ import annotations
@@ -275,7 +277,6 @@ class SelfAssimilate(ModuleWorld):
         or the face's pair sees it."""
         assert self.foot is not None
         floor = self.senses.floor()
-        front = self.profile.connector_index("front")
         try:
             if self.foot in floor.modules and parked(floor, self.model, self.foot, self._face, heading_deg=heading_deg):
                 return True
@@ -284,7 +285,7 @@ class SelfAssimilate(ModuleWorld):
         name = self.profile.connector_name(self.connector)
         ir = self.senses.infrared()
         mm, deg = ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0)
-        return front > 0 and 0.0 < mm <= SEES_MM and deg <= SEES_DEG
+        return 0.0 < mm <= SEES_MM and deg <= SEES_DEG
 
     def _still(self) -> bool:
         """The tracker shows the foot hardly moved over the last :data:`STILL_CYCLES`."""
