@@ -766,6 +766,15 @@ class _ModuleLatch:
         if a_conn in self.verdict:
             return True
         if a_conn not in self.waiting:
+            state = self.driver.state().state
+            if state is not LatchState.OPEN:
+                # closed on no link (the male face that held its pins was released by the other
+                # module, which cannot open this latch), or still opening after a refusal: a
+                # close now would move nothing, and the pins of the face in front would never
+                # be taken. Open it, and close once it reads open.
+                if state is not LatchState.MOVING:
+                    self.driver.open()
+                return False
             self.waiting[a_conn] = 0
             self.driver.close()
             return False

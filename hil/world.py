@@ -901,6 +901,8 @@ class World:
         if h is None or not self.views[module].alive:
             return
         self.views[module].killed = True
+        if self.physics is not None:  # its infrared emitters go dark with it
+            self.physics.world.unpowered.add(module)
         dying = time.time()
         h.end(grace=0.0 if not self.threads else 1.0)
         if isinstance(h, ProcessModule):
@@ -920,6 +922,8 @@ class World:
         if self.reaches is not None:  # a new life holds nothing: what a motion wants is sent again
             self.reaches.holding.pop(module, None)
             self.reaches.docking_sent.pop(module, None)
+        if self.physics is not None:
+            self.physics.world.unpowered.discard(module)
         self._spawn(module, self.cycles, self.phase_draw.next(self.program.clock_cycle))
         deadline = time.monotonic() + 30
         while not self.views[module].ready and time.monotonic() < deadline:

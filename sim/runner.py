@@ -306,6 +306,8 @@ class PhysicsRun:
 
     def cycle(self) -> None:
         """One control cycle: sensors, engines, then joints, then physics."""
+        robot = self.robot
+        self.world.unpowered = {m for m in range(robot.topology.size) if not robot.alive(m)}
         self.fill_sensors()
         motions = self.module_motions
         if motions is not None:

@@ -28,7 +28,8 @@ that reads none costs nothing, and one that reads only ``roll`` casts no ray.
   least 1 (faces flush read 1), and 0 when C sees none;
   ``ir_<c>_align`` the angle between C's normal and D's reversed normal, in degrees: 0 when
   the faces are square to each other, 180 when C sees none. Every face of every module in the
-  world is a target, docked neighbours' included.
+  world is a target, docked neighbours' included, but those of a module without power
+  (``World.unpowered``, a killed one): its emitters are dark.
 * ``contact``: 1 when any part of the module touched the ground plane in the last step.
 * ``pos1``, ``pos2``: the joints' angles (degrees); ``load1``, ``load2``: the torque each
   joint motor applied in the last step, as a percentage of the servo's maximum torque
@@ -228,6 +229,9 @@ class PhysicsSensors:
         sq = np.einsum("tj,tj->t", targets, targets)
         dist2 = sq[row_module * k + row_conn][:, None] + sq[None, :] - 2.0 * (src @ targets.T)
         rows, cols = np.nonzero(other & (dist2 <= self.ir_range_m**2))
+        if self.world.unpowered:  # a module without power emits nothing: its faces are dark
+            lit = ~np.isin(cols // k, sorted(self.world.unpowered))
+            rows, cols = rows[lit], cols[lit]
         d, e_n, t_n = targets[cols] - src[rows], src_n[rows], target_n[cols]
         dist = np.sqrt(np.einsum("pj,pj->p", d, d))
         reach = self._cos_cone * dist  # within the cone: cos(angle) * dist >= cos(cone) * dist

@@ -82,6 +82,9 @@ class World(Closing):
         self._hz = float(physics_hz)
         self._dt = 1.0 / self._hz
         self._steps = 0
+        #: Modules without power (killed): their infrared emitters are dark, so no pair sees
+        #: their faces (sim.sensors); their bodies stay where they lie.
+        self.unpowered: set[int] = set()
         self.client: int = p.connect(p.GUI if gui else p.DIRECT)
         if self.client < 0:
             raise SimulationError("PyBullet: could not connect a physics client" + (" (GUI)" if gui else ""))

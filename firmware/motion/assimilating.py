@@ -31,8 +31,9 @@ Phases (:attr:`SelfAssimilate.phase`):
 
 The whole wait is bounded (:data:`WAIT_CYCLES`: every trip the foot may make, each with its
 creep); past it, when the foot's trips are spent, or when the tracker shows the foot hardly
-moving for :data:`STILL_CYCLES` (it died or is stuck: nothing else can tell the asker), the
-verdict is ``not linked``, and the program may ask for the next foot.
+moving for :data:`STILL_CYCLES` (it died or is stuck), or when the foot lies where the face's
+infrared pair must see it, lying still, and the pair sees nothing (its emitter is dark: it
+has no power, :data:`DARK_CYCLES`), the verdict is ``not linked``, and the program may ask for the next foot.
 """
 
 from __future__ import annotations
@@ -87,6 +88,22 @@ PARKED_HEADING_DEG = 15.0
 STILL_CYCLES = 400
 STILL_M = 0.06
 STILL_DEG = 60.0
+#: The foot lies where the face's infrared pair must see it (the tracker shows its front
+#: within :data:`SIGHT_M` of the face, each face within :data:`SIGHT_DEG` of the other's
+#: normal: inside a CONRO pair's 10 cm and 30 degrees, docs/physics.md *Sensors*), the pair
+#: sees nothing, and the foot's front face moves less than :data:`DARK_PATH_M` (its path on
+#: the tracker, summed cycle to cycle) for :data:`DARK_CYCLES` in a row: its emitter is dark,
+#: it has no power, and the dock is given up. The infrared pairs are active (an emitter on
+#: each face): what a real robot has to tell a dead module from a live one without a link. The
+#: stillness is part of the rule because a live foot creeping at the face lifts its front 30
+#: degrees with each step, out of the pair's cone for tens of cycles (legs to snake, seed 0,
+#: in physics: the tracker's floor plan cannot show a tilt), and never lies still. A foot
+#: killed as its square-up began (seed 1) was otherwise known dead only by
+#: :data:`STILL_CYCLES` after that square-up's 400 cycles ran out.
+SIGHT_M = 0.08
+SIGHT_DEG = 20.0
+DARK_CYCLES = 40
+DARK_PATH_M = 0.015
 
 
 @dataclass
@@ -126,6 +143,11 @@ class SelfAssimilate(ModuleWorld):
     off_for: int = 0
     #: where the foot was (x, y, heading) when the current window began, and that cycle
     moved: tuple[float, float, float, int] | None = None
+    #: cycles in a row the foot lay in the face's sight and its pair saw nothing, and the
+    #: path its front face went meanwhile (m), and where it was last
+    dark_for: int = 0
+    dark_path: float = 0.0
+    dark_at: tuple[float, float] | None = None
     own_targets: dict[int, float] = field(default_factory=dict)
     verdict: str | None = None
 
@@ -258,6 +280,8 @@ class SelfAssimilate(ModuleWorld):
             return self._finish(f"not linked: no foot parked at the face in {WAIT_CYCLES} cycles")
         if self._still():
             return self._finish(f"not linked: module {self.foot} hardly moved in {STILL_CYCLES} cycles (dead or stuck)")
+        if self._dark():
+            return self._finish(self._dark_verdict())
         if not self.away:  # where the last squaring left it, until it has gone round again
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
             self.away = self.off_for >= PARKED_CYCLES
@@ -305,9 +329,54 @@ class SelfAssimilate(ModuleWorld):
         turned = abs((heading - start[2] + 180.0) % 360.0 - 180.0)
         return math.hypot(x - start[0], y - start[1]) < STILL_M and turned < STILL_DEG
 
+    def _dark(self) -> bool:
+        """The tracker shows the foot in the face's sight and lying still, and the face's pair
+        sees nothing, :data:`DARK_CYCLES` cycles in a row (module docs, :data:`SIGHT_M`)."""
+        name = self.profile.connector_name(self.connector)
+        seen = self.senses.infrared().get(f"ir_{name}", 0.0) > 0.0
+        front = None if seen else self._in_sight()
+        if front is None:
+            self.dark_for, self.dark_path, self.dark_at = 0, 0.0, None
+            return False
+        if self.dark_at is not None:
+            self.dark_path += math.dist(front, self.dark_at)
+        self.dark_for, self.dark_at = self.dark_for + 1, front
+        if self.dark_path >= DARK_PATH_M:  # it moves: alive, out of the pair's cone for now
+            self.dark_for, self.dark_path = 0, 0.0
+        return self.dark_for >= DARK_CYCLES
+
+    def _dark_verdict(self) -> str:
+        return f"not linked: module {self.foot} lies in the face's sight and its infrared is dark (no power)"
+
+    def _in_sight(self) -> tuple[float, float] | None:
+        """Where the tracker shows the foot's front face, if it shows it where the face's
+        infrared pair must see it; else None."""
+        assert self.foot is not None
+        floor = self.senses.floor()
+        if self.foot not in floor.modules:
+            return None
+        try:
+            fx, fy, fnx, fny = floor.face(self.model, self.foot, "front")
+            px, py, nx, ny = floor.face(self.model, *self._face)
+        except TrackerMissing:
+            return None
+        dx, dy = fx - px, fy - py
+        d = math.hypot(dx, dy)
+        cone = math.cos(math.radians(SIGHT_DEG))
+        opposed = -(nx * fnx + ny * fny) / ((math.hypot(nx, ny) * math.hypot(fnx, fny)) or 1.0)
+        if d < 0.015:  # face to face: no direction between the centres to speak of
+            sees = opposed >= cone
+        else:
+            mine = (dx * nx + dy * ny) / (d * (math.hypot(nx, ny) or 1.0))
+            theirs = -(dx * fnx + dy * fny) / (d * (math.hypot(fnx, fny) or 1.0))
+            sees = d <= SIGHT_M and mine >= cone and theirs >= cone
+        return (fx, fy) if sees else None
+
     def _squaring(self) -> list[Out]:
         chain = self.squaring
         assert chain is not None and self.foot is not None
+        if self._dark():  # _finish ends the squaring chain with the others
+            return self._finish(self._dark_verdict())
         if self.docking is None:
             if not chain.known:
                 if self.cycle - chain.started > LEARN_CYCLES:

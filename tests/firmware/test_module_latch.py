@@ -53,6 +53,44 @@ def test_no_link_in_the_bound_is_refused_and_opened() -> None:
     assert driver.history == [Position.CLOSED, Position.OPEN, Position.CLOSED]
 
 
+class SlowLatch(RecordingLatch):
+    """A horn that takes ``cycles`` state reads to get where it was told (moving meanwhile)."""
+
+    def __init__(self, start: Position, cycles: int) -> None:
+        super().__init__()
+        self.adopt(start)
+        self.cycles = cycles
+        self.reads = cycles  # at rest where it started
+
+    def _drive(self, target: Position) -> None:
+        super()._drive(target)
+        self.reads = 0
+
+    def _sense(self, target: Position | None) -> Sensed:
+        self.reads += 1
+        if target is not None and self.reads <= self.cycles:
+            return Sensed(Position.BETWEEN, "moving")
+        return Sensed(target or Position.CLOSED, f"at {target}")
+
+
+def test_a_latch_closed_on_no_link_opens_before_it_closes() -> None:
+    """A latch still closed from a link the male face's module released (it cannot open this
+    latch) moves nothing when told to close: the pins in front would never be taken (the
+    loop's snake to quadruped: m2's horn stayed past the pins through 7 asks, and the world
+    never saw it close). It opens first, and closes once it reads open."""
+    linked: set[int] = set()
+    driver = SlowLatch(Position.CLOSED, cycles=2)
+    latch = _ModuleLatch(_host(linked), driver, 1)
+    asks = [latch.aligned(1, 1, 3, 4) for _ in range(4)]
+    assert not any(asks)
+    assert driver.history == [Position.OPEN, Position.CLOSED]  # opened, read open, then closed
+    linked.add(1)
+    while not latch.aligned(1, 1, 3, 4):
+        assert len(asks) < 12
+        asks.append(False)
+    assert latch.latch(1, 1, 3, 4)
+
+
 def test_a_jammed_latch_is_refused_and_opened() -> None:
     clock = [0.0]
     driver = JammedLatch(timeout_s=0.1)

@@ -20,16 +20,17 @@ from dh2rt.transport.inproc import InprocTransport
 from dh2rt.wire import motion as mw
 from dh2rt.wire import operator as op
 from dh2rt.wire.frame import FrameCodec
-from drivers.recording import RecordingDriver
+from drivers.latch import Position
+from drivers.recording import RecordingDriver, RecordingLatch
 from firmware.config import ModuleConfig
 from firmware.control import Command, Detach, Effect, Floor, LatchAnswer, Readings, Report
-from firmware.main_loop import ModuleHost
+from firmware.main_loop import ModuleHost, _ModuleLatch
 from firmware.motion.asking import SelfReach
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.member import IDLE_CYCLES
 
 ROOT = Path(__file__).resolve().parents[2]
-FRONT, BACK = 1, 2
+FRONT, BACK, RIGHT = 1, 2, 4
 ROUTE_2 = ((BACK, FRONT), (BACK, FRONT))
 
 
@@ -148,14 +149,18 @@ receptor go when T == T2 and H == GO { emit CALL via front }
 """
 
 
-def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path) -> None:
+@pytest.mark.parametrize("latch", ["world", "recording"])
+def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path, latch: str) -> None:
     """snake:2 of module firmware on the recording stand-in: the tail's CALL reaches the
     head, whose program asks reach_dock(p, Front, Right). The head runs the motion itself:
     it learns its chain (the tail) from the tail's ANGLES, moves the tail's joints by
-    TARGETS and its own by its servos, asks its world for the latch once its front's
-    infrared sees the face (pushed as the world pushes readings), and on the world's answer
-    ends the motion: the tail's joints are its program's again. The test plays the world:
-    readings in, the latch's answer."""
+    TARGETS and its own by its servos, and once its front's infrared sees the face (pushed
+    as the world pushes readings) closes the latch: without a ``[latch]`` it asks its world
+    and ends on the world's answer; with the recording stand-in's latch on its front
+    (``latch = "recording"``) it closes its own, asks the world nothing, and ends once the
+    latch says closed and a Hello is heard on the front (the test links the two faces, as the
+    pins would). Then the tail's joints are its program's again. The test plays the world:
+    readings in, the latch's answer or the new link."""
     source = tmp_path / "reaching.dh2"
     source.write_text(REACHING)
     program = compile_file(str(source))
@@ -165,6 +170,8 @@ def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path
     hosts = []
     for module in (0, 1):
         config = {"module": module, "image": program.image.hex(), "transport": f"inproc:{channel}"}
+        if latch == "recording" and module == 0:  # module.toml's [latch] kind = "recording", connector = 1
+            config["latch"] = {"kind": "recording", "connector": FRONT}
         # as a module booted by `dh2rt module` from its module.toml (no [hil] control): it
         # carries out its reach itself; under the HIL world (control on stdio) the world does
         host = ModuleHost(
@@ -203,11 +210,25 @@ def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path
 
         commands[0].put(Readings({"ir_front": 12, "ir_front_align": 4}))  # the face in view
         cycles(2)
-        latch = [r for r in reports[0] if isinstance(r, Effect) and r.kind == "latch"]
-        assert [r.args for r in latch] == [[FRONT, 1, 4]]
-        assert not reach.done
-        commands[0].put(LatchAnswer(FRONT, True))  # it closed in physics, the link is made
-        cycles(2)
+        asked = [r.args for r in reports[0] if isinstance(r, Effect) and r.kind == "latch"]
+        if latch == "world":
+            assert asked == [[FRONT, 1, 4]]
+            assert not reach.done
+            commands[0].put(LatchAnswer(FRONT, True))  # it closed in physics, the link is made
+            cycles(2)
+        else:
+            assert asked == []  # its own latch: nothing asked of the world
+            assert isinstance(head.latch, _ModuleLatch), head.runtime.log
+            own = head.latch.driver
+            assert isinstance(own, RecordingLatch) and own.history == [Position.CLOSED], head.runtime.log
+            cycles(3)
+            assert not reach.done  # closed, but no Hello on the front yet: not docked
+            head.runtime.attach(FRONT, BusEnd(1, 0))  # the pins hold: the faces' channel is made
+            tail.runtime.attach(RIGHT, BusEnd(1, 1))
+            for _ in range(12):
+                cycles(1)
+                if reach.done:
+                    break
         assert reach.verdict == "linked", head.runtime.log
         ended = [r for r in reports[0] if isinstance(r, Effect) and r.kind == "reach_ended"]
         assert [r.args for r in ended] == [[FRONT, "linked"]]

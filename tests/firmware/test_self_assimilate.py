@@ -10,16 +10,18 @@ latches; a squaring that does not latch waits for the foot to leave the spot and
 
 from __future__ import annotations
 
+import pytest
+
 from dataclasses import dataclass, field
 
 from dh2rt.profile import CONRO
 from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
-from firmware.motion.assimilating import PARKED_CYCLES, STILL_CYCLES, SelfAssimilate
+from firmware.motion.assimilating import DARK_CYCLES, PARKED_CYCLES, STILL_CYCLES, SelfAssimilate
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.crawl import parked
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
-from tests.firmware.test_self_reach import Robot
+from tests.firmware.test_self_reach import NOTHING, Robot
 
 C = CONRO.connector_index
 FRONT, BACK, LEFT = C("front"), C("back"), C("left")
@@ -39,6 +41,8 @@ class Legged(Robot):
     """The robot of the module docs, the tracker's report set by the test."""
 
     report: dict[int, ModulePose] = field(default_factory=dict)
+    #: the foot's infrared emitter is on: the face's pair sees it within 85 mm (foot_at)
+    foot_lit: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -56,6 +60,7 @@ class Legged(Robot):
         probe = FloorPoses({4: lying(0.0)})
         front_x, _, _, _ = probe.face(DEFAULT_MODEL, 4, "front")
         self.report[4] = lying(fx - behind_m - front_x)
+        self.ir = (behind_m * 1000, 3.0) if self.foot_lit and behind_m <= 0.085 else NOTHING
 
     def cut(self, a: int, connector: int) -> None:
         peer = self.links.pop((a, connector))
@@ -241,3 +246,56 @@ def test_a_foot_that_lies_still_on_its_way_ends_the_dock() -> None:
         robot.run(reach, cycle)
         cycle += 1
     assert reach.verdict == f"not linked: module 4 hardly moved in {STILL_CYCLES} cycles (dead or stuck)"
+
+
+@pytest.mark.parametrize("dies", ["waiting", "squaring"])
+def test_a_foot_in_sight_whose_pair_is_dark_ends_the_dock(dies: str) -> None:
+    """The infrared pairs are active: a foot the tracker shows right behind the face that the
+    face's pair does not see has no power. DARK_CYCLES in a row end the dock, not linked, as
+    it waits or as it squares; a lit foot there does not, nor an unseen one that moves (a live
+    foot creeping lifts its front out of the pair's cone)."""
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = 0
+    while reach.phase != "hand over":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.cut(4, FRONT)
+    while reach.phase != "waiting":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.foot_at(0.04)  # lit: the face's pair sees it
+    while reach.phase == "waiting":
+        robot.run(reach, cycle)
+        cycle += 1
+        assert cycle < 100, robot.log
+    if dies == "waiting":  # a squaring that does not latch: it waits again, the foot still there
+        while reach.docking is None:
+            cycle += 1
+            robot.run(reach, cycle)
+        reach.docking.motions[0].reach.timeout = reach.docking.motions[0].reach.cycles + 1
+        while reach.phase == "squaring":
+            cycle += 1
+            robot.run(reach, cycle)
+    for _ in range(3 * DARK_CYCLES):  # lit all along: nothing ends
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == dies and not reach.done, robot.log
+    for k in range(3 * DARK_CYCLES):  # unseen but creeping (its front lifted out of the cone)
+        robot.foot_at(0.04 + (0.005 if k % 2 else 0.0))
+        robot.ir = NOTHING
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == dies and not reach.done, robot.log
+    robot.foot_at(0.04)  # seen again
+    cycle += 1
+    robot.run(reach, cycle)
+    robot.foot_lit, robot.ir = False, NOTHING  # its emitter goes dark, and it lies still
+    for _ in range(DARK_CYCLES - 1):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert not reach.done
+    cycle += 1
+    robot.run(reach, cycle)
+    assert reach.verdict == "not linked: module 4 lies in the face's sight and its infrared is dark (no power)"
+    assert all(member.held == {} for member in robot.members)  # END to every member

@@ -165,6 +165,22 @@ def test_a_face_askew_within_the_cone_reads_its_angle(pair: World) -> None:
     assert 40.0 <= got["ir_front"] <= 60.0
 
 
+def test_a_module_without_power_is_dark_and_sees_again_when_powered(pair: World) -> None:
+    """A killed module's emitters are dark: no pair sees its faces (the asker's dead-foot
+    signal, firmware.motion.assimilating.DARK_CYCLES); powered again, it is seen."""
+    sensors = PhysicsSensors(pair, ["ir_front", "ir_back"])
+    face_to_face(pair, 0.050)
+    try:
+        pair.unpowered = {1}
+        got = sensors.read([0, 1])
+        assert got[0]["ir_front"] == 0.0  # module 1's back is dark
+        assert got[1]["ir_back"] == pytest.approx(50.0, abs=IR_TOLERANCE_MM)  # module 0's front is lit
+        pair.unpowered = set()
+        assert sensors.read([0])[0]["ir_front"] == pytest.approx(50.0, abs=IR_TOLERANCE_MM)
+    finally:
+        pair.unpowered = set()
+
+
 def test_beyond_range_reads_nothing(pair: World) -> None:
     face_to_face(pair, 0.120)
     assert PhysicsSensors(pair, ["ir_front"]).read([0])[0]["ir_front"] == 0.0
