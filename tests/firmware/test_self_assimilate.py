@@ -10,9 +10,9 @@ latches; a squaring that does not latch waits for the foot to leave the spot and
 
 from __future__ import annotations
 
-import pytest
-
 from dataclasses import dataclass, field
+
+import pytest
 
 from dh2rt.profile import CONRO
 from dh2rt.wire import motion as mw
