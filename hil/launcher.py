@@ -810,6 +810,7 @@ def _reaches(world: World) -> dict[str, Any] | None:
         "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.docking.outcomes],
         "arrivals": [asdict(a) for a in r.docking.arrivals],
         "latch_answers": world.latch_answers,
+        "holds_sent": world.holds_sent,
         # --latch-emulator: each module's latch servo, the closes refused (a jam) and its overloads
         "latch_servos": {
             world.topology.names[m]: {"refused": horn.refused, "overloads": horn.overloads}

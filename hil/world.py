@@ -270,6 +270,9 @@ class World:
             raise HilWorldError("the latch emulator needs the PyBullet stand-in")
         #: LatchAnswers sent (a module with its own latch is sent none for its face)
         self.latch_answers = 0
+        #: Holds sent: joint targets the world computed for a module (none when the modules
+        #: carry out their motions themselves, ``--motions-in-modules``)
+        self.holds_sent = 0
         #: module -> the face its latch's horn docked its front to (the horn's link), or None
         self.horn_links: dict[int, tuple[int, int] | None] = {}
         self._horns_closed: dict[int, bool] = {}
@@ -844,6 +847,7 @@ class World:
     def hold(self, module: int, targets: Mapping[int, float]) -> None:
         """Tell ``module`` to hold ``targets`` (degrees by DOF index) on its servos in place of
         its program's (a docking motion owns those joints); empty: they are the program's."""
+        self.holds_sent += 1
         self._send(module, Hold(dict(targets)))
 
     def plug_cable(self, module: int, connector: int) -> tuple[int, str]:

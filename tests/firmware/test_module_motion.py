@@ -169,7 +169,7 @@ def test_a_module_carries_out_the_reach_dock_its_program_asks_for(tmp_path: Path
     commands: list[queue.Queue[Command]] = [queue.Queue(), queue.Queue()]
     hosts = []
     for module in (0, 1):
-        config = {"module": module, "image": program.image.hex(), "transport": f"inproc:{channel}"}
+        config: dict[str, object] = {"module": module, "image": program.image.hex(), "transport": f"inproc:{channel}"}
         if latch == "recording" and module == 0:  # module.toml's [latch] kind = "recording", connector = 1
             config["latch"] = {"kind": "recording", "connector": FRONT}
         # as a module booted by `dh2rt module` from its module.toml (no [hil] control): it
