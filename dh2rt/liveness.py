@@ -9,8 +9,10 @@ Per attached connector::
 
     unverified --Hello(same digest)--> verified --silent for `silence_cycles` cycles--> unverified
         |  ^                              |
-        |  +------Hello(same digest)------+ (answered with our Hello, at most once per
-        |                                    silence_cycles cycles, so two peers never ping-pong)
+        |  +------Hello(same digest)------+ (answered with our Hello once per silence_cycles
+        |                                    cycles, or at once when the peer said Hello twice
+        |                                    since ours: it has not heard us; two peers never
+        |                                    ping-pong)
         +--Hello(other digest)--> refused (frames ignored; status 0) --Hello(same)--> verified
         +--Hello(NO_PROGRAM)--> a tool (a programming cable: frames ignored, status 0, not
                                 counted as refused; settled like a verified peer)
@@ -36,6 +38,13 @@ from dh2rt.wire.frame import NO_PROGRAM, Frame, Hello, KeepAlive
 
 #: Consecutive silent cycles after which a linked connector falls to 0.
 SILENCE_CYCLES = 3
+#: The peer's Hellos since our last one that show it has not heard ours: answered at once.
+#: Two, not one: a peer answering our Hello says it once, and is not answered back (no
+#: ping-pong). Found in the loop (snake to quadruped with the latch emulator): a module's
+#: first Hello on a new link was lost (the peer's end was not attached yet); the peer said
+#: Hello for 7 cycles, unanswered within ``silence_cycles``, and dropped the hormone (LEG)
+#: sent meanwhile; the program waited for it for ever.
+REPEATED_HELLOS = 2
 
 
 class Verdict(enum.Enum):
@@ -65,6 +74,7 @@ class _Link:
     silent: int = 0
     last_hello: int = -(10**9)  # cycle a counted Hello last went out
     hello_due: bool = True
+    hellos_in: int = 0  # the peer's Hellos since our last one
     digest: bytes | None = None  # the program digest of the peer's last accepted Hello
     seq_out: int = 0
     seq_in: int | None = None  # last KeepAlive sequence number heard
@@ -157,8 +167,11 @@ class Liveness:
             link.digest = frame.digest
             link.refused = False
             link.seq_in = None  # a (re)started peer numbers its beacons afresh
-            if cycle - link.last_hello >= self.silence_cycles:
-                # the peer may not have heard us (it (re)started, or our Hello was lost)
+            link.hellos_in += 1
+            if cycle - link.last_hello >= self.silence_cycles or link.hellos_in >= REPEATED_HELLOS:
+                # the peer may not have heard us (it (re)started, or our Hello was lost: a
+                # peer that says Hello again since ours has not heard it, and drops every
+                # hormone we send until it does)
                 link.hello_due = True
             link.verified = True
             return Verdict.HEARD
@@ -204,6 +217,7 @@ class Liveness:
             if not link.verified or link.hello_due:
                 link.last_hello = cycle
                 link.hello_due = False
+                link.hellos_in = 0
                 out.append(Beacon(c, Hello(self.digest, self.version)))
             else:
                 link.seq_out = (link.seq_out + 1) & 0xFF
