@@ -235,6 +235,8 @@ class ModuleHost:
         self.floor_report: Floor | None = None
         #: the overhead tracker the module hears itself (module.toml [tracker]), or None
         self.tracker: TrackerFeed | None = self._open_tracker(config)
+        #: whether the first floor built from the feed was logged
+        self.tracker_floor_said = False
         #: the joints as last read for a motion's ASK (a read that fails sends these), and
         #: how many reads failed
         self.last_angles: tuple[float, float] | None = None
@@ -715,7 +717,14 @@ class _OwnSenses:
         if host.tracker is not None and host.config.tracker is not None:
             from firmware.tracker_floor import floor_from_feed
 
-            return floor_from_feed(host.tracker, host.config.tracker.modules, host.config.cycle_period)
+            floor = floor_from_feed(host.tracker, host.config.tracker.modules, host.config.cycle_period)
+            if floor.modules and not host.tracker_floor_said:
+                host.tracker_floor_said = True
+                host._log_line(
+                    f"tracker: the floor from the feed: modules {sorted(floor.modules)} fresh "
+                    f"({host.tracker.datagrams} datagrams taken)"
+                )
+            return floor
         report = self.host.floor_report
         if report is None:
             return FloorPoses()

@@ -823,6 +823,8 @@ def _reaches(world: World) -> dict[str, Any] | None:
         "outcomes": [{**asdict(o), "plan_s": round(o.plan_s, 3)} for o in r.docking.outcomes],
         "arrivals": [asdict(a) for a in r.docking.arrivals],
         "latch_answers": world.latch_answers,
+        # --tracker-udp: the datagrams the world sent to the modules' ports, and sends refused
+        "tracker_udp": None if world.tracker is None else {"sent": world.tracker.sent, "failed": world.tracker.failed},
         # --latch-emulator: each module's latch servo, the closes refused (a jam) and its overloads
         "latch_servos": {
             world.topology.names[m]: {"refused": horn.refused, "overloads": horn.overloads}

@@ -145,6 +145,7 @@ def test_the_host_polls_its_feed_each_cycle_and_ignores_the_worlds_parts() -> No
             time.sleep(0.005)
     floor = senses.floor()
     assert sorted(floor.modules) == [0, 1] and floor.pose(0).centre.x == pytest.approx(0.1)
+    assert any("tracker: the floor from the feed: modules [0, 1] fresh (1 datagrams" in x for x in host.runtime.log)
     assert senses.attitude() == {1: (3.0, -4.0)}
     assert host._status(host.runtime)["tracker"] == {"datagrams": 1, "rejected": 0, "stale": 0}
     assert any("tracker: the floor from UDP 127.0.0.1:" in line for line in host.runtime.log)
