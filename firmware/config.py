@@ -219,6 +219,7 @@ TRACKER_KEYS: dict[str, Any] = {
     "bind": "127.0.0.1",
     "max_age_s": TRACKER_MAX_AGE_S,
     "modules": None,
+    "alpha": None,  # None: the reports raw, as the physics runs take them unless told
 }
 
 
@@ -227,15 +228,18 @@ class TrackerSpec:
     """Where a module hears the overhead tracker (module.toml ``[tracker]``), every value
     checked: build one with :meth:`from_mapping`, which names the key that is wrong. Marker
     ``3 m + k`` is module ``m``'s part ``k`` (0 centre, 1 front, 2 back), for ``m`` below
-    ``modules`` (the robot's module indices)."""
+    ``modules`` (the robot's module indices). ``alpha``: the reports smoothed by
+    firmware.motion.floor_filter.FloorFilter with that gain (None: raw)."""
 
     port: int
     bind: str = "127.0.0.1"
     max_age_s: float = TRACKER_MAX_AGE_S
     modules: int = 1
+    alpha: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"port": self.port, "bind": self.bind, "max_age_s": self.max_age_s, "modules": self.modules}
+        out = {"port": self.port, "bind": self.bind, "max_age_s": self.max_age_s, "modules": self.modules}
+        return out if self.alpha is None else {**out, "alpha": self.alpha}
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str) -> TrackerSpec:
@@ -257,7 +261,16 @@ class TrackerSpec:
         if values["modules"] is None:
             raise fail("modules", "missing: how many modules the robot has (markers 0 .. 3 x modules - 1)")
         _check_int(fail, "modules", values["modules"], 1, MAX_TRACKED_MODULES)
-        return cls(int(values["port"]), bind, float(values["max_age_s"]), int(values["modules"]))
+        alpha = values["alpha"]
+        if alpha is not None:
+            _check_number(fail, "alpha", alpha, 0, 1.0, "a gain in (0, 1] (0.3: the physics runs' filtered variant)")
+        return cls(
+            int(values["port"]),
+            bind,
+            float(values["max_age_s"]),
+            int(values["modules"]),
+            None if alpha is None else float(alpha),
+        )
 
 
 def _check_int(fail: Callable[[str, str], ModuleConfigError], key: str, value: object, low: int, high: int) -> None:

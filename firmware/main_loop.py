@@ -88,6 +88,7 @@ if TYPE_CHECKING:
     from firmware.flash.slots import Boot, Flash
     from firmware.motion.asking import SelfReach
     from firmware.motion.assimilating import SelfAssimilate
+    from firmware.motion.floor_filter import FloorFilter
     from firmware.motion.foot import Foot
     from firmware.motion.member import Member
     from firmware.motion.readings import FloorPoses
@@ -237,6 +238,12 @@ class ModuleHost:
         self.tracker: TrackerFeed | None = self._open_tracker(config)
         #: whether the first floor built from the feed was logged
         self.tracker_floor_said = False
+        #: the feed's reports smoothed ([tracker] alpha), or None: raw
+        self.floor_filter: FloorFilter | None = None
+        if config.tracker is not None and config.tracker.alpha is not None:
+            from firmware.motion.floor_filter import FloorFilter
+
+            self.floor_filter = FloorFilter(config.tracker.alpha)
         #: the joints as last read for a motion's ASK (a read that fails sends these), and
         #: how many reads failed
         self.last_angles: tuple[float, float] | None = None
@@ -273,9 +280,10 @@ class ModuleHost:
             self.runtime.close()
             raise
         host, port = feed.address
+        smoothing = "raw" if spec.alpha is None else f"smoothed, alpha {spec.alpha:g}"
         self.runtime.log.append(
             f"tracker: the floor from UDP {host}:{port} (markers 0..{3 * spec.modules - 1}, "
-            f"poses within {spec.max_age_s:g} s)"
+            f"poses within {spec.max_age_s:g} s, {smoothing})"
         )
         return feed
 
@@ -718,6 +726,8 @@ class _OwnSenses:
             from firmware.tracker_floor import floor_from_feed
 
             floor = floor_from_feed(host.tracker, host.config.tracker.modules, host.config.cycle_period)
+            if host.floor_filter is not None:
+                floor = host.floor_filter.update(host.runtime.cycle, floor)
             if floor.modules and not host.tracker_floor_said:
                 host.tracker_floor_said = True
                 host._log_line(
@@ -1107,7 +1117,7 @@ def describe_tracker(config: ModuleConfig) -> str:
         return "none (the floor as the world reports it, if any)"
     return (
         f"UDP {spec.bind or '*'}:{spec.port}, markers 0..{3 * spec.modules - 1} of {spec.modules} modules, "
-        f"poses within {spec.max_age_s:g} s"
+        f"poses within {spec.max_age_s:g} s, " + ("raw" if spec.alpha is None else f"smoothed (alpha {spec.alpha:g})")
     )
 
 

@@ -70,6 +70,7 @@ is not TOML names the line and column. Relative paths are relative to the file's
     max_age_s = 0.25                 # a part's pose older than this is left out
     modules = 5                      # the robot's modules: module m's centre, front and back
                                      # parts carry markers 3m, 3m+1, 3m+2
+    # alpha = 0.3                    # smooth the poses (firmware.motion.floor_filter); raw if absent
 
     [sensors]                        # S.pos1/pos2/load1/load2 come from the servos
     servo_every = 1                  # cycles between two reads of present position and load

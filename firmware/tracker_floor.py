@@ -46,7 +46,8 @@ def _part(tracked: TrackedPose) -> PartPose:
 
 def floor_from_feed(feed: TrackerFeed, modules: int, cycle_period: float) -> FloorPoses:
     """Every module whose three parts have a fresh pose in ``feed``, its age the oldest part's
-    in whole control cycles of ``cycle_period`` seconds."""
+    in control cycles of ``cycle_period`` seconds (taken at the poll before this cycle: 0; at
+    the one before: 1)."""
     fresh = feed.fresh()
     out: dict[int, ModulePose] = {}
     for m in range(modules):
@@ -54,7 +55,7 @@ def floor_from_feed(feed: TrackerFeed, modules: int, cycle_period: float) -> Flo
         if any(p is None for p in parts):
             continue
         seen = [p for p in parts if p is not None]
-        age = int(max(p.age_s for p in seen) // cycle_period)
+        age = round(max(p.age_s for p in seen) / cycle_period)
         centre, front, back = (_part(p) for p in seen)
         out[m] = ModulePose(centre, front, back, age)
     return FloorPoses(out)

@@ -156,6 +156,27 @@ def test_the_host_polls_its_feed_each_cycle_and_ignores_the_worlds_parts() -> No
     assert final and final[0].status["tracker"]["datagrams"] == 1
 
 
+def test_with_alpha_the_feeds_poses_are_smoothed() -> None:
+    """``alpha``: the floor filter the physics runs' filtered variant uses, on the feed's
+    poses: a jump of a still part's report moves the estimate by about alpha of it."""
+    port = free_ports(1)[0]
+    host = ModuleHost(config(port, alpha=0.3), queue.Queue(), lambda _r: None)
+    try:
+        assert host.tracker is not None and host.floor_filter is not None and host.floor_filter.alpha == 0.3
+        senses = _OwnSenses(host)
+        host.tracker.take(frame(1, *module_parts(0, 100.0), *module_parts(1, 200.0)), time.monotonic())
+        assert senses.floor().pose(0).centre.x == pytest.approx(0.1)  # the first report starts the track
+        host.runtime.step()
+        host.tracker.take(frame(2, *module_parts(0, 110.0), *module_parts(1, 200.0)), time.monotonic())
+        smoothed = senses.floor().pose(0).centre.x
+        assert smoothed == pytest.approx(0.1 + 0.3 * 0.01, abs=1e-6)  # raw: 0.11
+        assert any("smoothed, alpha 0.3" in line for line in host.runtime.log)
+    finally:
+        if host.tracker is not None:
+            host.tracker.close()
+        host.runtime.close()
+
+
 def test_without_a_tracker_the_worlds_parts_are_the_floor() -> None:
     image = compile_bundled("caterpillar.dh2").image
     cfg = ModuleConfig.from_json({"module": 0, "image": image.hex(), "transport": "inproc:no-tracker"})
@@ -195,7 +216,13 @@ BAD = [
     ("[tracker]\nmax_age_s = 0\nmodules = 2\n", "[tracker] max_age_s: expected seconds in (0, 60], got 0"),
     ("[tracker]\nmax_age_s = -1\nmodules = 2\n", "[tracker] max_age_s: expected seconds in (0, 60], got -1"),
     ("[tracker]\nmax_age_s = nan\nmodules = 2\n", "[tracker] max_age_s: expected seconds in (0, 60], got nan"),
-    ("[tracker]\nmodules = 2\nalpha = 0.3\n", "[tracker] alpha: unknown key (known: port, bind, max_age_s, modules)"),
+    (
+        "[tracker]\nmodules = 2\nfilter = 1\n",
+        "[tracker] filter: unknown key (known: port, bind, max_age_s, modules, alpha)",
+    ),
+    ("[tracker]\nmodules = 2\nalpha = 0\n", "[tracker] alpha: expected a gain in (0, 1]"),
+    ("[tracker]\nmodules = 2\nalpha = 1.5\n", "[tracker] alpha: expected a gain in (0, 1]"),
+    ('[tracker]\nmodules = 2\nalpha = "0.3"\n', "[tracker] alpha: expected a gain in (0, 1]"),
     ("[tracker]\nport = 47328\n", "[tracker] modules: missing: how many modules the robot has"),
     ("[tracker]\n", "[tracker] modules: missing"),
     ("[tracker]\nmodules = 34\n", "[tracker] modules: expected an integer 1..33, got 34"),
@@ -227,9 +254,14 @@ def test_check_config_says_what_the_tracker_is_and_the_toml_round_trips(
     monkeypatch.setattr(main_loop, "lean_process", lambda: None)
     assert main_loop.main(["--config", str(path), "--check-config"]) == 0
     out = capsys.readouterr().out
-    assert "tracker: UDP *:47400, markers 0..14 of 5 modules, poses within 0.3 s" in out
+    assert "tracker: UDP *:47400, markers 0..14 of 5 modules, poses within 0.3 s, raw" in out
     again = tmp_path / "again.toml"
     again.write_text(dump_toml(loaded, tmp_path / "flash2"))
     assert load_toml(again).tracker == loaded.tracker
     assert ModuleConfig.from_json(loaded.to_json()).tracker == loaded.tracker
     assert load_toml(module_toml(tmp_path, "")).tracker is None
+    smoothed = load_toml(module_toml(tmp_path, "[tracker]\nmodules = 2\nalpha = 0.3\n"))
+    assert smoothed.tracker == TrackerSpec(47328, "127.0.0.1", 0.25, 2, 0.3)
+    again.write_text(dump_toml(smoothed, tmp_path / "flash3"))
+    assert load_toml(again).tracker == smoothed.tracker
+    assert ModuleConfig.from_json(smoothed.to_json()).tracker == smoothed.tracker
