@@ -20,6 +20,7 @@ from dh2rt.liveness import SILENCE_CYCLES
 from dh2rt.runtime import CYCLE_PERIOD_S, MAX_CYCLE_PERIOD_S
 from dh2rt.signed_image import check_public_key
 from dh2rt.transport.base import BusEnd, LinkEnd, PortEnd
+from dh2rt.wire.tracker import DEFAULT_PORT as DEFAULT_TRACKER_PORT
 from drivers.dxl_table import MODEL_XM430_W350
 
 #: Seconds a module exchanges Hellos before cycle 0 when it is not told when to start.
@@ -206,6 +207,72 @@ class LatchSpec:
         return cls(kind, int(connector), values)
 
 
+#: The most modules the overhead tracker reports in one datagram: 3 markers each, at most
+#: dh2rt.wire.tracker.MAX_MARKERS (100) markers a datagram.
+MAX_TRACKED_MODULES = 33
+#: How old a tracked pose may be before a module leaves it out (s): the default, and the most.
+TRACKER_MAX_AGE_S = 0.25
+MAX_TRACKER_MAX_AGE_S = 60.0
+#: The keys of module.toml's ``[tracker]``, with their defaults (``modules`` is required).
+TRACKER_KEYS: dict[str, Any] = {
+    "port": DEFAULT_TRACKER_PORT,
+    "bind": "127.0.0.1",
+    "max_age_s": TRACKER_MAX_AGE_S,
+    "modules": None,
+    "alpha": None,  # None: the reports raw, as the physics runs take them unless told
+}
+
+
+@dataclass(frozen=True)
+class TrackerSpec:
+    """Where a module hears the overhead tracker (module.toml ``[tracker]``), every value
+    checked: build one with :meth:`from_mapping`, which names the key that is wrong. Marker
+    ``3 m + k`` is module ``m``'s part ``k`` (0 centre, 1 front, 2 back), for ``m`` below
+    ``modules`` (the robot's module indices). ``alpha``: the reports smoothed by
+    firmware.motion.floor_filter.FloorFilter with that gain (None: raw)."""
+
+    port: int
+    bind: str = "127.0.0.1"
+    max_age_s: float = TRACKER_MAX_AGE_S
+    modules: int = 1
+    alpha: float | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out = {"port": self.port, "bind": self.bind, "max_age_s": self.max_age_s, "modules": self.modules}
+        return out if self.alpha is None else {**out, "alpha": self.alpha}
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], where: str) -> TrackerSpec:
+        """The tracker feed ``data`` describes; ModuleConfigError names the key
+        (``{where} port: expected an integer 1..65535, got 0``)."""
+
+        def fail(key: str, message: str) -> ModuleConfigError:
+            return ModuleConfigError(f"{where} {key}: {message}")
+
+        unknown = sorted(set(data) - set(TRACKER_KEYS))
+        if unknown:
+            raise fail(unknown[0], f"unknown key (known: {', '.join(TRACKER_KEYS)})")
+        values = {**TRACKER_KEYS, **data}
+        _check_int(fail, "port", values["port"], 1, 65535)
+        bind = values["bind"]
+        if not isinstance(bind, str) or not bind.strip() == bind:
+            raise fail("bind", f'expected an address to listen on ("127.0.0.1", "" for every interface), got {bind!r}')
+        _check_number(fail, "max_age_s", values["max_age_s"], 0, MAX_TRACKER_MAX_AGE_S, "seconds in (0, 60]")
+        if values["modules"] is None:
+            raise fail("modules", "missing: how many modules the robot has (markers 0 .. 3 x modules - 1)")
+        _check_int(fail, "modules", values["modules"], 1, MAX_TRACKED_MODULES)
+        alpha = values["alpha"]
+        if alpha is not None:
+            _check_number(fail, "alpha", alpha, 0, 1.0, "a gain in (0, 1] (0.3: the physics runs' filtered variant)")
+        return cls(
+            int(values["port"]),
+            bind,
+            float(values["max_age_s"]),
+            int(values["modules"]),
+            None if alpha is None else float(alpha),
+        )
+
+
 def _check_int(fail: Callable[[str, str], ModuleConfigError], key: str, value: object, low: int, high: int) -> None:
     if not _is_int(value) or not low <= value <= high:  # type: ignore[operator]
         raise fail(key, f"expected an integer {low}..{high}, got {value!r}")
@@ -270,6 +337,8 @@ class ModuleConfig:
     servo_sensor_every: int = 1
     #: the latch of its female connector (module.toml [latch]); None: no latch
     latch: LatchSpec | None = None
+    #: where it hears the overhead tracker (module.toml [tracker]); None: the world's Floor reports
+    tracker: TrackerSpec | None = None
     #: Which life of the module this is (0 at the first start; each restart adds one), so
     #: that the records of its lives, each counting cycles from 0, can be told apart.
     life: int = 0
@@ -298,6 +367,11 @@ class ModuleConfig:
             )
         if self.control not in CONTROLS:
             raise ModuleConfigError(f"config control {self.control!r}: expected one of {', '.join(CONTROLS)}")
+        if self.tracker is not None and self.module >= self.tracker.modules:
+            raise ModuleConfigError(
+                f"[tracker] modules: {self.tracker.modules}, but this module's index is {self.module}: "
+                f"expected more than {self.module}"
+            )
 
     @property
     def label(self) -> str:
@@ -319,7 +393,7 @@ class ModuleConfig:
                 value = [key.hex() for key in value]
             elif f.name == "connector_channels":
                 value = {str(c): spec.to_json() for c, spec in sorted(value.items())}
-            elif f.name == "latch":
+            elif f.name in ("latch", "tracker"):
                 value = None if value is None else value.to_json()
             out[f.name] = value
         return out
@@ -412,6 +486,8 @@ class ModuleConfig:
         if obj.get("latch") is not None:
             latch = _typed(obj, "latch", Mapping)
             kw["latch"] = LatchSpec.from_mapping(latch, "config latch", kw.get("servo_port"))
+        if obj.get("tracker") is not None:
+            kw["tracker"] = TrackerSpec.from_mapping(_typed(obj, "tracker", Mapping), "config tracker")
         if "attach" in obj:
             attach = obj["attach"]
             if not isinstance(attach, Mapping):

@@ -88,10 +88,12 @@ if TYPE_CHECKING:
     from firmware.flash.slots import Boot, Flash
     from firmware.motion.asking import SelfReach
     from firmware.motion.assimilating import SelfAssimilate
+    from firmware.motion.floor_filter import FloorFilter
     from firmware.motion.foot import Foot
     from firmware.motion.member import Member
     from firmware.motion.readings import FloorPoses
     from firmware.negotiated_links import NegotiatedLinks
+    from firmware.tracker_feed import TrackerFeed
 from drivers.latch import Latch, LatchState
 from firmware.control import (
     Attach,
@@ -232,6 +234,16 @@ class ModuleHost:
         self.own_readings: dict[str, float] = {}
         #: the overhead tracker's last report for this module's reach (the world fills it)
         self.floor_report: Floor | None = None
+        #: the overhead tracker the module hears itself (module.toml [tracker]), or None
+        self.tracker: TrackerFeed | None = self._open_tracker(config)
+        #: whether the first floor built from the feed was logged
+        self.tracker_floor_said = False
+        #: the feed's reports smoothed ([tracker] alpha), or None: raw
+        self.floor_filter: FloorFilter | None = None
+        if config.tracker is not None and config.tracker.alpha is not None:
+            from firmware.motion.floor_filter import FloorFilter
+
+            self.floor_filter = FloorFilter(config.tracker.alpha)
         #: the joints as last read for a motion's ASK (a read that fails sends these), and
         #: how many reads failed
         self.last_angles: tuple[float, float] | None = None
@@ -249,6 +261,31 @@ class ModuleHost:
             self.runtime.stats.actuator_faults += 1
             self.runtime.log.append(f"actuator fault: {driver_fault}")
         self._logged = 0
+
+    def _open_tracker(self, config: ModuleConfig) -> TrackerFeed | None:
+        """The ``[tracker]`` feed, bound (a port that cannot be bound fails the start)."""
+        spec = config.tracker
+        if spec is None:
+            return None
+        from firmware.tracker_floor import open_feed
+
+        try:
+            feed = open_feed(spec, config.module)
+        except OSError as exc:
+            self.runtime.close()
+            raise ModuleConfigError(
+                f"[tracker] port: cannot listen on {spec.bind or '*'}:{spec.port} ({exc.strerror or exc})"
+            ) from None
+        except BaseException:
+            self.runtime.close()
+            raise
+        host, port = feed.address
+        smoothing = "raw" if spec.alpha is None else f"smoothed, alpha {spec.alpha:g}"
+        self.runtime.log.append(
+            f"tracker: the floor from UDP {host}:{port} (markers 0..{3 * spec.modules - 1}, "
+            f"poses within {spec.max_age_s:g} s, {smoothing})"
+        )
+        return feed
 
     def serve(self) -> int:
         """Attach, report ready, wait for ``go``, cycle until done or stopped; 0 or 1."""
@@ -298,6 +335,8 @@ class ModuleHost:
             final = Status(self._status(rt), final=True, failed=self.failed, targets=targets)
             if self.links is not None:
                 self.links.close()
+            if self.tracker is not None:
+                self.tracker.close()
             rt.close()
             self.report(final)
         return 1 if self.failed else 0
@@ -443,6 +482,9 @@ class ModuleHost:
         status["operator"] = self.operator.core.counters
         if self.member.counts:
             status["motion"] = dict(self.member.counts)
+        if self.tracker is not None:
+            feed = self.tracker
+            status["tracker"] = {"datagrams": feed.datagrams, "rejected": feed.rejected, "stale": feed.stale}
         return status
 
     def _split_control(self) -> None:
@@ -524,7 +566,9 @@ class ModuleHost:
     def _take_commands(self, rt: ModuleRuntime) -> None:
         """Just before each cycle: carry out the commands that came meanwhile (a ``sense``
         or pushed readings count in this very cycle); a motion gone silent gives the joints
-        back (firmware.motion.member)."""
+        back (firmware.motion.member). The tracker's datagrams that came are taken."""
+        if self.tracker is not None:
+            self.tracker.poll()
         self._step_motions(rt)
         while True:
             try:
@@ -671,10 +715,26 @@ class _OwnSenses:
         return out
 
     def floor(self) -> FloorPoses:
-        """The tracker's last report (firmware.control.Floor); none yet: empty, and the
-        reach closes on its joints and infrared alone."""
+        """The tracker's poses: with a ``[tracker]``, those the module heard itself
+        (firmware.tracker_floor: every module whose three parts are fresh); else the world's
+        last report (firmware.control.Floor); none yet: empty, and the reach closes on its
+        joints and infrared alone."""
         from firmware.motion.readings import FloorPoses, ModulePose, PartPose
 
+        host = self.host
+        if host.tracker is not None and host.config.tracker is not None:
+            from firmware.tracker_floor import floor_from_feed
+
+            floor = floor_from_feed(host.tracker, host.config.tracker.modules, host.config.cycle_period)
+            if host.floor_filter is not None:
+                floor = host.floor_filter.update(host.runtime.cycle, floor)
+            if floor.modules and not host.tracker_floor_said:
+                host.tracker_floor_said = True
+                host._log_line(
+                    f"tracker: the floor from the feed: modules {sorted(floor.modules)} fresh "
+                    f"({host.tracker.datagrams} datagrams taken)"
+                )
+            return floor
         report = self.host.floor_report
         if report is None:
             return FloorPoses()
@@ -1052,9 +1112,21 @@ def describe(config: ModuleConfig) -> str:
             f"cycle {config.cycle_period * 1000:g} ms, liveness bound {config.silence_cycles} cycles",
             f"body: {body}",
             f"latch: {describe_latch(config, program.profile)}",
+            f"tracker: {describe_tracker(config)}",
             f"log: {config.log_file or 'standard error'}"
             + (f", status in {config.status_file}" if config.status_file else ""),
         ]
+    )
+
+
+def describe_tracker(config: ModuleConfig) -> str:
+    """The ``[tracker]`` in a line (``--check-config``)."""
+    spec = config.tracker
+    if spec is None:
+        return "none (the floor as the world reports it, if any)"
+    return (
+        f"UDP {spec.bind or '*'}:{spec.port}, markers 0..{3 * spec.modules - 1} of {spec.modules} modules, "
+        f"poses within {spec.max_age_s:g} s, " + ("raw" if spec.alpha is None else f"smoothed (alpha {spec.alpha:g})")
     )
 
 

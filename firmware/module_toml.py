@@ -64,6 +64,14 @@ is not TOML names the line and column. Relative paths are relative to the file's
     # kind = "gpio": chip = "/dev/gpiochip0", output_line = 5, input_line = 6,
     #   output_active_low = false, input_active_low = true (libgpiod v2: the gpio extra)
 
+    [tracker]                        # the overhead tracker (dh2rt tracker) over UDP, optional:
+    port = 47328                     # the tracker's --publish port
+    bind = "127.0.0.1"               # "" for every interface (the robot's network)
+    max_age_s = 0.25                 # a part's pose older than this is left out
+    modules = 5                      # the robot's modules: module m's centre, front and back
+                                     # parts carry markers 3m, 3m+1, 3m+2
+    # alpha = 0.3                    # smooth the poses (firmware.motion.floor_filter); raw if absent
+
     [sensors]                        # S.pos1/pos2/load1/load2 come from the servos
     servo_every = 1                  # cycles between two reads of present position and load
     stand_in = { roll = 0, contact = 1 }   # fixed readings of sensors with no device here
@@ -107,6 +115,7 @@ from firmware.config import (
     ChannelSpec,
     LatchSpec,
     ModuleConfig,
+    TrackerSpec,
 )
 
 IMAGE_NAME = "program.img"
@@ -116,7 +125,9 @@ FLASH_FILES = ("state.json", IMAGE_NAME)
 TRANSPORT_KINDS = ("can", "serial", "socketcan", "inproc", "virtual", "udp")
 #: The transports on a shared bus, where links are negotiated over the connectors' channels.
 BUS_KINDS = ("can", "socketcan", "virtual", "udp")
-SECTIONS = ("name", "program", "cycle", "transport", "connectors", "servos", "latch", "sensors", "log", "hil")
+SECTIONS = (
+    "name", "program", "cycle", "transport", "connectors", "servos", "latch", "tracker", "sensors", "log", "hil",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -222,6 +233,8 @@ def parse_toml(data: Mapping[str, Any], source: str, base: Path, profile: Profil
         )
     kw.update(_servos(top.table("servos"), base))
     kw["latch"] = _latch(top.table("latch"), profile, kw.get("servo_port"))
+    tracker = top.table("tracker")
+    kw["tracker"] = TrackerSpec.from_mapping(tracker.data, f"{source}: [tracker]") if "tracker" in data else None
     kw.update(_sensors(top.table("sensors"), profile))
     kw.update(_log(top.table("log"), base))
     kw.update(_hil(top.table("hil"), profile))
@@ -548,6 +561,8 @@ def dump_toml(config: ModuleConfig, flash: Path, profile: Profile = CONRO, image
     if config.latch is not None:
         lines += ["", "[latch]", f"kind = {_q(config.latch.kind)}", f"connector = {_q(name(config.latch.connector))}"]
         lines += [f"{k} = {_value(v)}" for k, v in config.latch.settings.items() if v is not None]
+    if config.tracker is not None:
+        lines += ["", "[tracker]"] + [f"{k} = {_value(v)}" for k, v in config.tracker.to_json().items()]
     lines += ["", "[sensors]", f"servo_every = {config.servo_sensor_every}"]
     if config.sensor_values:
         values = ", ".join(f"{k} = {v}" for k, v in config.sensor_values.items())

@@ -151,6 +151,13 @@ def build_parser() -> argparse.ArgumentParser:
         "undocks on it opening (needs --stand-in pybullet)",
     )
     view.add_argument(
+        "--tracker-udp",
+        action="store_true",
+        help="each module hears the overhead tracker itself: a [tracker] in its module.toml (a free port on "
+        "127.0.0.1 each), and the world sends the stand-in tracker's report there as dh2rt tracker's UDP "
+        "datagrams instead of in its Floor command (needs --stand-in pybullet and --motions-in-modules)",
+    )
+    view.add_argument(
         "--sensor-every",
         type=int_in(1, MAX_CYCLES),
         default=1,
@@ -467,6 +474,11 @@ def check_views(ns: argparse.Namespace) -> None:
         raise OptionError("--motions-in-modules: the modules move bodies in physics; it needs --stand-in pybullet")
     if ns.latch_emulator and ns.stand_in != "pybullet":
         raise OptionError("--latch-emulator: the latch servos are emulated in physics; it needs --stand-in pybullet")
+    if ns.tracker_udp and not (ns.stand_in == "pybullet" and ns.motions_in_modules):
+        raise OptionError(
+            "--tracker-udp: the modules hear the stand-in's tracker while they run their motions; "
+            "it needs --stand-in pybullet and --motions-in-modules"
+        )
     if wanted and ns.stand_in != "pybullet":
         raise OptionError(f"{wanted[0]}: shows the PyBullet stand-in; it needs --stand-in pybullet")
     PYBULLET.check(ns)
@@ -510,6 +522,7 @@ def _run(ns: argparse.Namespace, program: Any, topology: Any, events: list[Event
             sensor_every=ns.sensor_every,
             modules_move=ns.motions_in_modules,
             latch_emulator=ns.latch_emulator,
+            tracker_udp=ns.tracker_udp,
         )
     except (DH2Error, OSError, ValueError) as exc:
         if capture is not None:
@@ -811,6 +824,8 @@ def _reaches(world: World) -> dict[str, Any] | None:
         "arrivals": [asdict(a) for a in r.docking.arrivals],
         "latch_answers": world.latch_answers,
         "holds_sent": world.holds_sent,
+        # --tracker-udp: the datagrams the world sent to the modules' ports, and sends refused
+        "tracker_udp": None if world.tracker is None else {"sent": world.tracker.sent, "failed": world.tracker.failed},
         # --latch-emulator: each module's latch servo, the closes refused (a jam) and its overloads
         "latch_servos": {
             world.topology.names[m]: {"refused": horn.refused, "overloads": horn.overloads}

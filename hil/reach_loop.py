@@ -64,6 +64,7 @@ from firmware.motion.docking import Docking
 from firmware.motion.readings import Readings as MotionReadings
 from firmware.motion.underway import Motion, Needs
 from hil.physics_stand_in import PhysicsStandIn
+from hil.tracker_udp import TrackerPublisher
 from sim.motion_readings import Contact, MotionSensors, Verdicts, contact
 from sim.tracker import OverheadTracker
 
@@ -77,6 +78,8 @@ class LoopWorld(DockingWorld, Protocol):
     profile: Profile
     #: the sensor values ``sense`` events forced on each module
     sensed: dict[int, dict[str, int]]
+    #: the overhead tracker sent over UDP to the modules (``--tracker-udp``), or None
+    tracker: TrackerPublisher | None
 
     @property
     def cycle(self) -> int: ...
@@ -252,7 +255,9 @@ class LoopReaches:
         """The asking modules' and the feet's infrared pairs as physics has them, whole
         millimetres and degrees (what the module's pair reads; its program may not declare
         them), and the overhead tracker's report: of the asking and target modules for a
-        ``reach_dock``, of every module for a ``reach_and_dock`` and a foot."""
+        ``reach_dock``, of every module for a ``reach_and_dock`` and a foot. With the
+        tracker over UDP (``--tracker-udp``) the report goes as a datagram to every module's
+        port instead, and ``Floor`` carries the module's own IMU only."""
         for m in [m for m in self.own if not self.world.running(m)]:
             del self.own[m]
             self.own_assimilating.discard(m)
@@ -273,6 +278,10 @@ class LoopReaches:
             k: tuple((p.x, p.y, p.heading) for p in (pose.centre, pose.front, pose.back))
             for k, pose in readings.floor.modules.items()
         }
+        udp = self.world.tracker
+        if udp is not None:  # the modules hear the tracker themselves (hil.tracker_udp): every module's parts
+            udp.publish(readings.floor, [udp.ports[m] for m in every if self.world.running(m)])
+            parts = {}
         for m in readers:
             pairs = readings.infrared.get(m, {})
             self.world.send_readings(m, Readings({name: round(v) for name, v in pairs.items()}))

@@ -75,6 +75,8 @@ def rows(views: Sequence[ModuleView]) -> list[dict[str, Any]]:
                 # lateness_ms, who held a late cycle (the module, or the machine)
                 "work_ms": s.get("work_ms"),
                 "actuator_fault": s.get("actuator_fault"),
+                # with a [tracker] (--tracker-udp): the datagrams its feed took, rejected, dropped as stale
+                "tracker": s.get("tracker"),
                 "last_fault": s.get("last_fault"),
                 "errors": sum(int(c.get(k, 0)) for k in ("frames_dropped", "frames_corrupted", "refused")),
                 # the program it runs, booted from its flash (a rollout may have switched it)

@@ -46,7 +46,10 @@ launcher's ``--latch-emulator``) each module has a latch servo on its front face
 (hil.physics_stand_in) and a ``[latch]`` in its module.toml: it closes its own latch, and the
 world docks the link when the horn gets past the pins (the face aligned with a free one) and
 undocks it when the horn opens (:meth:`World.watch_latches`); such a module is sent no
-``LatchAnswer`` for that face, and its ``release`` of it waits for the horn.
+``LatchAnswer`` for that face, and its ``release`` of it waits for the horn. With
+``tracker_udp`` (the launcher's ``--tracker-udp``) each module has a ``[tracker]`` in its
+module.toml and hears the overhead tracker itself over UDP on loopback (hil.tracker_udp); the
+world's ``Floor`` then carries its IMU only.
 
 A world cycle is wall time since ``go`` divided by the cycle period: modules keep their own
 clocks and cycle counts. Reports from the modules (status, trace records, logs, effects)
@@ -85,9 +88,11 @@ from firmware.config import (
     DEFAULTS,
     EMULATED_SERVO_LATENCY_MS,
     STAND_INS,
+    TRACKER_MAX_AGE_S,
     ChannelSpec,
     LatchSpec,
     ModuleConfig,
+    TrackerSpec,
 )
 from firmware.control import (
     Attach,
@@ -141,6 +146,7 @@ _DEFAULT_CHANNELS = {
 if TYPE_CHECKING:
     from hil.physics_stand_in import PhysicsStandIn
     from hil.reach_loop import LoopReaches
+    from hil.tracker_udp import TrackerPublisher
 
 
 #: How long before the next world cycle begins the world's tick steps the docking motions (s):
@@ -191,6 +197,7 @@ class World:
         sensor_every: int = 1,
         modules_move: bool | None = None,
         latch_emulator: bool = False,
+        tracker_udp: bool = False,
     ) -> None:
         if sensor_every < 1:
             raise HilWorldError(f"sensor readings pushed every {sensor_every} cycles: must be 1 or more")
@@ -268,6 +275,12 @@ class World:
         self.reaches: LoopReaches | None = None
         if latch_emulator and stand_in != "pybullet":
             raise HilWorldError("the latch emulator needs the PyBullet stand-in")
+        if tracker_udp and not (stand_in == "pybullet" and self.modules_move):
+            raise HilWorldError("the tracker over UDP needs the PyBullet stand-in and the motions in the modules")
+        #: the overhead tracker sent over UDP to each module's own port (``tracker_udp``), or None
+        self.tracker: TrackerPublisher | None = None
+        #: each module's tracker port on 127.0.0.1
+        self.tracker_ports: list[int] = []
         #: LatchAnswers sent (a module with its own latch is sent none for its face)
         self.latch_answers = 0
         #: Holds sent: joint targets the world computed for a module (none when the modules
@@ -285,6 +298,11 @@ class World:
                 self._horns_closed = {m: self.physics.horn_closed(m) for m in self.physics.latches}
                 self.horn_links = dict.fromkeys(self.physics.latches)
                 self.reaches = LoopReaches(self, self.physics)
+                if tracker_udp:
+                    from hil.tracker_udp import TrackerPublisher, free_ports
+
+                    self.tracker_ports = free_ports(topology.size)
+                    self.tracker = TrackerPublisher(self.tracker_ports)
             elif stand_in not in STAND_INS:
                 raise HilWorldError(f"stand-in {stand_in!r}: expected pybullet, recording or none")
         except BaseException:  # a failed or interrupted start leaves no pty or thread behind
@@ -292,6 +310,8 @@ class World:
                 self.emulator.close()
             if self.physics is not None:
                 self.physics.close()
+            if self.tracker is not None:
+                self.tracker.close()
             raise
         #: the sensors the world's physics measures and pushes (see the module docs)
         self.sensor_every = sensor_every
@@ -402,6 +422,9 @@ class World:
         if real is not None and real.servo_port:
             servo_port = real.servo_port
             servos = {"servo_ids": real.servo_ids, "servo_baud": real.servo_baud, "servo_model": real.servo_model}
+        if self.tracker is not None:  # a few of the world's cycles, at least a camera's few frames
+            max_age = max(TRACKER_MAX_AGE_S, 5 * self.cycle_period)
+            servos["tracker"] = TrackerSpec(self.tracker_ports[module], "127.0.0.1", max_age, self.topology.size)
         bus_options = dict(self.bus_options)
         if real is not None and real.can_channel:
             bus_options["channel"] = real.can_channel
@@ -1180,6 +1203,8 @@ class World:
             self.witness.close()
         if self.physics is not None:
             self.physics.close()
+        if self.tracker is not None:
+            self.tracker.close()
         if self.bus_tap is not None:
             self.bus_tap.close()
         if self.contacts is not None:

@@ -225,6 +225,8 @@ class SelfAssimilate(ModuleWorld):
 
     def _spot_taken(self, floor: FloorPoses) -> int | None:
         assert self.foot is not None
+        if not floor.modules:  # no fresh report (a module hearing the tracker itself): nothing known
+            return None
         try:
             size = 1 + max(floor.modules)
             return spot_taken(floor, self.model, self.peer_of, self.profile, size, self._face, self.foot)
