@@ -102,6 +102,20 @@ def assimilate(robot: Legged, route: tuple[int, ...] = ROUTE) -> SelfAssimilate:
     )
 
 
+def handed_over(robot: Legged, reach: SelfAssimilate) -> int:
+    """Run the reach until the foot let go (its link cut when the SET_OFF reaches it) and the
+    tail waits: the next cycle."""
+    cycle = 0
+    while reach.phase != "hand over":
+        robot.run(reach, cycle)
+        cycle += 1
+    robot.cut(4, FRONT)
+    while reach.phase != "waiting":
+        robot.run(reach, cycle)
+        cycle += 1
+    return cycle
+
+
 def test_parked_is_where_a_trip_ends() -> None:
     robot = Legged(5, asking=3)
     robot.foot_at(0.04)
@@ -170,14 +184,7 @@ def test_the_tail_hands_the_foot_over_waits_squares_and_latches() -> None:
 def test_a_squaring_that_does_not_latch_waits_for_the_foot_to_come_round_again() -> None:
     robot = Legged(5, asking=3)
     reach = assimilate(robot)
-    cycle = 0
-    while reach.phase != "hand over":
-        robot.run(reach, cycle)
-        cycle += 1
-    robot.cut(4, FRONT)
-    while reach.phase != "waiting":
-        robot.run(reach, cycle)
-        cycle += 1
+    cycle = handed_over(robot, reach)
     robot.foot_at(0.04)
     for _ in range(PARKED_CYCLES):
         robot.run(reach, cycle)
@@ -229,14 +236,7 @@ def test_a_foot_that_lies_still_on_its_way_ends_the_dock() -> None:
     (it died, or is stuck) ends the wait, not linked, and the tail can ask for the next."""
     robot = Legged(5, asking=3)
     reach = assimilate(robot)
-    cycle = 0
-    while reach.phase != "hand over":
-        robot.run(reach, cycle)
-        cycle += 1
-    robot.cut(4, FRONT)
-    while reach.phase != "waiting":
-        robot.run(reach, cycle)
-        cycle += 1
+    cycle = handed_over(robot, reach)
     for k in range(2 * STILL_CYCLES):  # crawling on its way: 8 cm a 100 cycles
         robot.foot_at(0.30 + 0.0008 * k)
         robot.run(reach, cycle)
@@ -256,14 +256,7 @@ def test_a_foot_in_sight_whose_pair_is_dark_ends_the_dock(dies: str) -> None:
     foot creeping lifts its front out of the pair's cone)."""
     robot = Legged(5, asking=3)
     reach = assimilate(robot)
-    cycle = 0
-    while reach.phase != "hand over":
-        robot.run(reach, cycle)
-        cycle += 1
-    robot.cut(4, FRONT)
-    while reach.phase != "waiting":
-        robot.run(reach, cycle)
-        cycle += 1
+    cycle = handed_over(robot, reach)
     robot.foot_at(0.04)  # lit: the face's pair sees it
     while reach.phase == "waiting":
         robot.run(reach, cycle)

@@ -76,18 +76,19 @@ def _within_tolerance(contact: dict[str, Any]) -> None:
     assert 0 < contact["ir_mm"] <= DOCK_TOLERANCE_M * 1000 and contact["ir_align_deg"] <= DOCK_TOLERANCE_DEG, contact
 
 
-def _links_after(topology: str, log: list[str]) -> set[tuple[str, str, str, str]]:
+def links_after(
+    topology: str, log: list[str], program: str = "snake_to_quadruped.dh2"
+) -> set[tuple[str, str, str, str]]:
     """The links the world ended with: the topology's, less those released, plus those docked
-    by motion (from the world's log)."""
-    program = compile_file(str(ROOT / "examples" / "snake_to_quadruped.dh2"))
-    topo = parse_spec(topology, program.profile)
+    by motion or by a latch's horn (from the world's log)."""
+    topo = parse_spec(topology, compile_file(str(ROOT / "examples" / program)).profile)
     conn = topo.profile.connector_name
     links = {(topo.names[x.a], conn(x.a_conn), topo.names[x.b], conn(x.b_conn)) for x in topo.links}
     for line in log:
         if m := re.search(r": (\w+)\.(\w+) released$", line):
             end = (m[1], m[2])
             links = {x for x in links if end not in ((x[0], x[1]), (x[2], x[3]))}
-        elif m := re.search(r": (\w+)\.(\w+) docked to (\w+)\.(\w+) by motion", line):
+        elif m := re.search(r": (\w+)\.(\w+) docked to (\w+)\.(\w+) by ", line):
             links.add((m[1], m[2], m[3], m[4]))
     return links
 
@@ -110,7 +111,7 @@ def test_snake_becomes_quadruped_and_snake_by_motion_in_the_loop(capsys: pytest.
     summary = _loop(capsys, "snake_to_quadruped.dh2", "snake:9", QUAD_CYCLES, "50:inject:m4:QSS", 0)
     log, reaches = summary["log"], summary["reaches"]
     assert [m["type"] for m in summary["modules"]] == QUAD_TYPES, log
-    assert _links_after("snake:9", log) == QUAD_LINKS, log
+    assert links_after("snake:9", log) == QUAD_LINKS, log
     docked = [line for line in log if "docked to" in line]
     assert len(docked) == 4 and all("by motion" in line for line in docked), log
     assert sum(line.endswith("released") for line in log) == 5, log

@@ -12,17 +12,15 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from dh2rt.compiler import compile_file
-from dh2rt.topology import parse_spec
 from hil.pace import PACE
 from sim.runner import DOCK_TOLERANCE_DEG, DOCK_TOLERANCE_M
+from tests.hil.test_hil_reconfig_physics import links_after
 from tests.marks import LONG
 from tools.reading import open_capture
 
@@ -58,20 +56,6 @@ def _run(tmp_path: Path, program: str, topology: str, cycles: int, event: str, s
         kind: sum(t.startswith(f"{kind} motion") for t in texts) for kind in ("ASK", "ANGLES", "TARGETS", "END")
     }
     return summary
-
-
-def _links_after(program: str, topology: str, log: list[str]) -> set[tuple[str, str, str, str]]:
-    """The links the world ended with: the topology's, less those released, plus those docked."""
-    topo = parse_spec(topology, compile_file(str(ROOT / "examples" / program)).profile)
-    conn = topo.profile.connector_name
-    links = {(topo.names[x.a], conn(x.a_conn), topo.names[x.b], conn(x.b_conn)) for x in topo.links}
-    for line in log:
-        if m := re.search(r": (\w+)\.(\w+) released$", line):
-            end = (m[1], m[2])
-            links = {x for x in links if end not in ((x[0], x[1]), (x[2], x[3]))}
-        elif m := re.search(r": (\w+)\.(\w+) docked to (\w+)\.(\w+) by ", line):
-            links.add((m[1], m[2], m[3], m[4]))
-    return links
 
 
 def _is_one_snake(links: set[tuple[str, str, str, str]], modules: int) -> bool:
@@ -134,6 +118,6 @@ def test_legs_to_snake_forms_on_the_modules_own_motions(tmp_path: Path, seed: in
     have to close on the tail's pins, not modelled)."""
     summary = _run(tmp_path, "legs_to_snake.dh2", "dragon", LTS_CYCLES, "50:inject:spine0:LTS", seed)
     log = summary["log"]
-    links = _links_after("legs_to_snake.dh2", "dragon", log)
+    links = links_after("dragon", log, "legs_to_snake.dh2")
     assert _is_one_snake(links, 11), (sorted(links), [x for x in log if "dock" in x or "release" in x][-30:])
     _own_and_within_tolerance(summary)
