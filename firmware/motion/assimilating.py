@@ -308,10 +308,14 @@ class SelfAssimilate(ModuleWorld):
                 return True
         except TrackerMissing:
             pass
+        mm, deg = self._face_pair()
+        return 0.0 < mm <= SEES_MM and deg <= SEES_DEG
+
+    def _face_pair(self) -> tuple[float, float]:
+        """The asking face's infrared pair: distance (mm, 0 seeing nothing) and alignment (degrees)."""
         name = self.profile.connector_name(self.connector)
         ir = self.senses.infrared()
-        mm, deg = ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0)
-        return 0.0 < mm <= SEES_MM and deg <= SEES_DEG
+        return ir.get(f"ir_{name}", 0.0), ir.get(f"ir_{name}_align", 180.0)
 
     def _still(self) -> bool:
         """The tracker shows the foot hardly moved over the last :data:`STILL_CYCLES`."""
@@ -334,9 +338,7 @@ class SelfAssimilate(ModuleWorld):
     def _dark(self) -> bool:
         """The tracker shows the foot in the face's sight and lying still, and the face's pair
         sees nothing, :data:`DARK_CYCLES` cycles in a row (module docs, :data:`SIGHT_M`)."""
-        name = self.profile.connector_name(self.connector)
-        seen = self.senses.infrared().get(f"ir_{name}", 0.0) > 0.0
-        front = None if seen else self._in_sight()
+        front = None if self._face_pair()[0] > 0.0 else self._in_sight()
         if front is None:
             self.dark_for, self.dark_path, self.dark_at = 0, 0.0, None
             return False

@@ -31,6 +31,7 @@ from firmware.tracker_feed import TrackerFeed
 from firmware.tracker_floor import floor_from_feed, markers, open_feed
 from hil.tracker_udp import TrackerPublisher, free_ports
 from hil.tracker_udp import markers as publish_markers
+from tests.firmware.test_latch_config import module_toml
 
 
 class FakeClock:
@@ -199,14 +200,6 @@ def test_a_port_taken_is_a_config_error_naming_tracker_port() -> None:
 
 
 # ------------------------------------------------------------ module.toml
-
-
-def module_toml(tmp_path: Path, body: str) -> Path:
-    (tmp_path / "flash").mkdir(exist_ok=True)
-    (tmp_path / "flash" / "program.img").write_bytes(compile_bundled("caterpillar.dh2").image)
-    path = tmp_path / "module.toml"
-    path.write_text('[program]\nflash = "flash"\nallow_unsigned = true\n[transport]\nkind = "inproc"\n' + body)
-    return path
 
 
 BAD = [
