@@ -18,7 +18,8 @@ closes every pty; close the modules' ports first (a slave whose master is gone r
 
 A ``tap`` (the launcher's ``--capture``) sees every frame on every link, cut at the
 delimiter as the relay cuts them, once its fate is known: ``tap(time, link_id, side, wire,
-lost)`` with the wall-clock time the frame left its sender, the side that sent it, and the
+lost)`` with the wall-clock time the frame reached its receiver (a lost one's: when it left
+its sender), the side that sent it, and the
 bytes as delivered (after bit errors and byte loss) or, for a frame that never reached a
 reader (see below), the bytes as sent with ``lost=True``. It runs on the relay thread (or on
 the caller's, for what a cut or ``close()`` loses): keep it short.
@@ -136,7 +137,7 @@ class _Piece:
     side: int  # the side that sent it
     data: bytes
     base: int
-    sent_at: float  # wall-clock time it left its sender (the tap's)
+    sent_at: float  # wall-clock time it left its sender (the tap's stamp if it is lost)
 
 
 @dataclass(slots=True)
@@ -534,7 +535,11 @@ class LinkEmulator(Closing):
         elif ends < piece.base:  # its delimiter destroyed: it joins the next chunk
             stats.frames_merged += piece.base - ends
         lost = bool(piece.base) and not ends and bool(refused or not piece.data)
-        self._tapped(link, piece.side, piece.data, piece.sent_at, lost=lost)
+        # a delivered frame is stamped as it reaches the receiver (a tap at the receiving
+        # end, as a CAN capture's bus stamps it): one read from its sender and held up here
+        # before it was written (this process descheduled) is stamped late, not early, and a
+        # receiver never reads a frame stamped after it read it; a lost one when it was sent
+        self._tapped(link, piece.side, piece.data, piece.sent_at if lost else time.time(), lost=lost)
 
 
 def _base(frame: bytes) -> int:

@@ -419,12 +419,13 @@ class Rebuild:
         """Each hormone the engine sent must be the next the module sent through that
         connector, by content, path and route (a frame corrupted on the link passes).
 
-        Times: a frame is stamped when the link emulator read it, after its cycle began and
-        possibly (the emulator lagging) after the next one began, but never before its cycle
-        began. So a frame stamped before this cycle began that does not match is an earlier
-        cycle's that no rebuilt cycle sent (said and let go), and one that does not match
-        stamped after this cycle ended is a later cycle's (what the engine sent is not in the
-        capture); one that matches is this cycle's however late the emulator stamped it."""
+        Times: a frame is stamped when the link emulator delivered it (docs/capture.md), after
+        its cycle began and possibly (a link's latency, the emulator lagging) after the next
+        one began, but never before its cycle began. So a frame stamped before this cycle began
+        that does not match is an earlier cycle's that no rebuilt cycle sent (said and let go),
+        and one that does not match stamped after this cycle ended is a later cycle's (what the
+        engine sent is not in the capture); one that matches is this cycle's however late the
+        emulator stamped it."""
         cname = self.profile.connector_name
         period = self.period.get(mark.module, 0.1)
         for c in range(1, self.profile.connector_count + 1):  # sent two cycles ago or more, unmatched
