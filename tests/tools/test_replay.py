@@ -474,11 +474,11 @@ def test_an_operators_pause_and_inject_are_rebuilt(capsys: pytest.CaptureFixture
 def test_a_link_emulator_held_up_between_reading_and_delivering_does_not_lose_a_frame(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, seed: int
 ) -> None:
-    """The emulator stamps a frame when it reads it from the sender; held up before it
-    writes it to the receiver (its process descheduled: here stopped with SIGSTOP for 20-100
-    ms at random moments), the frame reaches the receiver cycles after its stamp. The
-    receiver's link read linked all along, so it did not ignore the frame: replay must take
-    it in where the module did, not let it go as ignored (CI saw that, one run in many)."""
+    """The emulator's process held up between reading a frame from its sender and writing
+    it to the receiver (descheduled: here stopped with SIGSTOP for 20-100 ms at random
+    moments) delivers it cycles after it was sent. Replay must take it in where the module
+    did: stamped when it was read from the sender (as before), such a frame looked ignored
+    and then missing (CI saw that, one run in many); stamped on delivery, it cannot."""
     exe = Path(sys.executable).with_name("dh2rt")
     argv = ["--transport", "serial", "--module-count", "4", "--cycles", "150", "--cycle-ms", "20",
             "--stand-in", "none", "--capture", "h.pcapng", "--trace", "h.jsonl"]  # fmt: skip
