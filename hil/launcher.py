@@ -683,6 +683,12 @@ def problems(world: World, events: list[Event], *, clean_links: bool) -> list[st
                 f"module {v.name} started {late * 100 // cycles}% of its cycles late (more than "
                 f"{LATE_SHARE:.0%}): {_suggest_period(world)}"
             )
+    for module, ready_at in world.late_restarts:
+        out.append(
+            f"module {world.views[module].name} was restarted but its new life was ready only at world cycle "
+            f"{ready_at}, after the run's last cycle ({world.cycles}): it ran no cycles (give the run more "
+            "cycles after the restart)"
+        )
     frames = world.frame_accounting()
     # frames always add up (docs/hil.md, "Counting frames"): in every run with a witness of
     # the frames sent to nobody (the link emulator, the inproc bus, the CAN bus's witness);

@@ -375,6 +375,9 @@ class World:
         self._cable_spans: list[Span] = []
         #: how many times each module was started (a restart starts a new life)
         self.lives = [0] * topology.size
+        #: restarts whose new life came up after the run's last cycle, so it ran none:
+        #: (module, the world cycle it was ready at); problems() names each
+        self.late_restarts: list[tuple[int, int]] = []
         self.handles: list[ModuleHandle | None] = [None] * topology.size
         self.records: list[dict[str, Any]] = []
         self.effects: list[tuple[int, Effect]] = []
@@ -967,6 +970,8 @@ class World:
         base = self._go_at if self._go_at is not None else time.monotonic()
         start = self.cycle + 1 + int(self.start_delay / self.cycle_period)
         left = None if self.cycles is None else max(0, self.cycles - start)
+        if left == 0:  # it booted too slowly to run any of the cycles left: say so, not pass
+            self.late_restarts.append((module, self.cycle))
         self._send(module, Go(at=base + start * self.cycle_period, cycles=left))
 
     def inject(self, module: int, hormone: Hormone) -> None:

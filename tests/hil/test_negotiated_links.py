@@ -88,7 +88,7 @@ def test_undock_and_redock_get_a_fresh_link_and_a_restarted_module_rejoins(seed:
     code, summary, err = launch(
         "--transport", "virtual", "--module-count", "5", "--cycles", "320", "--cycle-ms", "20", "--seed", str(seed),
         "--event", "60:cut:m2.back", "--event", "100:dock:m2.back-m3.front",
-        "--event", "180:kill:m4", "--event", "220:restart:m4",
+        "--event", "140:kill:m4", "--event", "160:restart:m4",  # 160 cycles left to boot in
     )  # fmt: skip
     assert code == 0, (summary["problems"], err[-2000:])
     log = summary["log"]
