@@ -21,6 +21,15 @@ this process, right then.
 
 On a machine that keeps the periods the tests ask for, nothing changes and no run is repeated.
 
+A run is only as steady as the machine was while it ran, and a bare loop measured after it
+cannot see a stall that came and went during it (another test's processes booting on the same
+cores). So a :class:`Witness`, a bare loop in a process of its own, runs beside every loop
+run. When the launcher calls a run too slow while the bare loop measured after it kept the
+period, the witness says whether the machine stalled a bare loop during the run: if it did
+(at least one of its cycles late), the run is made again once at the same period
+(``WITNESS_RETRIES``); if it did not, or the run made again is too slow as well, the run
+counts and fails.
+
 A test that judges timing itself (how late a cycle may start, the order of two processes'
 clock reads) allows dh2rt no more than the bare loop's own lateness: :func:`baseline` (measured
 once a session, at the default period) and :meth:`Baseline.allowance_s`.
@@ -32,6 +41,7 @@ import contextlib
 import functools
 import io
 import math
+import signal
 import subprocess
 import sys
 import time
@@ -53,6 +63,8 @@ MAX_FACTOR = 8
 ALLOWANCE_FACTOR = 3.0
 ALLOWANCE_FLOOR_S = 0.001
 _OPTION = "--cycle-ms"
+#: Runs made again at the same period because the witness saw the machine stall during them.
+WITNESS_RETRIES = 1
 
 
 @dataclass(frozen=True)
@@ -119,6 +131,59 @@ def measure(period_s: float = CYCLE_PERIOD_S, seconds: float = MEASURE_S) -> Bas
     return Baseline(period_s, tuple(sorted(late)))
 
 
+#: The witness's loop (``python -S -c``: no site, no imports of ours, so it starts in tens of
+#: ms and sleeps through the run): scheduled as :func:`measure`'s, it keeps each cycle's
+#: lateness (us) until SIGTERM and then prints them on one line.
+_WITNESS = """
+import signal, sys, time
+period = float(sys.argv[1])
+late = []
+def stop(signum, frame):
+    raise SystemExit
+signal.signal(signal.SIGTERM, stop)
+print("ready", flush=True)
+try:
+    deadline = time.monotonic()
+    while True:
+        now = time.monotonic()
+        lateness = now - deadline
+        late.append(max(0, round(lateness * 1e6)))
+        if lateness > TOLERANCE * period:
+            deadline = now
+        deadline += period
+        time.sleep(max(0.0, deadline - time.monotonic()))
+except SystemExit:
+    pass
+print(" ".join(map(str, late)), flush=True)
+"""
+
+
+class Witness:
+    """A bare loop at ``period_s`` in a process of its own, beside a loop run: how late the
+    machine let a loop that does nothing start its cycles while the run ran."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        code = _WITNESS.replace("TOLERANCE", repr(LATE_TOLERANCE))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-S", "-c", code, repr(period_s)], stdout=subprocess.PIPE, text=True
+        )
+        assert self.proc.stdout is not None
+        self.proc.stdout.readline()  # "ready": its loop runs from here
+
+    def stop(self) -> Baseline:
+        """End the witness (by its pid) and return what its loop measured."""
+        try:
+            self.proc.send_signal(signal.SIGTERM)
+            out, _ = self.proc.communicate(timeout=10)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+        late = [int(x) / 1e6 for x in out.split()]
+        return Baseline(self.period_s, tuple(sorted(late)))
+
+
 @functools.cache
 def baseline() -> Baseline:
     """The bare loop at the default cycle period, measured once per process (a session)."""
@@ -157,41 +222,69 @@ class LoopPace:
     def run(self, cmd: Sequence[str], *, timeout: float, **kwargs: Any) -> subprocess.CompletedProcess[Any]:
         """``subprocess.run`` of a launcher command line, with its output captured; made again
         at a longer period while the launcher says the modules could not keep it and a bare
-        loop could not either. The time limit stretches with the period."""
+        loop could not either, or once at the same period when the witness saw the machine
+        stall during the run. The time limit stretches with the period."""
+        retries = WITNESS_RETRIES
         while True:
             argv = self.argv(cmd)
-            proc = subprocess.run(argv, capture_output=True, timeout=timeout * self.factor, **kwargs)
+            witness = Witness(_period_s(argv))
+            try:
+                proc = subprocess.run(argv, capture_output=True, timeout=timeout * self.factor, **kwargs)
+            finally:
+                beside = witness.stop()
             if proc.returncode != EXIT_TOO_SLOW:
                 return proc
-            said = self._judge(argv)
+            factor = self.factor
+            said = self._judge(argv, beside, retries)
             if said is not None:
                 proc.stderr += said if isinstance(proc.stderr, str) else said.encode()
                 return proc
+            retries -= self.factor == factor  # made again at the same period: the witness's retry
 
     def call(self, main: Callable[[list[str]], int], argv: Sequence[str]) -> int:
         """``main(argv)`` of the launcher in this process, made again as :meth:`run` does;
         what the run that counts wrote to stdout and stderr is passed on."""
+        retries = WITNESS_RETRIES
         while True:
             stretched = self.argv(argv)
             out, err = io.StringIO(), io.StringIO()
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-                code = main(stretched)
-            said = self._judge(stretched) if code == EXIT_TOO_SLOW else ""
+            witness = Witness(_period_s(stretched))
+            try:
+                with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                    code = main(stretched)
+            finally:
+                beside = witness.stop()
+            factor = self.factor
+            said = self._judge(stretched, beside, retries) if code == EXIT_TOO_SLOW else ""
             if said is not None:
                 sys.stdout.write(out.getvalue())
                 sys.stderr.write(err.getvalue() + said)
                 return code
+            retries -= self.factor == factor  # made again at the same period: the witness's retry
 
-    def _judge(self, argv: Sequence[str]) -> str | None:
+    def _judge(self, argv: Sequence[str], beside: Baseline, retries: int) -> str | None:
         """After a run the launcher called too slow: measure a bare loop at its period. If the
-        bare loop kept it, what it measured (the run counts, and failed); otherwise stretch the
-        factor and return None (make the run again).
+        bare loop kept it and so did the witness ``beside`` the run (no cycle of its late), or
+        no retry is left, what they measured (the run counts, and failed). If the witness was
+        late, None at the same factor (make the run again). Otherwise stretch the factor and
+        return None (make the run again).
 
         Raises MachineTooSlow when the bare loop needs more than MAX_FACTOR."""
-        period_ms = float(argv[argv.index(_OPTION) + 1]) if _OPTION in argv else s_to_ms(CYCLE_PERIOD_S)
+        period_ms = s_to_ms(_period_s(argv))
         self.last = b = measure(period_ms / 1000)
         if b.kept():
-            return f"pace: the modules could not keep {period_ms:g} ms cycles, yet {b.describe()}: dh2rt is too slow\n"
+            stalled = beside.share_late() > 0
+            during = f"a bare loop beside the run {beside.describe().removeprefix('a bare loop ')}"
+            if stalled and retries > 0:
+                sys.stderr.write(
+                    f"pace: the modules could not keep {period_ms:g} ms cycles while {during}: the machine "
+                    "stalled during the run; it is made again at the same period\n"
+                )
+                return None
+            return (
+                f"pace: the modules could not keep {period_ms:g} ms cycles, yet {b.describe()}, and {during}: "
+                "dh2rt is too slow\n"
+            )
         factor = self.factor * b.stretch()
         if factor > MAX_FACTOR:
             raise MachineTooSlow(
@@ -203,6 +296,11 @@ class LoopPace:
             f"({self.ms():g} ms for the default)\n"
         )
         return None
+
+
+def _period_s(argv: Sequence[str]) -> float:
+    """The cycle period (s) a launcher command line asks for."""
+    return float(argv[argv.index(_OPTION) + 1]) / 1000 if _OPTION in argv else CYCLE_PERIOD_S
 
 
 #: The one pace every loop run of a test session shares.

@@ -1,11 +1,17 @@
 """hil.pace: a loop run the launcher calls too slow is judged against a bare sleep loop at the
-same period. If the bare loop kept it, the run counts (and fails); if not, the period is
-stretched by the factor the bare loop needs, for every later run too; past the cap the pace
-raises MachineTooSlow. Any other failure is returned as it is."""
+same period. If the bare loop kept it, the run counts (and fails), unless the witness (a bare
+loop beside the run) saw the machine stall during it: then the run is made again once at the
+same period. If the bare loop did not keep it, the period is stretched by the factor the bare
+loop needs, for every later run too; past the cap the pace raises MachineTooSlow. Any other
+failure is returned as it is."""
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -13,7 +19,7 @@ from dh2rt.errors import MachineTooSlow
 from hil import launcher
 from hil import pace as pace_module
 from hil.launcher import EXIT_TOO_SLOW
-from hil.pace import MAX_FACTOR, Baseline, LoopPace, measure
+from hil.pace import MAX_FACTOR, Baseline, LoopPace, Witness, measure
 
 #: A launcher stand-in whose modules keep any period of at least 50 ms and which exits as the
 #: launcher does when they cannot keep a shorter one; it prints the period it was given.
@@ -103,3 +109,73 @@ def test_the_bare_loop_measures_its_own_lateness() -> None:
     b = measure(0.005, seconds=0.1)  # at least 60 cycles, whatever the length asked for
     assert b.period_s == 0.005 and len(b.late_s) == 60
     assert all(x >= 0 for x in b.late_s) and list(b.late_s) == sorted(b.late_s)
+
+
+#: A launcher stand-in too slow at its first run only (a file counts its runs).
+SLOW_ONCE = (
+    "import sys, pathlib\n"
+    "runs = pathlib.Path(sys.argv[1])\n"
+    "n = int(runs.read_text()) if runs.exists() else 0\n"
+    "runs.write_text(str(n + 1))\n"
+    f"sys.exit({EXIT_TOO_SLOW} if n == 0 else 0)\n"
+)
+
+
+def witness_saw(monkeypatch: pytest.MonkeyPatch, late_ms: float, share: float) -> None:
+    """Make every witness beside a run report ``bare_loop(late_ms, share)``."""
+
+    class Seen:
+        def __init__(self, period_s: float) -> None:
+            self.period_s = period_s
+
+        def stop(self) -> Baseline:
+            return Baseline(self.period_s, bare_loop(late_ms, share).late_s)
+
+    monkeypatch.setattr(pace_module, "Witness", Seen)
+
+
+def test_a_run_too_slow_while_the_witness_stalled_is_made_again_at_the_same_period(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    asked = machine(monkeypatch, late_ms=30, share=0.0)  # the bare loop after the run kept the period
+    witness_saw(monkeypatch, late_ms=200, share=0.02)  # the one beside it was stalled twice
+    pace = LoopPace()
+    runs = tmp_path / "runs"
+    proc = pace.run([sys.executable, "-c", SLOW_ONCE, str(runs), "--cycle-ms", "15"], text=True, timeout=30)
+    assert proc.returncode == 0 and runs.read_text() == "2" and pace.factor == 1 and asked == [0.015]
+    err = capsys.readouterr().err
+    assert "a bare loop beside the run at 15 ms started 2% of 100 cycles late" in err and "made again at the same period" in err
+
+
+def test_a_run_too_slow_again_after_the_witness_retry_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    asked = machine(monkeypatch, late_ms=30, share=0.0)
+    witness_saw(monkeypatch, late_ms=200, share=0.02)
+    pace = LoopPace()
+    proc = pace.run(stand_in("--cycle-ms", "15"), text=True, timeout=30)  # too slow every time
+    assert proc.returncode == EXIT_TOO_SLOW and pace.factor == 1 and asked == [0.015, 0.015]  # two runs, no more
+    assert "dh2rt is too slow" in proc.stderr and "beside the run at 15 ms started 2% of 100" in proc.stderr
+
+
+def test_a_run_too_slow_while_the_witness_kept_the_period_is_not_made_again(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    asked = machine(monkeypatch, late_ms=30, share=0.0)
+    witness_saw(monkeypatch, late_ms=0, share=0.0)
+    runs = tmp_path / "runs"
+    proc = LoopPace().run([sys.executable, "-c", SLOW_ONCE, str(runs), "--cycle-ms", "15"], text=True, timeout=30)
+    assert proc.returncode == EXIT_TOO_SLOW and runs.read_text() == "1" and asked == [0.015]
+    assert "beside the run at 15 ms started 0% of 100 cycles late" in proc.stderr and "dh2rt is too slow" in proc.stderr
+
+
+def test_the_witness_sees_a_stall_of_its_process() -> None:
+    """The witness is a real process: stopped for 150 ms (SIGSTOP, by its pid), its loop
+    starts a cycle that much late, and it says so when it ends."""
+    w = Witness(0.01)
+    time.sleep(0.1)
+    os.kill(w.proc.pid, signal.SIGSTOP)
+    time.sleep(0.15)
+    os.kill(w.proc.pid, signal.SIGCONT)
+    time.sleep(0.1)
+    seen = w.stop()
+    assert w.proc.poll() is not None and len(seen.late_s) >= 15
+    assert seen.late_s[-1] >= 0.14 and seen.share_late() > 0 and seen.period_s == 0.01
