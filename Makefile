@@ -26,7 +26,9 @@ demo: $(STAMP)
 # running in real time, timing judged against a bare loop measured in the same run:
 # tests/conftest.py) run in a group of their own, two at a time in make test (a loop run mostly
 # waits for its cycles; each must bear a busy core beside it anyway), one at a time in make
-# test-long (whole reconfigurations in the loop).
+# test-long (whole reconfigurations in the loop). The docs' examples among them run one at a
+# time after the rest: they are shell commands with no hil.pace to judge a slow run against a
+# bare loop, and two CI runs lost links or a cycle in a doc example beside a flash's loop run.
 # --durations: the slowest tests of each group, for whoever keeps make test within 10 minutes
 CPU_TESTS := $(BIN)/python -m pytest -q -n 2 --durations=15
 REALTIME_TESTS := $(BIN)/python -m pytest -q -n 2 --durations=25
@@ -37,7 +39,8 @@ REALTIME_LONG_TESTS := $(BIN)/python -m pytest -q -p no:xdist --durations=25
 test: $(STAMP)
 	@command -v tshark >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends tshark >/dev/null || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends tshark >/dev/null) || echo "tshark is not installed: tests/tools/test_wireshark.py will skip"
 	$(CPU_TESTS) -m "not realtime and not long"
-	$(REALTIME_TESTS) -m "realtime and not long"
+	$(REALTIME_TESTS) -m "realtime and not long" --ignore=tests/docs
+	$(REALTIME_LONG_TESTS) -m "realtime and not long" tests/docs
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy

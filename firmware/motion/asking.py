@@ -186,6 +186,8 @@ class SelfReach(ModuleWorld):
     own_targets: dict[int, float] = field(default_factory=dict)
     #: how it ended: None while under way, else "linked", "not linked", or why not
     verdict: str | None = None
+    #: what this asks of its own module besides frames and joints (none for a reach_dock)
+    effects: list[tuple[str, list[int]]] = field(default_factory=list)
 
     @property
     def me(self) -> int:

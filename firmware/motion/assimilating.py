@@ -150,6 +150,9 @@ class SelfAssimilate(ModuleWorld):
     dark_at: tuple[float, float] | None = None
     own_targets: dict[int, float] = field(default_factory=dict)
     verdict: str | None = None
+    #: what this asks of its own module besides frames and joints (the host reports them):
+    #: ``("release", [connector])``, its own face let go of before the robot crawls clear
+    effects: list[tuple[str, list[int]]] = field(default_factory=list)
 
     @property
     def me(self) -> int:
@@ -202,6 +205,10 @@ class SelfAssimilate(ModuleWorld):
         if lying is not None and body is not None:
             self.clearing = Clearing(self.body[::-1], lambda: self._spot_taken(self.senses.floor()) is not None)
             self.log(f"reach_and_dock: module {lying} lies behind the face; the robot crawls clear first")
+            # the face has no link (the rules above), yet its latch may still hold a foot that
+            # died docked to it: let go first, or the crawl drags the body along (physics, seed
+            # 7, the winner killed as it docked: 8 gait cycles, the spot still taken, 3 times)
+            self.effects.append(("release", [self.connector]))
             return self._enter("clearing")
         return self._enter("hand over")
 

@@ -35,14 +35,20 @@ from firmware.motion.readings import FloorPoses
 
 #: The caterpillar program's ClockCycle (examples/caterpillar.dh2), control cycles.
 CLOCK_CYCLE = 40
-#: Gait cycles the robot crawls at most before the foot sets off anyway.
-MAX_GAIT_CYCLES = 8
+#: Gait cycles the robot crawls at most before the foot sets off anyway: enough to leave a
+#: body lying against the face (its centre 8 cm out) beyond :data:`SPOT_DEPTH_M` (the body
+#: fell behind 2.5 cm a gait cycle there: 9 gait cycles, seed 1).
+MAX_GAIT_CYCLES = 12
 #: Control cycles the body lies straight after the crawl, before the foot lets go.
 SETTLE_CYCLES = 20
 #: The spot behind a face a foot comes to: this far out along its normal, this far either
 #: side (m). A module lying apart with its centre there makes the robot crawl clear first.
-SPOT_DEPTH_M = 0.25
-SPOT_HALF_WIDTH_M = 0.08
+#: Wider than the spot itself: the next foot comes to it from the side, and a body lying
+#: just aside (within 8 cm of the axis, 25 cm out before) turned the next feet in place
+#: there until their trips gave up (legs to snake, the winner killed as it docked, seeds 1
+#: and 6 with the motions in the modules: formed at 6,881 and 6,988 with these, not before).
+SPOT_DEPTH_M = 0.30
+SPOT_HALF_WIDTH_M = 0.20
 
 
 def spot_taken(

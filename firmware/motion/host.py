@@ -173,6 +173,8 @@ class MotionHost:
         for report in reports:
             reach.received(report, cycle)
         out = reach.step(cycle)
+        self.effects.extend(reach.effects)  # its own module's part: a release of its face
+        reach.effects.clear()
         self.own = dict(reach.own_targets)
         if reach.done:
             self.effects.append(("reach_ended", [reach.connector, reach.verdict]))

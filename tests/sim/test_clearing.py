@@ -140,3 +140,47 @@ def test_nothing_on_the_spot_no_crawl() -> None:
         assert not any("crawls clear" in line for line in run.robot.log)
     finally:
         run.close()
+
+
+def test_the_asking_module_lets_go_of_a_dead_foot_latched_to_its_face_before_it_crawls() -> None:
+    """With the motions in the modules: a foot that died latched to the tail's back (killed
+    as its dock closed: seed 7) has no link, so the rules let the next round begin, yet the
+    latch still holds it. The asker lets go of its face before the robot crawls: the crawl
+    leaves the body behind, where it would otherwise drag it along."""
+    program = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
+    dragon = parse_spec("dragon")
+    robot = Robot(program, dragon, seed=0)
+    run = PhysicsRun(robot, modules_move=True)
+    dead, tail = dragon.names.index("left_leg0"), dragon.names.index("tail4")
+    face = (tail, BACK)
+    try:
+        run.run(20)
+        run.cut(dead, FRONT)
+        (fx, fy, _), _ = run.world.connector_pose(dead, FRONT)
+        centre_to_front = math.dist((fx, fy), run.world.module_position(dead)[:2])
+        (px, py, pz), (nx, ny, _) = run.world.connector_pose(*face)
+        at = (px + nx * centre_to_front, py + ny * centre_to_front, pz)
+        run.world.set_module_pose(dead, at, math.degrees(math.atan2(-ny, -nx)))  # its front on the tail's back
+        run.dock(tail, BACK, dead, FRONT)
+        assert robot.peer_of(face) == (dead, FRONT), robot.log[-3:]
+        robot.kill(dead)
+        run.run(30)
+        run.apply(parse_event("50:inject:spine0:LTS", dragon, program.vocabulary))
+        log = robot.log
+
+        def crawled() -> list[int]:
+            return [i for i, line in enumerate(log) if line.startswith("tail4: ") and "reach_and_dock: crawled" in line]
+
+        while robot.cycle < 1500 and not crawled():
+            run.cycle()
+        lies = f"module {dead} lies behind the face; the robot crawls clear"
+        lying = [i for i, line in enumerate(log) if lies in line]
+        released = [i for i, line in enumerate(log) if line.endswith("tail4.back released")]
+        crawls = crawled()
+        assert len(lying) == 1 and len(released) == 1 and len(crawls) == 1, log[-30:]
+        assert lying[0] < released[0] < crawls[0], log[-30:]
+        assert "the spot clear" in log[crawls[0]], log[crawls[0]]
+        (px, py, _), _ = run.world.connector_pose(*face)
+        assert math.dist((px, py), run.world.module_position(dead)[:2]) > 0.30  # left behind
+    finally:
+        run.close()
