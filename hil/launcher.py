@@ -173,7 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="record every frame on the robot's links: .pcapng (CAN and serial, the program inside; "
         "open it with dh2rt dump or Wireshark), or on a bus .pcap, .log (candump -L), .blf, .asc",
     )
-    p.add_argument("--force", action="store_true", help="write --capture over a capture that is there")
+    p.add_argument(
+        "--force", action="store_true", help="write --capture, --log or --trace over a capture that is there"
+    )
     p.add_argument(
         "--key",
         type=Path,
@@ -289,9 +291,9 @@ def _main(argv: list[str] | None) -> int:
             raise OptionError(f"--cycles {ns.cycles}: must be 0 or more")
         # output files are checked before anything runs, not found unwritable after the run
         if ns.trace is not None:
-            ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES)
-        if ns.log is not None:
-            ns.log = output_path(ns.log, "--log")
+            ns.trace = output_path(ns.trace, "--trace", TRACE_SUFFIXES, force=ns.force)
+        if ns.log is not None:  # a name ending in .log reads as a candump capture: --force writes over it
+            ns.log = output_path(ns.log, "--log", force=ns.force)
         program = compile_file(str(ns.program)) if ns.program is not None else compile_bundled("caterpillar.dh2")
         spec = ns.topology or f"snake:{ns.module_count}"
         topology = parse_spec(spec, program.profile)

@@ -209,9 +209,12 @@ class LoopPace:
         """The period in ms a run asking for ``asked`` ms runs at now."""
         return asked * self.factor
 
-    def argv(self, argv: Sequence[str]) -> list[str]:
-        """The launcher's arguments with their period stretched by the factor."""
+    def argv(self, argv: Sequence[str], *, again: bool = False) -> list[str]:
+        """The launcher's arguments with their period stretched by the factor; a run made
+        ``again`` writes over the outputs the first one left (``--force``)."""
         out = list(argv)
+        if again and "--force" not in out:
+            out.append("--force")
         if _OPTION in out:
             at = out.index(_OPTION) + 1
             out[at] = f"{self.ms(float(out[at])):g}"
@@ -225,8 +228,10 @@ class LoopPace:
         loop could not either, or once at the same period when the witness saw the machine
         stall during the run. The time limit stretches with the period."""
         retries = WITNESS_RETRIES
+        again = False
         while True:
-            argv = self.argv(cmd)
+            argv = self.argv(cmd, again=again)
+            again = True
             witness = Witness(_period_s(argv))
             try:
                 proc = subprocess.run(argv, capture_output=True, timeout=timeout * self.factor, **kwargs)
@@ -245,8 +250,10 @@ class LoopPace:
         """``main(argv)`` of the launcher in this process, made again as :meth:`run` does;
         what the run that counts wrote to stdout and stderr is passed on."""
         retries = WITNESS_RETRIES
+        again = False
         while True:
-            stretched = self.argv(argv)
+            stretched = self.argv(argv, again=again)
+            again = True
             out, err = io.StringIO(), io.StringIO()
             witness = Witness(_period_s(stretched))
             try:

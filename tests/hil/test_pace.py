@@ -117,6 +117,7 @@ SLOW_ONCE = (
     "runs = pathlib.Path(sys.argv[1])\n"
     "n = int(runs.read_text()) if runs.exists() else 0\n"
     "runs.write_text(str(n + 1))\n"
+    "pathlib.Path(f'{runs}.{n}').write_text(' '.join(sys.argv[2:]))\n"
     f"sys.exit({EXIT_TOO_SLOW} if n == 0 else 0)\n"
 )
 
@@ -143,6 +144,9 @@ def test_a_run_too_slow_while_the_witness_stalled_is_made_again_at_the_same_peri
     runs = tmp_path / "runs"
     proc = pace.run([sys.executable, "-c", SLOW_ONCE, str(runs), "--cycle-ms", "15"], text=True, timeout=30)
     assert proc.returncode == 0 and runs.read_text() == "2" and pace.factor == 1 and asked == [0.015]
+    # the run made again writes over the outputs the first one left
+    assert (tmp_path / "runs.0").read_text() == "--cycle-ms 15"
+    assert (tmp_path / "runs.1").read_text() == "--cycle-ms 15 --force"
     err = capsys.readouterr().err
     assert "a bare loop beside the run at 15 ms started 2% of 100 cycles late" in err
     assert "made again at the same period" in err

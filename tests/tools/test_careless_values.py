@@ -20,6 +20,7 @@ from dh2rt.compiler import compile_file
 from dh2rt.hormone import Hormone
 from dh2rt.wire.can_frames import SINGLE, make_arbitration_id
 from dh2rt.wire.frame import FrameCodec
+from hil import launcher
 from hil.netns import in_namespace, namespace_problem
 from tools.capture import main as capture
 from tools.capture_reader import capture_programs, read_records
@@ -259,3 +260,16 @@ def test_ctrl_c_ends_a_capture_with_130_and_a_readable_file(tmp_path: Path) -> N
     assert code == 130 and "Traceback" not in err, err
     assert list(read_records(out)) == []  # closed whole: it reads to its end
     assert capture_programs(out) == [compile_file(str(CATERPILLAR)).image]
+
+
+def test_the_launchers_own_log_named_dot_log_is_written_again_only_with_force(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A name ending in .log reads as a candump capture, so a second run with the same
+    ``--log run.log`` is refused; ``--force`` writes over it (hil.pace passes it to a run it
+    makes again: a CI run's remake was refused here)."""
+    log = tmp_path / "run.log"
+    args = ["--transport", "inproc", "--module-count", "1", "--cycles", "0", "--stand-in", "none", "--log", str(log)]
+    assert launcher.main(args) == 0 and log.exists()
+    refused(capsys, launcher.main(args), "--log", "--force")
+    assert launcher.main([*args, "--force"]) == 0
