@@ -40,17 +40,20 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
+import itertools
 import math
+import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from dh2rt.errors import MachineTooSlow
 from dh2rt.runtime import CYCLE_PERIOD_S, LATE_TOLERANCE, s_to_ms
+from hil.bare_loop import lateness
 from hil.launcher import EXIT_TOO_SLOW, LATE_SHARE
 
 #: How long the bare loop runs to judge one period (s): long enough for a tenth of its cycles to mean something.
@@ -63,6 +66,8 @@ MAX_FACTOR = 8
 ALLOWANCE_FACTOR = 3.0
 ALLOWANCE_FLOOR_S = 0.001
 _OPTION = "--cycle-ms"
+#: The checkout hil/ is in (the witness imports hil.bare_loop from it with no site).
+ROOT = Path(__file__).resolve().parents[1]
 #: Runs made again at the same period because the witness saw the machine stall during them.
 WITNESS_RETRIES = 1
 
@@ -118,44 +123,8 @@ def measure(period_s: float = CYCLE_PERIOD_S, seconds: float = MEASURE_S) -> Bas
     """Run a bare sleep loop at ``period_s`` for about ``seconds`` and record its lateness,
     scheduled as dh2rt.runtime.ModuleRuntime.run schedules a module's cycles."""
     cycles = max(MEASURE_MIN_CYCLES, round(seconds / period_s))
-    late: list[float] = []
-    deadline = time.monotonic()
-    for _ in range(cycles):
-        now = time.monotonic()
-        lateness = now - deadline
-        late.append(max(0.0, lateness))
-        if lateness > LATE_TOLERANCE * period_s:
-            deadline = now
-        deadline += period_s
-        time.sleep(max(0.0, deadline - time.monotonic()))
+    late = list(itertools.islice(lateness(period_s, LATE_TOLERANCE), cycles))
     return Baseline(period_s, tuple(sorted(late)))
-
-
-#: The witness's loop (``python -S -c``: no site, no imports of ours, so it starts in tens of
-#: ms and sleeps through the run): scheduled as :func:`measure`'s, it keeps each cycle's
-#: lateness (us) until SIGTERM and then prints them on one line.
-_WITNESS = """
-import signal, sys, time
-period = float(sys.argv[1])
-late = []
-def stop(signum, frame):
-    raise SystemExit
-signal.signal(signal.SIGTERM, stop)
-print("ready", flush=True)
-try:
-    deadline = time.monotonic()
-    while True:
-        now = time.monotonic()
-        lateness = now - deadline
-        late.append(max(0, round(lateness * 1e6)))
-        if lateness > TOLERANCE * period:
-            deadline = now
-        deadline += period
-        time.sleep(max(0.0, deadline - time.monotonic()))
-except SystemExit:
-    pass
-print(" ".join(map(str, late)), flush=True)
-"""
 
 
 class Witness:
@@ -164,9 +133,13 @@ class Witness:
 
     def __init__(self, period_s: float) -> None:
         self.period_s = period_s
-        code = _WITNESS.replace("TOLERANCE", repr(LATE_TOLERANCE))
+        # no site, no dh2rt imported (hil.bare_loop): it starts in tens of ms and sleeps through the run
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
         self.proc = subprocess.Popen(
-            [sys.executable, "-S", "-c", code, repr(period_s)], stdout=subprocess.PIPE, text=True
+            [sys.executable, "-S", "-m", "hil.bare_loop", repr(period_s), repr(LATE_TOLERANCE)],
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
         )
         assert self.proc.stdout is not None
         self.proc.stdout.readline()  # "ready": its loop runs from here
@@ -227,46 +200,55 @@ class LoopPace:
         at a longer period while the launcher says the modules could not keep it and a bare
         loop could not either, or once at the same period when the witness saw the machine
         stall during the run. The time limit stretches with the period."""
-        retries = WITNESS_RETRIES
-        again = False
-        while True:
-            argv = self.argv(cmd, again=again)
-            again = True
-            witness = Witness(_period_s(argv))
-            try:
-                proc = subprocess.run(argv, capture_output=True, timeout=timeout * self.factor, **kwargs)
-            finally:
-                beside = witness.stop()
-            if proc.returncode != EXIT_TOO_SLOW:
-                return proc
-            factor = self.factor
-            said = self._judge(argv, beside, retries)
-            if said is not None:
-                proc.stderr += said if isinstance(proc.stderr, str) else said.encode()
-                return proc
-            retries -= self.factor == factor  # made again at the same period: the witness's retry
+        runs: list[subprocess.CompletedProcess[Any]] = []
+
+        def attempt(argv: list[str]) -> int:
+            runs.append(subprocess.run(argv, capture_output=True, timeout=timeout * self.factor, **kwargs))
+            return runs[-1].returncode
+
+        said = self._paced(cmd, attempt)
+        proc = runs[-1]
+        if said:
+            proc.stderr += said if isinstance(proc.stderr, str) else said.encode()
+        return proc
 
     def call(self, main: Callable[[list[str]], int], argv: Sequence[str]) -> int:
         """``main(argv)`` of the launcher in this process, made again as :meth:`run` does;
         what the run that counts wrote to stdout and stderr is passed on."""
+        runs: list[tuple[int, io.StringIO, io.StringIO]] = []
+
+        def attempt(stretched: list[str]) -> int:
+            out, err = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                runs.append((main(stretched), out, err))
+            return runs[-1][0]
+
+        said = self._paced(argv, attempt)
+        code, out, err = runs[-1]
+        sys.stdout.write(out.getvalue())
+        sys.stderr.write(err.getvalue() + said)
+        return code
+
+    def _paced(self, argv: Sequence[str], attempt: Callable[[list[str]], int]) -> str:
+        """``attempt`` the launcher's ``argv`` (stretched, and with ``--force`` when made
+        again) with a witness beside each run, until a run counts: what the pace says of it
+        ("" for a run the launcher did not call too slow)."""
         retries = WITNESS_RETRIES
         again = False
         while True:
             stretched = self.argv(argv, again=again)
             again = True
-            out, err = io.StringIO(), io.StringIO()
             witness = Witness(_period_s(stretched))
             try:
-                with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-                    code = main(stretched)
+                code = attempt(stretched)
             finally:
                 beside = witness.stop()
+            if code != EXIT_TOO_SLOW:
+                return ""
             factor = self.factor
-            said = self._judge(stretched, beside, retries) if code == EXIT_TOO_SLOW else ""
+            said = self._judge(stretched, beside, retries)
             if said is not None:
-                sys.stdout.write(out.getvalue())
-                sys.stderr.write(err.getvalue() + said)
-                return code
+                return said
             retries -= self.factor == factor  # made again at the same period: the witness's retry
 
     def _judge(self, argv: Sequence[str], beside: Baseline, retries: int) -> str | None:
