@@ -15,7 +15,7 @@ modules / world (the done-when asks at most 1.3).
   each of ``--kills``.
 
     python -m benchmarks.bench_motions_in_modules [--seeds 0,1,2] [--kills none,trip,dock] [--jobs 2]
-        [--only t,quadruped,legs_to_snake] [--quick]
+        [--only t,quadruped,legs_to_snake] [--arms world,modules] [--quick]
 
 One legs to snake run is 60 to 120 s on one core, a quadruped 40 to 60 s, a T 3 s. The last
 line is one JSON object.
@@ -107,8 +107,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--only", default=",".join(RECONFIGURATIONS), help=f"comma-separated, of {', '.join(RECONFIGURATIONS)}"
     )
     parser.add_argument("--jobs", type=int, default=2, help="runs at once, one process each (default 2)")
+    parser.add_argument(
+        "--arms",
+        default=",".join(ARMS),
+        help="comma-separated, of world, modules (default both; one alone prints no ratio: the "
+        "done-when's ratio is of both measured in one sitting)",
+    )
     parser.add_argument("--quick", action="store_true", help="snake to T at seed 0 (a smoke test)")
     args = parser.parse_args(argv)
+    arms_run = args.arms.split(",")
+    if not arms_run or [a for a in arms_run if a not in ARMS]:
+        parser.error(f"--arms: each one of {', '.join(ARMS)}, got {args.arms!r}")
     seeds = seeds_arg(parser, args.seeds)
     kills = args.kills.split(",")
     if [k for k in kills if k not in KILLS]:
@@ -125,6 +134,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for seed in seeds
         for kill in (kills if kind == "legs_to_snake" else ["none"])
         for arm in ARMS
+        if arm in arms_run
     ]
     print(f"{len(cases)} runs, {jobs} at a time", flush=True)
 
@@ -138,11 +148,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     out: dict[str, Any] = {"bench": "motions_in_modules", "seeds": seeds, "kills": kills}
     for kind in only:
-        arms = {arm: summary(results[f"{kind}/{arm}"]) for arm in ARMS}
-        world, modules = arms["world"]["median"], arms["modules"]["median"]
+        arms = {arm: summary(results[f"{kind}/{arm}"]) for arm in ARMS if arm in arms_run}
+        world, modules = (arms[a]["median"] if a in arms else None for a in ARMS)
         ratio = round(modules / world, 3) if world and modules else None
         out[kind] = {**arms, "median_ratio": ratio}
-        for arm in ARMS:
+        for arm in arms:
             s = arms[arm]
             print(
                 f"{kind:14} {arm:8} formed {s['formed']}/{s['runs']}, cycle median {s['median']} "
@@ -150,7 +160,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         print(f"{kind:14} median cycle formed, modules / world: {ratio}")
     print(json.dumps(strict_json(out)))
-    return 0 if all(out[k]["modules"]["formed"] for k in only) else 1
+    return 0 if all(arm["formed"] for k in only for arm in arms_of(out[k])) else 1
+
+
+def arms_of(case: dict[str, Any]) -> list[dict[str, Any]]:
+    """The arms run of one reconfiguration's summary."""
+    return [case[a] for a in ARMS if a in case]
 
 
 if __name__ == "__main__":

@@ -79,6 +79,13 @@ PARKED_CYCLES = 10
 #: second round: 8.5 to 11 degrees off in the 60 cycles after it arrived, so a 6-degree window
 #: never saw it, and its creep ran out unsquared).
 PARKED_HEADING_DEG = 15.0
+#: How steady the foot's heading must be over those :data:`PARKED_CYCLES` (the span of its
+#: readings, degrees): a foot that has arrived stands square and creeps straight (seed 3,
+#: first round: its heading moved 0.7 degrees in the 10 cycles after it arrived), while a foot
+#: still turning in place in the parking window, not yet square to its own 6 degrees, rocks
+#: 6 to 20 degrees in 10 cycles (seeds 3 and 9, the third round: the face squared at such a
+#: foot, moved the spot the foot steered for, and the foot turned on until its trip gave up).
+PARKED_STEADY_DEG = 5.0
 #: A foot on its trip crawls 8 to 10 cm a 100 cycles or turns in place; one that in
 #: :data:`STILL_CYCLES` has moved less than :data:`STILL_M` and turned less than
 #: :data:`STILL_DEG` has died or is stuck, and the dock is given up: nothing else tells the
@@ -141,6 +148,8 @@ class SelfAssimilate(ModuleWorld):
     #: seen off the parking window
     parked_for: int = 0
     off_for: int = 0
+    #: the foot's heading (degrees) each of those cycles: the tracker's, else the face's pair's
+    parked_headings: list[float] = field(default_factory=list)
     #: where the foot was (x, y, heading) when the current window began, and that cycle
     moved: tuple[float, float, float, int] | None = None
     #: cycles in a row the foot lay in the face's sight and its pair saw nothing, and the
@@ -295,7 +304,7 @@ class SelfAssimilate(ModuleWorld):
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
             self.away = self.off_for >= PARKED_CYCLES
             return []
-        self.parked_for = self.parked_for + 1 if self._foot_there() else 0
+        self.parked_for = self._parked()
         if self.parked_for < PARKED_CYCLES:
             return []
         route = rules.squaring_route(self.peer_of, self.profile, self.me)
@@ -304,6 +313,32 @@ class SelfAssimilate(ModuleWorld):
         self.squaring = Asker(self.next_motion(), self.me, tuple(self.own_links()), route, self.cycle, log=self.log)
         self.log(f"reach_and_dock: module {self.foot} is at the face; squaring along {list(route)}")
         return self._enter("squaring")
+
+    def _parked(self) -> int:
+        """Cycles in a row (up to :data:`PARKED_CYCLES`) the foot has been seen parked with
+        its heading steady (:data:`PARKED_STEADY_DEG`) over them: 0 when not parked now."""
+        if not self._foot_there():
+            self.parked_headings = []
+            return 0
+        heading = self._foot_heading()
+        kept = self.parked_headings[-(PARKED_CYCLES - 1) :]
+        # the oldest readings go until the rest and this one lie within PARKED_STEADY_DEG
+        while kept and _span([*kept, heading]) > PARKED_STEADY_DEG:
+            kept.pop(0)
+        self.parked_headings = [*kept, heading]
+        return len(self.parked_headings)
+
+    def _foot_heading(self) -> float:
+        """The foot's heading as the tracker shows it (degrees), else the face's pair's
+        alignment reading."""
+        assert self.foot is not None
+        try:
+            floor = self.senses.floor()
+            if self.foot in floor.modules:
+                return math.degrees(floor.heading(self.foot))
+        except TrackerMissing:
+            pass
+        return self._face_pair()[1]
 
     def _foot_there(self, heading_deg: float = PARKED_HEADING_DEG) -> bool:
         """The tracker shows the foot parked behind the face (squared within ``heading_deg``),
@@ -416,6 +451,7 @@ class SelfAssimilate(ModuleWorld):
             return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
         self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
         self.away, self.parked_for, self.off_for, self.moved = False, 0, 0, None
+        self.parked_headings = []
         return ended + self._enter("waiting")
 
     def _enter(self, phase: str) -> list[Out]:
@@ -461,3 +497,9 @@ class SelfAssimilate(ModuleWorld):
         if known is None or len(known.angles) < 2:
             raise KeyError(f"no joint reading of module {module}")
         return known.angles
+
+
+def _span(headings: Sequence[float]) -> float:
+    """How far apart (degrees) the headings lie, measured from the first across the wrap."""
+    offsets = [(h - headings[0] + 180.0) % 360.0 - 180.0 for h in headings]
+    return max(offsets) - min(offsets)

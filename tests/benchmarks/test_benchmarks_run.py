@@ -162,3 +162,23 @@ def test_footprint_baseline_loop_compiles_and_cycles(tmp_path: Path) -> None:
     final = loop.read_status()
     assert final is not None and final["final"] and final["cycle"] >= 5
     assert sum(final["lateness_hist"]["counts"]) == final["cycle"]
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["--arms", "modules,robot"], "--arms: each one of world, modules"),
+        (["--only", "t,snake"], "--only: each one of"),
+        (["--kills", "late"], "--kills: each one of none, trip, dock"),
+    ],
+)
+def test_motions_in_modules_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bench_motions_in_modules", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and names in proc.stderr, proc.stderr[-500:]
+    assert proc.stdout == ""

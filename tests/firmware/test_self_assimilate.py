@@ -10,6 +10,7 @@ latches; a squaring that does not latch waits for the foot to leave the spot and
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import pytest
@@ -17,7 +18,14 @@ import pytest
 from dh2rt.profile import CONRO
 from dh2rt.wire import motion as mw
 from firmware.motion.asker import Asker
-from firmware.motion.assimilating import DARK_CYCLES, PARKED_CYCLES, STILL_CYCLES, SelfAssimilate
+from firmware.motion.assimilating import (
+    DARK_CYCLES,
+    PARKED_CYCLES,
+    PARKED_HEADING_DEG,
+    PARKED_STEADY_DEG,
+    STILL_CYCLES,
+    SelfAssimilate,
+)
 from firmware.motion.body import DEFAULT_MODEL
 from firmware.motion.crawl import parked
 from firmware.motion.readings import FloorPoses, ModulePose, PartPose
@@ -179,6 +187,45 @@ def test_the_tail_hands_the_foot_over_waits_squares_and_latches() -> None:
     assert robot.latches == [(3, BACK, 4, FRONT)] and reach.verdict == "linked", robot.log
     assert all(member.held == {} for member in robot.members)  # END to every member
     assert any("reach_dock m3.back -> m4.front: latched" in line for line in robot.log), robot.log
+
+
+def turned(pose: ModulePose, degrees: float) -> ModulePose:
+    """``pose`` turned in place about its centre by ``degrees``."""
+    h = math.radians(degrees)
+    c = pose.centre
+
+    def part(p: PartPose) -> PartPose:
+        dx, dy = p.x - c.x, p.y - c.y
+        return PartPose(
+            c.x + dx * math.cos(h) - dy * math.sin(h), c.y + dx * math.sin(h) + dy * math.cos(h), p.heading + h
+        )
+
+    return ModulePose(part(c), part(pose.front), part(pose.back))
+
+
+@pytest.mark.parametrize("rock", [PARKED_STEADY_DEG + 1.0, 2 * PARKED_STEADY_DEG, PARKED_HEADING_DEG - 1.0])
+def test_a_foot_turning_in_place_in_the_parking_window_is_not_parked_until_it_stands_square(rock: float) -> None:
+    """A foot in the parking window still turning to square itself (its heading rocking
+    within the window's 15 degrees) has not arrived: the face squaring at it moves the spot it
+    steers for (legs to snake in physics, seeds 3 and 9). Its heading steady for
+    PARKED_CYCLES, it has."""
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = handed_over(robot, reach)
+    robot.foot_at(0.04)
+    square = robot.report[4]
+    robot.ir = NOTHING  # the tracker's report alone: the pair reads its alignment only when it sees
+    for k in range(4 * PARKED_CYCLES):  # rocking: the heading runs up and down `rock` apart
+        robot.report[4] = turned(square, -rock / 2 + rock * (k % 4) / 3)
+        assert parked(robot.floor(), DEFAULT_MODEL, 4, (3, BACK), heading_deg=PARKED_HEADING_DEG)
+        robot.run(reach, cycle)
+        cycle += 1
+        assert reach.phase == "waiting", (k, robot.log)
+    for k in range(PARKED_CYCLES):  # it stands square, to within the tracker's wobble
+        robot.report[4] = turned(square, 0.3 * (-1) ** k)
+        robot.run(reach, cycle)
+        cycle += 1
+    assert reach.phase == "squaring", robot.log
 
 
 def test_a_squaring_that_does_not_latch_waits_for_the_foot_to_come_round_again() -> None:
