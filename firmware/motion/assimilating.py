@@ -77,8 +77,11 @@ PARKED_CYCLES = 10
 #: How square (degrees, in the face's frame) the foot must lie to count as parked: wider than
 #: the trip's own 6, since the foot creeps on from its arrival and turns as it does (seed 0,
 #: second round: 8.5 to 11 degrees off in the 60 cycles after it arrived, so a 6-degree window
-#: never saw it, and its creep ran out unsquared).
-PARKED_HEADING_DEG = 15.0
+#: never saw it, and its creep ran out unsquared); 25 rather than 15 since the heading must
+#: also hold steady (below): seed 0, the winner killed as it docked, the last foot crept 15 to
+#: 20 degrees off the face's axis, steady, and a 15-degree window never saw it parked for 10
+#: cycles in a row (its creep ran out unsquared, and the snake did not form).
+PARKED_HEADING_DEG = 25.0
 #: How steady the foot's heading must be over those :data:`PARKED_CYCLES` (the span of its
 #: readings, degrees): a foot that has arrived stands square and creeps straight (seed 3,
 #: first round: its heading moved 0.7 degrees in the 10 cycles after it arrived), while a foot
@@ -86,6 +89,10 @@ PARKED_HEADING_DEG = 15.0
 #: 6 to 20 degrees in 10 cycles (seeds 3 and 9, the third round: the face squared at such a
 #: foot, moved the spot the foot steered for, and the foot turned on until its trip gave up).
 PARKED_STEADY_DEG = 5.0
+#: After a squaring that did not latch, the foot has gone round again once the tracker shows
+#: its front this far from where it lay then (its trip backs it off 8 cm), or it has been off
+#: the parking window :data:`PARKED_CYCLES` in a row.
+BACKED_OFF_M = 0.07
 #: A foot on its trip crawls 8 to 10 cm a 100 cycles or turns in place; one that in
 #: :data:`STILL_CYCLES` has moved less than :data:`STILL_M` and turned less than
 #: :data:`STILL_DEG` has died or is stuck, and the dock is given up: nothing else tells the
@@ -152,6 +159,10 @@ class SelfAssimilate(ModuleWorld):
     parked_headings: list[float] = field(default_factory=list)
     #: where the foot was (x, y, heading) when the current window began, and that cycle
     moved: tuple[float, float, float, int] | None = None
+    #: how far (m) and how much (degrees) the foot has been from there in this window, at most
+    strayed: tuple[float, float] = (0.0, 0.0)
+    #: where the foot's front lay when the last squaring gave up (the tracker's)
+    left_at: tuple[float, float] | None = None
     #: cycles in a row the foot lay in the face's sight and its pair saw nothing, and the
     #: path its front face went meanwhile (m), and where it was last
     dark_for: int = 0
@@ -302,7 +313,7 @@ class SelfAssimilate(ModuleWorld):
             return self._finish(self._dark_verdict())
         if not self.away:  # where the last squaring left it, until it has gone round again
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
-            self.away = self.off_for >= PARKED_CYCLES
+            self.away = self.off_for >= PARKED_CYCLES or self._backed_off()
             return []
         self.parked_for = self._parked()
         if self.parked_for < PARKED_CYCLES:
@@ -327,6 +338,27 @@ class SelfAssimilate(ModuleWorld):
             kept.pop(0)
         self.parked_headings = [*kept, heading]
         return len(self.parked_headings)
+
+    def _backed_off(self) -> bool:
+        """The tracker shows the foot's front :data:`BACKED_OFF_M` or more from where it lay
+        when the last squaring gave up: it has set off round again, even if it never left the
+        parking window (seed 2: it backed off 8 cm inside it and was back in 79 cycles)."""
+        front = self._front()
+        if front is None or self.left_at is None:
+            return False
+        return math.dist(front, self.left_at) >= BACKED_OFF_M
+
+    def _front(self) -> tuple[float, float] | None:
+        """Where the tracker shows the foot's front face, if it shows the foot."""
+        assert self.foot is not None
+        floor = self.senses.floor()
+        if self.foot not in floor.modules:
+            return None
+        try:
+            fx, fy, _, _ = floor.face(self.model, self.foot, "front")
+        except TrackerMissing:
+            return None
+        return fx, fy
 
     def _foot_heading(self) -> float:
         """The foot's heading as the tracker shows it (degrees), else the face's pair's
@@ -369,13 +401,19 @@ class SelfAssimilate(ModuleWorld):
         heading = math.degrees(floor.heading(self.foot))
         start = self.moved
         if start is None:
-            self.moved = (x, y, heading, self.cycle)
+            self.moved, self.strayed = (x, y, heading, self.cycle), (0.0, 0.0)
             return False
+        # the farthest from the window's start, not where it ends: a foot that backed off
+        # and came back to the face in the window has moved (seed 2, its second round)
+        self.strayed = (
+            max(self.strayed[0], math.hypot(x - start[0], y - start[1])),
+            max(self.strayed[1], abs((heading - start[2] + 180.0) % 360.0 - 180.0)),
+        )
         if self.cycle - start[3] < STILL_CYCLES:
             return False
-        self.moved = (x, y, heading, self.cycle)  # the next window starts here
-        turned = abs((heading - start[2] + 180.0) % 360.0 - 180.0)
-        return math.hypot(x - start[0], y - start[1]) < STILL_M and turned < STILL_DEG
+        far, turned = self.strayed
+        self.moved, self.strayed = (x, y, heading, self.cycle), (0.0, 0.0)  # the next window starts here
+        return far < STILL_M and turned < STILL_DEG
 
     def _dark(self) -> bool:
         """The tracker shows the foot in the face's sight and lying still, and the face's pair
@@ -451,7 +489,7 @@ class SelfAssimilate(ModuleWorld):
             return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
         self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
         self.away, self.parked_for, self.off_for, self.moved = False, 0, 0, None
-        self.parked_headings = []
+        self.parked_headings, self.left_at = [], self._front()
         return ended + self._enter("waiting")
 
     def _enter(self, phase: str) -> list[Out]:

@@ -295,6 +295,57 @@ def test_a_foot_that_lies_still_on_its_way_ends_the_dock() -> None:
     assert reach.verdict == f"not linked: module 4 hardly moved in {STILL_CYCLES} cycles (dead or stuck)"
 
 
+def test_a_foot_that_backs_off_and_comes_back_within_the_window_has_moved() -> None:
+    """Still is judged by how far the foot went in the window, not where it ends: a foot that
+    backed off 8 cm and came back to where it was (seed 2 in physics, its second round) is
+    alive and is not given up."""
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = handed_over(robot, reach)
+    robot.foot_at(0.30)
+    for k in range(3 * STILL_CYCLES):  # out 8 cm and back again, each STILL_CYCLES
+        robot.foot_at(0.30 + 0.08 * (1 - abs((k % STILL_CYCLES) / (STILL_CYCLES / 2) - 1)))
+        robot.run(reach, cycle)
+        cycle += 1
+    assert not reach.done, robot.log
+
+
+def test_after_a_squaring_that_did_not_latch_a_foot_that_backed_off_inside_the_window_has_gone_round() -> None:
+    """The foot's trip backs it off 8 cm and brings it back; when it is off the parking window
+    for fewer than PARKED_CYCLES on the way (seed 2 in physics: back in 79 cycles, never
+    off it), the tracker showing its front BACKED_OFF_M from where it lay tells the tail it
+    went round again, and it squares again."""
+    robot = Legged(5, asking=3)
+    reach = assimilate(robot)
+    cycle = handed_over(robot, reach)
+    robot.foot_at(0.04)
+    for _ in range(PARKED_CYCLES):
+        robot.run(reach, cycle)
+        cycle += 1
+    assert reach.docking is None and reach.phase == "squaring"
+    while reach.docking is None:
+        cycle += 1
+        robot.run(reach, cycle)
+    reach.docking.motions[0].reach.timeout = reach.docking.motions[0].reach.cycles + 1  # it gives up now
+    for _ in range(3):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == "waiting" and reach.squarings == 1, robot.log
+    off = 0
+    for behind in (0.06, 0.08, 0.10, 0.115, 0.08, 0.06):  # off the window for fewer than PARKED_CYCLES
+        robot.foot_at(behind)
+        off += 3 * (not parked(robot.floor(), DEFAULT_MODEL, 4, (3, BACK), heading_deg=180.0))
+        for _ in range(3):
+            cycle += 1
+            robot.run(reach, cycle)
+    assert 0 < off < PARKED_CYCLES
+    robot.foot_at(0.04)
+    for _ in range(PARKED_CYCLES):
+        cycle += 1
+        robot.run(reach, cycle)
+    assert reach.phase == "squaring", robot.log
+
+
 @pytest.mark.parametrize("dies", ["waiting", "squaring"])
 def test_a_foot_in_sight_whose_pair_is_dark_ends_the_dock(dies: str) -> None:
     """The infrared pairs are active: a foot the tracker shows right behind the face that the
