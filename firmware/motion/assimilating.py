@@ -350,15 +350,20 @@ class SelfAssimilate(ModuleWorld):
 
     def _front(self) -> tuple[float, float] | None:
         """Where the tracker shows the foot's front face, if it shows the foot."""
+        face = self._foot_front()
+        return None if face is None else face[:2]
+
+    def _foot_front(self) -> tuple[float, float, float, float] | None:
+        """The foot's front face as the tracker shows it (centre and outward normal), if it
+        shows the foot."""
         assert self.foot is not None
         floor = self.senses.floor()
         if self.foot not in floor.modules:
             return None
         try:
-            fx, fy, _, _ = floor.face(self.model, self.foot, "front")
+            return floor.face(self.model, self.foot, "front")
         except TrackerMissing:
             return None
-        return fx, fy
 
     def _foot_heading(self) -> float:
         """The foot's heading as the tracker shows it (degrees), else the face's pair's
@@ -435,13 +440,12 @@ class SelfAssimilate(ModuleWorld):
     def _in_sight(self) -> tuple[float, float] | None:
         """Where the tracker shows the foot's front face, if it shows it where the face's
         infrared pair must see it; else None."""
-        assert self.foot is not None
-        floor = self.senses.floor()
-        if self.foot not in floor.modules:
+        front = self._foot_front()
+        if front is None:
             return None
+        fx, fy, fnx, fny = front
         try:
-            fx, fy, fnx, fny = floor.face(self.model, self.foot, "front")
-            px, py, nx, ny = floor.face(self.model, *self._face)
+            px, py, nx, ny = self.senses.floor().face(self.model, *self._face)
         except TrackerMissing:
             return None
         dx, dy = fx - px, fy - py

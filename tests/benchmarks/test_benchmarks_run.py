@@ -113,12 +113,13 @@ def test_trips_benchmark_help() -> None:
     ],
 )
 def test_legs_to_snake_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:
+    assert_usage_error("bench_legs_to_snake", args, names)
+
+
+def assert_usage_error(bench: str, args: list[str], names: str) -> None:
+    """``benchmarks.<bench> args`` exits 2 naming ``names`` on stderr, and prints nothing else."""
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.bench_legs_to_snake", *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=60,
+        [sys.executable, "-m", f"benchmarks.{bench}", *args], capture_output=True, text=True, cwd=ROOT, timeout=60
     )
     assert proc.returncode == 2 and names in proc.stderr, proc.stderr[-500:]
     assert proc.stdout == ""
@@ -173,12 +174,4 @@ def test_footprint_baseline_loop_compiles_and_cycles(tmp_path: Path) -> None:
     ],
 )
 def test_motions_in_modules_benchmark_refuses_bad_arguments_with_a_usage_error(args: list[str], names: str) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.bench_motions_in_modules", *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=60,
-    )
-    assert proc.returncode == 2 and names in proc.stderr, proc.stderr[-500:]
-    assert proc.stdout == ""
+    assert_usage_error("bench_motions_in_modules", args, names)
