@@ -151,12 +151,12 @@ class SelfAssimilate(ModuleWorld):
     squarings: int = 0
     #: the foot was seen off the spot since the last squaring (it went round again)
     away: bool = True
-    #: cycles in a row the foot was seen parked, and (after a squaring that did not latch)
-    #: seen off the parking window
-    parked_for: int = 0
-    off_for: int = 0
-    #: the foot's heading (degrees) each of those cycles: the tracker's, else the face's pair's
+    #: the foot's heading (degrees) each cycle in a row it was seen parked, steady (the
+    #: tracker's, else the face's pair's): :attr:`parked_for` is how many
     parked_headings: list[float] = field(default_factory=list)
+    #: cycles in a row the foot was seen off the parking window (after a squaring that did not
+    #: latch)
+    off_for: int = 0
     #: where the foot was (x, y, heading) when the current window began, and that cycle
     moved: tuple[float, float, float, int] | None = None
     #: how far (m) and how much (degrees) the foot has been from there in this window, at most
@@ -315,7 +315,7 @@ class SelfAssimilate(ModuleWorld):
             self.off_for = 0 if self._foot_there(heading_deg=180.0) else self.off_for + 1
             self.away = self.off_for >= PARKED_CYCLES or self._backed_off()
             return []
-        self.parked_for = self._parked()
+        self._note_parked()
         if self.parked_for < PARKED_CYCLES:
             return []
         route = rules.squaring_route(self.peer_of, self.profile, self.me)
@@ -325,19 +325,24 @@ class SelfAssimilate(ModuleWorld):
         self.log(f"reach_and_dock: module {self.foot} is at the face; squaring along {list(route)}")
         return self._enter("squaring")
 
-    def _parked(self) -> int:
-        """Cycles in a row (up to :data:`PARKED_CYCLES`) the foot has been seen parked with
-        its heading steady (:data:`PARKED_STEADY_DEG`) over them: 0 when not parked now."""
+    @property
+    def parked_for(self) -> int:
+        """Cycles in a row (up to :data:`PARKED_CYCLES`) the foot has been seen parked with its
+        heading steady (:data:`PARKED_STEADY_DEG`) over them."""
+        return len(self.parked_headings)
+
+    def _note_parked(self) -> None:
+        """This cycle's reading of the foot into :attr:`parked_headings`: none when it is not
+        parked now."""
         if not self._foot_there():
             self.parked_headings = []
-            return 0
+            return
         heading = self._foot_heading()
         kept = self.parked_headings[-(PARKED_CYCLES - 1) :]
         # the oldest readings go until the rest and this one lie within PARKED_STEADY_DEG
         while kept and _span([*kept, heading]) > PARKED_STEADY_DEG:
             kept.pop(0)
         self.parked_headings = [*kept, heading]
-        return len(self.parked_headings)
 
     def _backed_off(self) -> bool:
         """The tracker shows the foot's front :data:`BACKED_OFF_M` or more from where it lay
@@ -412,7 +417,7 @@ class SelfAssimilate(ModuleWorld):
         # and came back to the face in the window has moved (seed 2, its second round)
         self.strayed = (
             max(self.strayed[0], math.hypot(x - start[0], y - start[1])),
-            max(self.strayed[1], abs((heading - start[2] + 180.0) % 360.0 - 180.0)),
+            max(self.strayed[1], abs(_turned(start[2], heading))),
         )
         if self.cycle - start[3] < STILL_CYCLES:
             return False
@@ -492,7 +497,7 @@ class SelfAssimilate(ModuleWorld):
         if self.squarings >= ATTEMPTS:
             return ended + self._finish(f"not linked: {self.squarings} squarings ({why})")
         self.log(f"reach_and_dock: squaring {self.squarings} {why}; waiting for the foot to come round again")
-        self.away, self.parked_for, self.off_for, self.moved = False, 0, 0, None
+        self.away, self.off_for, self.moved = False, 0, None
         self.parked_headings, self.left_at = [], self._front()
         return ended + self._enter("waiting")
 
@@ -543,5 +548,10 @@ class SelfAssimilate(ModuleWorld):
 
 def _span(headings: Sequence[float]) -> float:
     """How far apart (degrees) the headings lie, measured from the first across the wrap."""
-    offsets = [(h - headings[0] + 180.0) % 360.0 - 180.0 for h in headings]
+    offsets = [_turned(headings[0], h) for h in headings]
     return max(offsets) - min(offsets)
+
+
+def _turned(start: float, heading: float) -> float:
+    """From ``start`` to ``heading`` (degrees) the short way round: in [-180, 180)."""
+    return (heading - start + 180.0) % 360.0 - 180.0
