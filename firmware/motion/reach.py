@@ -19,10 +19,14 @@ hold, in three phases:
     bearing).
 
 Where the target face is relative to the asking face (:meth:`Reach.relative`) comes from the
-chain's forward kinematics of the *measured* joint angles (proprioception); for a target on
-another body (:meth:`firmware.motion.kinematics.Chain.to_other`, a foot lying apart) the last
-hop, from the chain's end to the target's part, is the overhead tracker's (both parts' poses
-on the floor). Nothing here reads a simulator.
+asking module's own joint to its own centre, and from there the overhead tracker's poses of
+that centre and of the target's part: the docks along a bent chain give under its load (up to
+9 degrees a dock), so the chain's forward kinematics from its far end put the asking face
+centimetres from where it is. Without the tracker's report (``tracked=False``, or no report
+yet) it is the chain's forward kinematics of the *measured* joint angles (proprioception),
+and for a target on another body (:meth:`firmware.motion.kinematics.Chain.to_other`, a foot
+lying apart) the tracker's pose of the target's part from the chain's end. The planner and the
+least-squares steps use the chain's kinematics either way. Nothing here reads a simulator.
 
 A chain that closes a loop on its own robot runs a pitch wave in every phase
 (:data:`WIGGLE_DEG`): its modules are pressed and unloaded in turn, so that its yaws are not
@@ -141,10 +145,13 @@ class Reach:
         return readings.ir(m, self._ir[0]), readings.ir(m, self._ir[1])
 
     def relative(self, readings: Readings) -> np.ndarray:
-        """The target connector's part in the asking connector's part frame, as it is now: the
-        chain's forward kinematics of the measured joint angles, and for a target on another
-        body, the tracker's pose of the target's part seen from the chain's end
-        (:attr:`firmware.motion.kinematics.Chain.beyond`, both on the floor plane)."""
+        """The target connector's part in the asking connector's part frame, as it is now
+        (module docs): the asking module's own joint and the tracker's poses of its centre and
+        of the target's part; without the tracker (``tracked`` False), the chain's forward
+        kinematics of the measured joint angles, and for a target on another body the tracker's
+        pose of the target's part seen from the chain's end
+        (:attr:`firmware.motion.kinematics.Chain.beyond`, both on the floor plane), which is
+        measured either way: the least-squares steps differentiate the chain with it."""
         chain = self.chain
         if chain.anchor is not None:
             anchor = readings.floor.part(*chain.anchor).transform()
@@ -154,8 +161,8 @@ class Reach:
         oracle = readings.oracle.get((chain.asking, chain.target))
         if oracle is not None:  # measuring only (Readings.oracle)
             return oracle
-        if chain.anchor is None and self.tracked and readings.floor.modules:
-            # the loop closes through docks that give (a docked pair twists by up to 9 degrees
+        if self.tracked and readings.floor.modules:
+            # the chain bends through docks that give (a docked pair twists by up to 9 degrees
             # under a bent chain's load): the asking module's own centre by its own joint, and
             # from there the target's part as the tracker sees both on the floor
             q = {j: math.radians(readings.joint(*j)) for j in self._own_centre.joints}

@@ -107,24 +107,60 @@ def test_a_reach_to_another_body_needs_the_tracker() -> None:
         Reach(chain, r, 0.02, 20.0)
 
 
+def _straight_tail_and_foot(aside_m: float = 0.0) -> tuple[Chain, FloorPoses, float]:
+    """Modules 2 and 3 lying along +x, 3 behind 2, and a foot (module 9) 5 cm behind module
+    3's back face, square, facing it: the chain of module 3's back face to the foot's front,
+    the tracker's report (module 3's parts ``aside_m`` off the line along y: its dock to
+    module 2 gave under load, which the chain's kinematics cannot know), and the face's x."""
+    model = DEFAULT_MODEL
+    chain = Chain.to_other(model, (3, BACK), (FRONT,), LINKS.get, (9, FRONT), free_distance=True)
+    face_x = -model.back.half[0] - model.length
+    flat = PartPose(0.0, 0.0, 0.0)
+    back = PartPose(face_x + model.back.half[0], aside_m, 0.0)  # module 3's back part
+    inside = Chain.to_own_centre(model, (3, BACK))
+    own = inside.target_part(np.zeros(len(inside.joints)))  # its centre, seen from there (joints at 0)
+    centre_xy = back.transform() @ own[:, 3]
+    centre = PartPose(float(centre_xy[0]), float(centre_xy[1]), 0.0)
+    foot_front = PartPose(face_x - 0.05 - model.front.half[0], 0.0, 0.0)  # facing +x, towards the face
+    floor = FloorPoses(
+        {
+            2: ModulePose(flat, flat, flat),  # module 2's back part at the origin: the chain's end
+            3: ModulePose(centre, centre, back),
+            9: ModulePose(flat, foot_front, flat),
+        }
+    )
+    return chain, floor, face_x
+
+
 def test_a_foot_square_behind_the_face_per_the_tracker_asks_for_no_bend() -> None:
     """The tracker puts module 2's back part at the origin facing +x and a foot's front 5 cm
     behind module 3's back face, square: the plan leaves the chain straight."""
-    model = DEFAULT_MODEL
-    chain = Chain.to_other(model, (3, BACK), (FRONT,), LINKS.get, (9, FRONT), free_distance=True)
-    length = model.length
-    # modules 2 and 3 lie along +x, 3 behind 2: module 3's back face at x = -length - back half
-    anchor = PartPose(0.0, 0.0, 0.0)  # module 2's back part (the chain's end)
-    face_x = -model.back.half[0] - length
-    foot_front = PartPose(face_x - 0.05 - model.front.half[0], 0.0, 0.0)  # facing +x, towards the face
-    flat = PartPose(0.0, 0.0, 0.0)
-    floor = FloorPoses({2: ModulePose(flat, flat, anchor), 9: ModulePose(flat, foot_front, flat)})
+    chain, floor, face_x = _straight_tail_and_foot()
     joints = readings_of(chain, dict.fromkeys(chain.joints, 0.0), (0.0, 180.0))
     reach = Reach(chain, Readings(joints.joints, joints.infrared, floor), 0.02, 20.0)
     assert chain.anchor == (2, BACK_PART)
     assert float(np.max(np.abs(np.degrees(reach.plan)))) < 1.0
-    face = floor.face(model, 9, FRONT)
+    face = floor.face(DEFAULT_MODEL, 9, FRONT)
     assert face[:2] == pytest.approx((face_x - 0.05, 0.0)) and face[2:] == pytest.approx((1.0, 0.0))
+
+
+@pytest.mark.parametrize("aside_m", [-0.02, 0.01, 0.02])
+def test_a_reach_to_a_foot_sees_the_face_where_the_tracker_shows_it_not_where_the_docks_would_put_it(
+    aside_m: float,
+) -> None:
+    """A dock gives under a bent chain's load (up to 9 degrees), so the asking face is not
+    where the chain's kinematics from its far end put it. The reach reads where the foot lies
+    from the asking module's own centre as the tracker shows it (seed 2's legs to snake: the
+    kinematics said square while the face stood 2 cm aside of the foot for 400 cycles, and
+    neither infrared pair ever saw the other). ``tracked=False`` is the chain alone."""
+    chain, floor, _ = _straight_tail_and_foot(aside_m)
+    joints = readings_of(chain, dict.fromkeys(chain.joints, 0.0), (0.0, 180.0))
+    readings = Readings(joints.joints, joints.infrared, floor)
+    seeing = Reach(chain, readings, 0.02, 20.0)
+    lateral = chain.error_of(seeing.relative(readings))
+    blind = Reach(chain, readings, 0.02, 20.0, tracked=False)
+    assert float(lateral[1]) == pytest.approx(-aside_m, abs=1e-3)  # the foot lies -aside_m off the face's axis
+    assert float(np.linalg.norm(blind.chain.error_of(blind.relative(readings))[:3])) < 1e-3
 
 
 def test_creep_holds_when_its_front_infrared_reads_the_face_close() -> None:
