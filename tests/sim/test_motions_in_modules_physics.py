@@ -83,16 +83,8 @@ def test_snake_to_quadruped_with_the_motions_in_the_heads() -> None:
         run.close()
 
 
-#: Seed 0 does not form with the thirteenth session's asker (docs/physics.md, *The motions in
-#: the modules*: its third foot's three squarings do not latch, its blind creep drifting it
-#: 2 to 3.5 cm aside past the face); strict, so that the fix shows.
-SEED_0_LEFT = pytest.mark.xfail(
-    reason="a squaring at a foot whose creep drifts aside does not latch (docs/physics.md)", strict=True
-)
-
-
 @LONG
-@pytest.mark.parametrize("seed", [pytest.param(0, marks=SEED_0_LEFT), 1])
+@pytest.mark.parametrize("seed", [0, 1])
 def test_legs_to_snake_with_the_motions_in_the_tail_and_the_feet(seed: int) -> None:
     program = compile_file(str(EXAMPLES / "legs_to_snake.dh2"))
     run, formed = legs_to_snake.reconfigure(program, seed, modules_move=True)
