@@ -171,11 +171,12 @@ class Reach:
             asking_tilt = readings.attitude.get(chain.asking[0], (0.0, 0.0))
             a = readings.floor.part(chain.asking[0], CENTRE).transform(*asking_tilt)
             target_link = chain.model.connector(chain.target[1]).link
-            # the target's part tilted as its module's IMU reads it (an approximation for a part
-            # on a pitch joint; the targets here lie on the yaw joint's back part)
-            b = readings.floor.part(chain.target[0], target_link).transform(
-                *readings.attitude.get(chain.target[0], (0, 0))
-            )
+            # on the robot, the target's part tilted as its module's IMU reads it (an
+            # approximation for a part on a pitch joint; the targets along the robot lie on the
+            # yaw joint's back part); a foot lying apart is flat: its IMU, at its centre, rocks
+            # with the creep's pitch, which its front part does not share that way
+            tilt = readings.attitude.get(chain.target[0], (0, 0)) if chain.anchor is None else (0, 0)
+            b = readings.floor.part(chain.target[0], target_link).transform(*tilt)
             out: np.ndarray = centre @ np.linalg.solve(a, b)
             return out
         return chain.target_part(self.measured(readings))
