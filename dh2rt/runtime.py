@@ -220,7 +220,8 @@ class ModuleRuntime:
         self.lateness_counts = [0] * (len(LATENESS_EDGES_MS) + 1)
         self.first_cycle_at: float | None = None
         #: the module's own work between recent cycle starts: CPU seconds its process used from
-        #: one cycle's start to the next (``cpu_clock``). A cycle that started late after little
+        #: one cycle's start to the next (``cpu_clock``: its thread's when modules are threads
+        #: of one process, hil.supervisor.ThreadModule). A cycle that started late after little
         #: work was held by the machine (another process had the processor); one that started
         #: late after as much work as the delay was held by the module itself
         self.work: deque[float] = deque(maxlen=LATENESS_WINDOW)
@@ -728,7 +729,7 @@ class ModuleRuntime:
         return _percentiles_ms(self.lateness)
 
     def work_ms(self) -> dict[str, float] | None:
-        """The module's own work (CPU time of its process) between the last LATENESS_WINDOW
+        """The module's own work (CPU time of its process, or thread) between the last LATENESS_WINDOW
         cycle starts, in ms: median, 99th percentile and worst; None before the second cycle.
         Beside :meth:`lateness_ms` it tells who held a late cycle: the module, or the machine."""
         return _percentiles_ms(self.work)

@@ -170,6 +170,7 @@ class ModuleHost:
         report: Reporter,
         on_cycle: Callable[[ModuleRuntime], None] | None = None,
         self_motion: bool | None = None,
+        cpu_clock: Callable[[], float] = time.process_time,
     ) -> None:
         self.config = config
         self.commands = commands
@@ -199,6 +200,7 @@ class ModuleHost:
             record=config.trace,
             module=self.module,
             name=config.label,
+            cpu_clock=cpu_clock,
         )
         #: links negotiated over the connectors' local channels (on a bus), or None
         self.links: NegotiatedLinks | None = None

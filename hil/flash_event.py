@@ -32,6 +32,9 @@ from hil.world import World
 #: Seconds a rollout may take before the flasher gives up.
 FLASH_TIMEOUT = 120.0
 
+#: Seconds a flasher told to stop has to leave its tick (one tick is a cycle period).
+STOP_GRACE = 10.0
+
 
 #: Outcomes of a module that runs the image.
 _RUNS_IT = frozenset({"committed", "current", "confirmed"})
@@ -77,6 +80,10 @@ class FlashEvent:
     _cable: tuple[int, Transport] | None = field(default=None, repr=False)
     _bus: BusCable | None = field(default=None, repr=False)
     _flash: FlashCable | None = field(default=None, repr=False)
+    #: set when the run ends before the flasher is done: it stops at its next tick
+    _stop: threading.Event = field(default_factory=threading.Event, repr=False)
+    #: the run ended while the flasher was still at work (not its own timeout)
+    cut_short: bool = False
 
 
 def is_flash_event(text: str) -> bool:
@@ -148,7 +155,7 @@ class FlashEvents:
                 self.progress.flush()
 
         ev._thread = threading.Thread(
-            target=lambda: cable.run(timeout=FLASH_TIMEOUT, progress=show),
+            target=lambda: cable.run(timeout=FLASH_TIMEOUT, stop=ev._stop, progress=show),
             name="dh2rt-flasher", daemon=True,
         )  # fmt: skip
         ev._thread.start()
@@ -188,6 +195,7 @@ class FlashEvents:
     def _finish(self, ev: FlashEvent) -> None:
         assert ev._flash is not None and ev._cable is not None
         ev.result = ev._flash.result()
+        ev.cut_short = ev._stop.is_set() and ev.result.timed_out
         link_or_mate, transport = ev._cable
         # the flasher's frames are the run's too (on a bus, with the spans it held its link end in)
         self.world.count_cable(transport.counters, transport.held_ends())
@@ -206,9 +214,13 @@ class FlashEvents:
     def close(self) -> None:
         """The run ends: flashers still running are stopped and their cables pulled out."""
         for ev in self.events:
+            ev._stop.set()
+        for ev in self.events:
             if ev._thread is not None and ev.result is None:
-                ev._thread.join(timeout=1.0)
-                if ev._flash is not None and ev._cable is not None:
+                # stopped at its next tick: its transport is closed only once it is out of it
+                # (closed under a running flasher, its thread once died mid-send)
+                ev._thread.join(timeout=STOP_GRACE)
+                if ev._flash is not None and ev._cable is not None and not ev._thread.is_alive():
                     self._finish(ev)
 
     def report(self) -> list[dict[str, object]]:
@@ -265,6 +277,8 @@ class FlashEvents:
             return "never started (the run ended first)"
         if self.event_succeeded(ev):
             return None
+        if ev.cut_short:
+            return f"the run ended before the flasher was done: it had heard of {len(r.modules)} module(s)"
         if r.failure is not None:
             return r.failure
         short = [row for row in self.rows(ev) if row.outcome not in _RUNS_IT]

@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -146,7 +147,11 @@ class ThreadModule:
         self.pid = os.getpid()
         self.commands: queue.Queue[Command] = queue.Queue()
         self._code: int | None = None
-        self.host = ModuleHost(config, self.commands, lambda rep: reports.put((module, rep)))
+        # the module's own work is its thread's CPU time: the process's is every module's and
+        # the world's physics (hil.launcher.machine_held reads it to tell who held a late cycle)
+        self.host = ModuleHost(
+            config, self.commands, lambda rep: reports.put((module, rep)), cpu_clock=time.thread_time
+        )
 
         def body() -> None:
             self._code = self.host.serve()

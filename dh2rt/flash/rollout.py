@@ -111,6 +111,17 @@ class _Job:
     def info(self) -> ImageInfo:
         return self.store.info
 
+    @property
+    def parent(self) -> int | None:
+        """The connector this module is named through (its name's last hop ends there): the
+        neighbour nearer the entry point, which never reports to it. Kept when the source is
+        lost (a link drop), unlike ``source``."""
+        return None if not self.name else self.name[-1][1]
+
+    def serves(self, connector: int) -> bool:
+        """Whether the neighbour on ``connector`` is (or was) this module's source."""
+        return connector == self.source or connector == self.parent
+
 
 class Rollout(Node):
     """The rollout state machine of one module (see :mod:`dh2rt.flash`).
@@ -582,7 +593,13 @@ class Rollout(Node):
             return
         store = job.store
         if job.role is not Role.RECEIVING:
-            self._send(port.connector, Ack(segment.tag, store.contiguous, 0))
+            if job.role in _HOLDING and not job.serves(port.connector):
+                # a neighbour pushing what this module took from another (its DECLINE was
+                # lost): an ACK of every segment would leave it waiting for a report that
+                # goes the other way for ever (issue 28: a flash after every link fell silent)
+                self._send(port.connector, Decline(job.info.image, DeclineReason.HAVE, self.running.version))
+            else:
+                self._send(port.connector, Ack(segment.tag, store.contiguous, 0))
             return
         before = store.contiguous
         try:
@@ -786,7 +803,10 @@ class Rollout(Node):
             return
         for port in self._ports.values():
             sender = port.sender
-            child = port.connector != job.source  # the source is never a child
+            # the source is never a child, nor the neighbour this module is named after (the
+            # source lost in a link drop, it may have been offered the image back and taken
+            # none: it reports to its own parent, never to this module)
+            child = not job.serves(port.connector)
             if child and sender is not None and sender.info.image == job.info.image and not sender.resolved:
                 return
             if port.attached_at is not None and self._tick - port.attached_at < self.timing.stall_ticks:

@@ -342,6 +342,62 @@ def test_a_link_dropped_mid_transfer_resumes(images: Images, seed: int, cycles: 
     assert sent < 3 * count  # resumed, not started over each time
 
 
+#: (seed, when): every case a sweep of 6 seeds and 24 instants found stuck before the fix
+#: (``when``: between the first module's staging, less 3 cycles, and the undisturbed run's end)
+BLIPS = [(0, 3 / 24), (0, 7 / 24), (1, 6 / 24), (2, 3 / 24), (3, 8 / 24), (5, 9 / 24)]
+
+
+@pytest.mark.parametrize(("seed", "when"), BLIPS)
+def test_every_link_silent_for_a_moment_while_staging_still_commits(images: Images, seed: int, when: float) -> None:
+    """Every link between modules falls silent for 4.5 cycles (a machine that held the
+    world's relay, as a CI run's flash under 5 % loss did) just as the modules stage: each
+    module loses its source, offers the image back to its parent, and the parent's DECLINE
+    may be lost on the lossy link. The module once took the parent's ACKs of its pushed
+    segments as a child's, waited for a report the parent sends the other way, and the
+    flasher heard of nobody nearer than the stuck module (stuck for ever)."""
+    undisturbed = World("snake:8", SERIAL, images, seed=seed, image=images.v2, loss=0.05)
+    undisturbed.run()
+    assert undisturbed.entry is not None and undisturbed.entry.done_at is not None
+    first = min(m.staged_at or math.inf for m in undisturbed) - 3 * PERIOD
+    at = first + (undisturbed.entry.done_at - first) * when
+    world = World("snake:8", SERIAL, images, seed=seed, image=images.v2, loss=0.05)
+    world.run(until=lambda: world.t >= at)
+    ends = [(link.a, link.a_conn) for link in world.topology.links]
+    for end in ends:
+        world.drop(end)
+    world.run_until(world.t + 4.5 * PERIOD)
+    for end in ends:
+        world.dock(end)
+    world.run(limit=at + 10.0)
+    assert world.flasher.succeeded and world.versions() == [2] * 8, world.summary()
+    assert len(world.flasher.report()) == 8
+
+
+def test_a_staged_module_declines_segments_from_a_neighbour_it_did_not_take_them_from(images: Images) -> None:
+    """A staged module that lost its source (a link drop) ACKs a segment from its parent (it
+    took the image from there) and DECLINEs one from its child: an ACK of every segment would
+    tell the child that this module took the image from it, and the child would wait for its
+    report (the other half of the stuck flash above; either half alone unsticks that sweep)."""
+    world = World("snake:8", SERIAL, images, seed=0, image=images.v2)
+    world.run(until=lambda: all(isinstance(m.machine, Rollout) and m.machine.role is Role.STAGED for m in world))
+    machine = world.modules[3].machine
+    assert isinstance(machine, Rollout) and machine.role is Role.STAGED
+    v1 = Program.from_image(images.v1)
+    for connector in (1, 2):  # both links fell silent, and their Hellos came again
+        machine.link_down(connector, world.t)
+        machine.hello(connector, 3 - connector, v1.version, v1.digest, world.t)
+    segment = tw.encode(2, tw.Segment(world.flasher.info.tag, 0, b"\0" * SERIAL.segment_size))
+
+    def answers(connector: int, now: float) -> set[type]:
+        """What goes back through ``connector`` for the segment (by the next tick: paced)."""
+        actions = machine.receive(connector, segment, now) + machine.tick(now + PERIOD)
+        sent = [tw.decode(a.data).message for a in actions if isinstance(a, Send) and a.connector == connector]
+        return {type(m) for m in sent} & {tw.Ack, tw.Decline}
+
+    assert answers(1, world.t) == {tw.Ack}  # its parent, through which it is named
+    assert answers(2, world.t + PERIOD) == {tw.Decline}  # its child
+
+
 # ---------------------------------------------------------------------------------------------
 # Refusals
 

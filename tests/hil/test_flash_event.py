@@ -110,3 +110,24 @@ def test_the_docs_example_the_same_program_at_version_2_names_all_8_modules(
     # no module held itself (by its rollout's work) as long as its liveness bound, and any link
     # lost is one the machine's holds explain (tests/hil/holds.py)
     assert_no_module_held_itself(summary)
+
+
+def test_a_run_that_ends_before_its_flasher_is_done_says_so_and_stops_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The modules' last cycle comes 5 cycles after the cable goes in: the run fails (exit 1)
+    naming why, and the flasher's thread is stopped before its transport closes (closed under
+    it, the thread once died mid-send: an unhandled thread exception, which pytest reports)."""
+    key_file = tmp_path / "robot.key"
+    write_key_pair(key_file)
+    image = _image(tmp_path, read_private_key(key_file), 2)
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--module-count", "4", "--cycles", "45", "--cycle-ms", "20",
+         "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
+    )  # fmt: skip
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 1, summary["problems"]
+    (rollout,) = summary["rollouts"]
+    assert not rollout["succeeded"]
+    assert rollout["failure"].startswith("the run ended before the flasher was done"), rollout["failure"]
