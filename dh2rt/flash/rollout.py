@@ -539,10 +539,12 @@ class Rollout(Node):
 
     def _offer_job(self, port: Port, *, again: bool = False) -> None:
         """Offer the image being rolled out through this module to the neighbour on ``port``
-        (not to its source), unless that neighbour has it in hand already (``again``: unless
-        it is taking it now)."""
+        (not to its source, nor to the neighbour it is named after: that one holds it, and a
+        cable there answers no offer), unless that neighbour has it in hand already
+        (``again``: unless it is taking it now). A neighbour that lost the image asks for it
+        (a probing REQUEST), and is offered it then."""
         job = self._job
-        if job is None or job.role not in _HOLDING or not port.linked or port.connector == job.source:
+        if job is None or job.role not in _HOLDING or not port.linked or job.serves(port.connector):
             return
         if job.name is None:
             return  # unnamed (resuming after a restart): it cannot name the modules it would serve

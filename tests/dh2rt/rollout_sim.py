@@ -21,6 +21,8 @@ from dh2rt.flash.values import Action, DropPartial, ImageInfo, Partial, Persist,
 from dh2rt.topology import Topology, parse_spec
 from dh2rt.wire import transfer as tw
 from dh2rt.wire.can_frames import CLASSIC_DATA
+from dh2rt.wire.frame import NO_PROGRAM
+from firmware.flash.cable import HELLO_TICKS
 
 PERIOD = 0.02  # 50 Hz cycles
 SILENCE = 3  # cycles of silence before liveness reports a link down
@@ -424,6 +426,9 @@ class Module(Node):
             self.run(self.machine.hello(connector, hello.sender, hello.version, hello.digest, self.local(at)))
 
     def take_link_frame(self, at: float, connector: int, frame: Frame) -> None:
+        if len(frame.payload) > LINK_FRAME and tw.decode_hello(frame.payload).digest == NO_PROGRAM:
+            super().take_link_frame(at, connector, frame)  # a cable: a tool, neither verified nor refused
+            return
         if len(frame.payload) > LINK_FRAME:
             self.hellos[connector] = (at, frame.payload)
             digest = tw.decode_hello(frame.payload).digest
@@ -478,6 +483,15 @@ class Entry(Node):
             expect=world.topology.size,
         )
         self.done_at: float | None = None
+        self.ticks = 0
+
+    def send_link_frames(self) -> None:
+        """Every HELLO_TICKS ticks the cable says it runs no program, as FlashCable does (the
+        7-byte Hello, no version): the module there hears the cable again after a silence."""
+        if self.ticks % HELLO_TICKS == 0:
+            payload = tw.encode_hello(CABLE, NO_PROGRAM, 0)[: 1 + len(NO_PROGRAM)]
+            self.world.transmit(self, CABLE, payload, link=True)
+        self.ticks += 1
 
     def tick(self) -> None:
         super().tick()

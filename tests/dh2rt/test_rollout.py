@@ -23,7 +23,8 @@ liveness is simulated far enough for the Hello: it sends one when a link comes u
 switch, every cycle to a neighbour it has not verified (no Hello heard, or one stating a
 program it refuses: neither its own nor tolerated), and in answer to a Hello when its own
 last one is three cycles old; it tells the Rollout a link is down three cycles after it went
-silent, and forgets the peer.
+silent, and forgets the peer. The entry point's cable says Hello (no program, no version)
+every HELLO_TICKS cycles, as FlashCable does.
 """
 
 from __future__ import annotations
@@ -342,19 +343,25 @@ def test_a_link_dropped_mid_transfer_resumes(images: Images, seed: int, cycles: 
     assert sent < 3 * count  # resumed, not started over each time
 
 
-#: (seed, when): every case a sweep of 6 seeds and 24 instants found stuck before the fix
-#: (``when``: between the first module's staging, less 3 cycles, and the undisturbed run's end)
-BLIPS = [(0, 3 / 24), (0, 7 / 24), (1, 6 / 24), (2, 3 / 24), (3, 8 / 24), (5, 9 / 24)]
+#: (seed, when, the cable too): every case a sweep of 6 seeds and 24 instants found stuck
+#: before the fix (``when``: between the first module's staging, less 3 cycles, and the
+#: undisturbed run's end), and two where the cable fell silent too and m0 was reported silent
+BLIPS = [(0, 3 / 24, False), (0, 7 / 24, False), (1, 6 / 24, False), (2, 3 / 24, False), (3, 8 / 24, False),
+         (5, 9 / 24, False), (0, 2 / 24, True), (5, 9 / 24, True)]  # fmt: skip
 
 
-@pytest.mark.parametrize(("seed", "when"), BLIPS)
-def test_every_link_silent_for_a_moment_while_staging_still_commits(images: Images, seed: int, when: float) -> None:
-    """Every link between modules falls silent for 4.5 cycles (a machine that held the
-    world's relay, as a CI run's flash under 5 % loss did) just as the modules stage: each
-    module loses its source, offers the image back to its parent, and the parent's DECLINE
-    may be lost on the lossy link. The module once took the parent's ACKs of its pushed
-    segments as a child's, waited for a report the parent sends the other way, and the
-    flasher heard of nobody nearer than the stuck module (stuck for ever)."""
+@pytest.mark.parametrize(("seed", "when", "cable"), BLIPS)
+def test_every_link_silent_for_a_moment_while_staging_still_commits(
+    images: Images, seed: int, when: float, cable: bool
+) -> None:
+    """Every link between modules (and the cable: ``cable``) falls silent for 4.5 cycles (a
+    machine that held the world's relay, as a CI run's flash under 5 % loss did) just as the
+    modules stage: each module loses its source and offers the image back to its parent,
+    whose DECLINE may be lost on the lossy link. The module once took the parent's ACKs of
+    its pushed segments as a child's and waited for a report the parent sends the other way:
+    the flasher heard of nobody nearer than the stuck module, for ever. The module at the
+    cable once offered the image to the cable, which answers no offer, and reported it
+    silent: every module committed, and the flash failed."""
     undisturbed = World("snake:8", SERIAL, images, seed=seed, image=images.v2, loss=0.05)
     undisturbed.run()
     assert undisturbed.entry is not None and undisturbed.entry.done_at is not None
@@ -362,7 +369,7 @@ def test_every_link_silent_for_a_moment_while_staging_still_commits(images: Imag
     at = first + (undisturbed.entry.done_at - first) * when
     world = World("snake:8", SERIAL, images, seed=seed, image=images.v2, loss=0.05)
     world.run(until=lambda: world.t >= at)
-    ends = [(link.a, link.a_conn) for link in world.topology.links]
+    ends = [(link.a, link.a_conn) for link in world.topology.links] + ([(world.entry_index, CABLE)] if cable else [])
     for end in ends:
         world.drop(end)
     world.run_until(world.t + 4.5 * PERIOD)
