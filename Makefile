@@ -29,8 +29,10 @@ demo: $(STAMP)
 # test-long (whole reconfigurations in the loop). The docs' examples among them run one at a
 # time after the rest: they are shell commands with no hil.pace to judge a slow run against a
 # bare loop, and two CI runs lost links or a cycle in a doc example beside a flash's loop run.
-# --durations: the slowest tests of each group, for whoever keeps make test within 10 minutes
-CPU_TESTS := $(BIN)/python -m pytest -q -n 2 --durations=15
+# --durations: the slowest tests of each group, for whoever keeps make test within 10 minutes.
+# The CPU group's tests marked slow start first (tests/conftest.py), and a worker that runs out
+# of tests takes some of the other's (worksteal): the group does not end on one long test.
+CPU_TESTS := $(BIN)/python -m pytest -q -n 2 --dist worksteal --durations=15
 REALTIME_TESTS := $(BIN)/python -m pytest -q -n 2 --durations=25
 REALTIME_LONG_TESTS := $(BIN)/python -m pytest -q -p no:xdist --durations=25
 

@@ -613,6 +613,7 @@ def test_pacing_on_a_can_bus(images: Images, seed: int) -> None:
 # The figure: time to flash against the links' limits
 
 
+@pytest.mark.slow
 def test_figure_time_to_flash_against_the_link_limits(images: Images, capsys: pytest.CaptureFixture[str]) -> None:
     """Cycles (20 ms) from the entry point's first cycle until every module has staged the
     caterpillar's signed image (and until every one has switched, commit margin included),

@@ -158,6 +158,7 @@ def test_without_the_creep_the_straight_tail_cannot_reach(seed: int) -> None:
         run.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", sweep([0, 1, 2]))
 @pytest.mark.parametrize("leg", ["left_leg1", "right_leg1"])
 def test_a_released_rear_foot_comes_to_the_tail_and_docks(seed: int, leg: str) -> None:

@@ -47,6 +47,7 @@ def check_latches(run: PhysicsRun, count: int) -> None:
         assert 0 < contact.ir_mm <= DOCK_TOLERANCE_M * 1000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", sweep([0, 1, 2]))
 def test_the_dragon_assimilates_its_legs_and_crawls_away_as_an_11_module_snake(seed: int) -> None:
     pitches: list[float] = []  # the docking chain's pitch joints as each dock begins (degrees)
@@ -89,6 +90,7 @@ WORLD_TRIP_11 = pytest.mark.xfail(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("when", "seed"),
     sweep(

@@ -58,6 +58,7 @@ DOCKS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "at"), sweep([(0, "m4"), (1, "m4"), (2, "m4")], keep=(2,)))
 def test_snake_becomes_quadruped_and_snake_in_physics_and_both_move(seed: int, at: str) -> None:
     prog = compile_file(str(EXAMPLES / "snake_to_quadruped.dh2"))
