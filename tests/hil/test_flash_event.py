@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -28,19 +29,24 @@ def _image(tmp_path: Path, key: bytes, version: int, clock_cycle: int = 20) -> P
     return path
 
 
+def _flash_four(tmp_path: Path, capsys: pytest.CaptureFixture[str], cycles: int) -> tuple[int, dict[str, Any]]:
+    """A snake of 4 on serial links for ``cycles`` cycles, version 2 flashed at cycle 40 through
+    m0; the exit code and the summary."""
+    key_file = tmp_path / "robot.key"
+    write_key_pair(key_file)
+    image = _image(tmp_path, read_private_key(key_file), 2)
+    code = PACE.call(
+        cli.main,
+        ["--transport", "serial", "--module-count", "4", "--cycles", str(cycles), "--cycle-ms", "20",
+         "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
+    )  # fmt: skip
+    return code, json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
 def test_a_flash_event_switches_every_module_and_the_summary_says_so(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    key_file = tmp_path / "robot.key"
-    write_key_pair(key_file)
-    key = read_private_key(key_file)
-    image = _image(tmp_path, key, 2)
-    code = PACE.call(
-        cli.main,
-        ["--transport", "serial", "--module-count", "4", "--cycles", "250", "--cycle-ms", "20",
-         "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
-    )  # fmt: skip
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    code, summary = _flash_four(tmp_path, capsys, 250)
     assert code == 0, summary["problems"]
     adds_up(summary["frames"])  # every frame of the rollout accounted for (issue 27)
     (rollout,) = summary["rollouts"]
@@ -118,15 +124,7 @@ def test_a_run_that_ends_before_its_flasher_is_done_says_so_and_stops_it(
     """The modules' last cycle comes 5 cycles after the cable goes in: the run fails (exit 1)
     naming why, and the flasher's thread is stopped before its transport closes (closed under
     it, the thread once died mid-send: an unhandled thread exception, which pytest reports)."""
-    key_file = tmp_path / "robot.key"
-    write_key_pair(key_file)
-    image = _image(tmp_path, read_private_key(key_file), 2)
-    code = PACE.call(
-        cli.main,
-        ["--transport", "serial", "--module-count", "4", "--cycles", "45", "--cycle-ms", "20",
-         "--stand-in", "recording", "--key", str(key_file), "--event", f"40:flash:m0:{image}", "--json"]
-    )  # fmt: skip
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    code, summary = _flash_four(tmp_path, capsys, 45)
     assert code == 1, summary["problems"]
     (rollout,) = summary["rollouts"]
     assert not rollout["succeeded"]
