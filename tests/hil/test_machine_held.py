@@ -4,11 +4,15 @@ bound after little work of the module's own; dh2rt's otherwise."""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import threading
 from types import SimpleNamespace
 from typing import Any, cast
 
 import pytest
 
+from dh2rt import cli
 from hil.launcher import links_held_by_machine, machine_held
 from hil.world import World
 
@@ -42,3 +46,31 @@ def test_who_held_the_links(relay_ms: float | None, late_ms: float, work_ms: flo
 
 def test_no_link_lost_is_not_the_machine_s() -> None:
     assert not links_held_by_machine(world(75.0, lost=0))
+
+
+@pytest.mark.realtime
+def test_a_module_run_as_a_thread_counts_its_own_work_not_the_process_s(capsys: pytest.CaptureFixture[str]) -> None:
+    """Modules on the in-process bus are threads of the launcher's process, beside its physics
+    (here a thread hashing, which lets go of the GIL, as PyBullet's stepping does): each
+    module's ``work_ms`` is its thread's CPU time, not the process's. Counted as the process's
+    (before the fifteenth session of issue 28), every module worked a whole period a cycle, so
+    machine_held blamed the modules for any link the machine lost: a CI run's docs example on
+    python-can's virtual bus failed with exit 1 where the machine had held it."""
+    stop = threading.Event()
+
+    def busy() -> None:
+        block = bytes(1 << 20)
+        while not stop.is_set():
+            hashlib.sha256(block).digest()
+
+    burner = threading.Thread(target=busy, name="test-busy", daemon=True)
+    burner.start()
+    try:
+        cli.main(["--transport", "inproc", "--module-count", "4", "--cycles", "80", "--stand-in", "none", "--json"])
+    finally:
+        stop.set()
+        burner.join()
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    period_ms = float(summary["cycle_period"]) * 1000
+    work = {row["name"]: row["work_ms"]["p50"] for row in summary["modules"]}
+    assert all(ms < period_ms / 4 for ms in work.values()), (work, period_ms)
