@@ -426,12 +426,9 @@ class Module(Node):
             self.run(self.machine.hello(connector, hello.sender, hello.version, hello.digest, self.local(at)))
 
     def take_link_frame(self, at: float, connector: int, frame: Frame) -> None:
-        if len(frame.payload) > LINK_FRAME and tw.decode_hello(frame.payload).digest == NO_PROGRAM:
-            super().take_link_frame(at, connector, frame)  # a cable: a tool, neither verified nor refused
-            return
-        if len(frame.payload) > LINK_FRAME:
+        digest = tw.decode_hello(frame.payload).digest if len(frame.payload) > LINK_FRAME else None
+        if digest is not None and digest != NO_PROGRAM:  # a cable (NO_PROGRAM) is a tool: neither verified nor refused
             self.hellos[connector] = (at, frame.payload)
-            digest = tw.decode_hello(frame.payload).digest
             self.peers[connector] = digest
             assert isinstance(self.machine, Rollout)
             if digest != self.program.digest and digest not in self.machine.tolerated():
@@ -483,15 +480,14 @@ class Entry(Node):
             expect=world.topology.size,
         )
         self.done_at: float | None = None
-        self.ticks = 0
 
     def send_link_frames(self) -> None:
-        """Every HELLO_TICKS ticks the cable says it runs no program, as FlashCable does (the
-        7-byte Hello, no version): the module there hears the cable again after a silence."""
-        if self.ticks % HELLO_TICKS == 0:
+        """Every HELLO_TICKS ticks, from the first, the cable says it runs no program, as
+        FlashCable does (the 7-byte Hello, no version): the module there hears the cable again
+        after a silence."""
+        if (self.machine.tick_count - 1) % HELLO_TICKS == 0:
             payload = tw.encode_hello(CABLE, NO_PROGRAM, 0)[: 1 + len(NO_PROGRAM)]
             self.world.transmit(self, CABLE, payload, link=True)
-        self.ticks += 1
 
     def tick(self) -> None:
         super().tick()
